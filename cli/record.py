@@ -1,0 +1,92 @@
+"""``tacest record``: make a run file from simulation, a serial tactile rig or video."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.option("--source", type=click.Choice(["sim", "serial", "video"]), default="sim", show_default=True,
+              help="Where the data comes from.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Run file to write (HDF5).")
+# --- sim -------------------------------------------------------------------------
+@click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True, help="[sim] 2-D or 3-D world.")
+@click.option("--object", "object_spec", default="box", show_default=True,
+              help="[sim] box, box:W,H[,D] (m), polygon, polygon:K, polytope, or a file of vertices.")
+@click.option("--seed", type=int, default=0, show_default=True, help="[sim] random seed.")
+@click.option("--pokes", type=click.IntRange(0, 1000), default=6, show_default=True, help="[sim] number of pokes.")
+@click.option("--fingers", type=click.IntRange(1, 3), default=1, show_default=True, help="[sim] fingertips.")
+@click.option("--effect", "effects", multiple=True, metavar="NAME[:key=value,...]",
+              help="[sim] inject an unmodelled effect (repeatable); see docs/effects.md.")
+@click.option("--noise-force", type=click.FloatRange(min=0), default=0.02, show_default=True,
+              help="[sim] force noise, N (one sigma).")
+@click.option("--noise-position", type=click.FloatRange(min=0), default=1e-4, show_default=True,
+              help="[sim] fingertip position noise, m.")
+@click.option("--noise-normal", type=click.FloatRange(min=0), default=0.02, show_default=True,
+              help="[sim] contact normal noise, rad.")
+@click.option("--no-force", is_flag=True, help="[sim] no force stream (contact and normal only).")
+@click.option("--observe-pose", type=click.FloatRange(min=0), default=None,
+              help="[sim] also write pose observations with this position sigma (m).")
+@click.option("--dt", type=click.FloatRange(min=1e-4, max=0.1), default=0.01, show_default=True,
+              help="[sim] sample period, s.")
+@click.option("--no-truth", is_flag=True, help="[sim] leave out the /truth group.")
+@click.option("--plan", "plan_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="[sim] execute the chosen action of this plan file (appends to OUTPUT if it exists).")
+# --- serial ----------------------------------------------------------------------
+@click.option("--port", default=None, help="[serial] device or pyserial URL (loop://, /dev/pts/N, ...).")
+@click.option("--baud", type=click.IntRange(min=1), default=115200, show_default=True, help="[serial] baud rate.")
+@click.option("--duration", type=click.FloatRange(min=0), default=None,
+              help="[serial] stop after this many seconds (default: until the link closes or Ctrl-C).")
+# --- video -----------------------------------------------------------------------
+@click.option("--frames", type=click.Path(exists=True), default=None,
+              help="[video] folder of images or a video file of the tactile camera.")
+@click.option("--calib", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="[video] dome calibration JSON (docs/tactile_video.md).")
+@click.option("--finger-log", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="[video] CSV of time stamps and fingertip positions.")
+@click.option("--quiet", is_flag=True, help="No progress output.")
+def record(source, output, **kw):
+    """Record a run file (SPEC run format) from SOURCE."""
+    output = Path(output)
+    quiet = kw.pop("quiet")
+    if source == "sim":
+        _record_sim(output, quiet=quiet, **kw)
+    elif source == "serial":
+        if not kw["port"]:
+            raise click.UsageError("--source serial needs --port")
+        from tacest.sensors.serial_rig import record_serial
+
+        record_serial(kw["port"], baud=kw["baud"], duration=kw["duration"], output=output,
+                      echo=(lambda *a, **k: None) if quiet else _echo_err)
+    else:
+        missing = [n for n in ("frames", "calib", "finger_log") if not kw[n]]
+        if missing:
+            raise click.UsageError("--source video needs " + ", ".join("--" + m.replace("_", "-") for m in missing))
+        from tacest.sensors.video import record_video
+
+        record_video(kw["frames"], kw["calib"], kw["finger_log"], output=output,
+                     echo=(lambda *a, **k: None) if quiet else _echo_err)
+
+
+def _echo_err(*args, **kwargs):
+    click.echo(*args, err=True, **kwargs)
+
+
+def _record_sim(output, quiet, **kw):
+    from tacest.io.run import write_run
+    from tacest.sim.record import SimOptions, record_sim
+
+    opts = SimOptions(
+        dim=int(kw["dim"]), object_spec=kw["object_spec"], seed=kw["seed"], pokes=kw["pokes"],
+        fingers=kw["fingers"], effects=list(kw["effects"]), noise_force=kw["noise_force"],
+        noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
+        observe_pose=kw["observe_pose"], dt=kw["dt"],
+    )
+    run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None,
+                     echo=(lambda *a, **k: None) if quiet else _echo_err)
+    write_run(run, output, include_truth=not kw["no_truth"])
+    if not quiet:
+        _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), "
+                  f"{0 if run.actions is None else len(run.actions.segments)} action(s)")

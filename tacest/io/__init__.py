@@ -1,0 +1,1 @@
+"""HDF5 file formats of SPEC: run, estimate and plan files."""
