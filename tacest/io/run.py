@@ -14,6 +14,11 @@ Array conventions (T samples, F fingers, D = dim, P = pose size = 3 or 7)::
     force            (T, F, D) N, mean force finger f exerts ON the object, world frame
     normal           (T, F, D) unit outward object normal at the contact, NaN where c = 0
     pose_obs         (T, P)    observed pose, NaN rows where missing
+    missing          (T,)      uint8, optional (``/quality/missing``, a tacest extension
+                               documented in docs/formats.md): 1 where the sample never
+                               arrived (serial gap); robot/tactile values there are
+                               placeholders (position interpolated, contact 0, force 0,
+                               normal NaN) and estimators give them no weight
 """
 
 from __future__ import annotations
@@ -104,6 +109,7 @@ class Run:
     ground_normal: Optional[np.ndarray] = None
     prior: dict = field(default_factory=dict)
     truth: Optional[Truth] = None
+    missing: Optional[np.ndarray] = None
     #: extra root attributes to keep (str -> JSON-able), e.g. recorder settings
     extra_attrs: dict = field(default_factory=dict)
     #: where it was read from (not written)
@@ -261,6 +267,11 @@ def _validate(run: Run, filename):
             val = getattr(run, name)
             if not (np.isfinite(val) and val > 0):
                 _fail(filename, f"/observations/pose attrs {name}", f"must be > 0, got {val}")
+    if run.missing is not None:
+        ms = np.asarray(run.missing)
+        _check_shape(filename, "/quality/missing", ms, (T,))
+        if not np.all(np.isin(ms, (0, 1))):
+            _fail(filename, "/quality/missing", "values must be 0 or 1")
     if run.actions is not None:
         seg = np.asarray(run.actions.segments)
         _check_shape(filename, "/actions/segments", seg, (None, 2))
@@ -351,6 +362,8 @@ def read_run(path) -> Run:
                                   ("sigma_angle", DEFAULT_SIGMA_ANGLE)):
                 holder = "/observations/pose" if name in f["/observations/pose"].attrs else "/observations"
                 setattr(run, name, r.attr_float(holder, name, default, positive=True))
+        if r.has("/quality/missing"):
+            run.missing = r.dataset("/quality/missing", (T,), dtype=float).astype(np.uint8)
         if r.has("/actions"):
             seg = r.dataset("/actions/segments", (None, 2), dtype=float)
             if np.any(seg != np.round(seg)):
@@ -444,6 +457,8 @@ def fill_run_file(f, run: Run, include_truth: bool = True) -> None:
         d = g.create_dataset("pose", data=np.asarray(run.pose_obs, float))
         d.attrs["sigma_position"] = float(run.sigma_position)
         d.attrs["sigma_angle"] = float(run.sigma_angle)
+    if run.missing is not None:
+        f.create_group("quality").create_dataset("missing", data=np.asarray(run.missing, np.uint8))
     if run.actions is not None:
         g = f.create_group("actions")
         g.create_dataset("segments", data=np.asarray(run.actions.segments, np.int64).reshape(-1, 2))
