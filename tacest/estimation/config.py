@@ -1,0 +1,128 @@
+"""Typed estimator settings, read from a TOML file (``configs/estimate.toml`` shows every
+key with its default and meaning).  Unknown keys are an error; the resolved settings
+are written into every estimate file (attr ``config``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tacest.errors import TacestError
+
+
+@dataclass
+class Noise:
+    """Noise levels that whiten the residuals (one sigma)."""
+
+    force: float = 0.05  #: N, measured finger force
+    normal: float = 0.05  #: rad, measured contact normal
+    contact_gap: float = 5e-4  #: m, finger–object gap while the contact flag is 1
+    process: float = 0.05  #: dynamics residual, as a fraction of m·g·dt (model error)
+    penetration: float = 5e-4  #: m, tolerated ground penetration
+    rest: float = 1e-3  #: m/s, velocity at t = 0 (the object starts at rest)
+
+
+@dataclass
+class Weights:
+    """Multipliers of the whitened loss terms (1 = trust the noise model as is)."""
+
+    force: float = 1.0
+    normal: float = 1.0
+    contact: float = 1.0
+    pose: float = 1.0
+    dynamics: float = 1.0
+    penetration: float = 1.0
+    complementarity: float = 1.0  #: per unit of (lambda_n / (m g dt)) · (phi / contact_gap)
+    dissipation: float = 1.0  #: per unit of (lambda / (m g dt)) · (slip / (L / s))
+
+
+@dataclass
+class Prior:
+    """Weak priors; they decide only what the data cannot."""
+
+    mass: float = 0.5  #: kg, median of a log-normal prior
+    mass_log_sigma: float = 1.5  #: sigma of log(mass)
+    friction: float = 0.5  #: prior mean of both friction coefficients
+    friction_sigma: float = 1.0
+    inertia_log_sigma: float = 0.3  #: sigma of log(I / I_uniform_density)
+    size: float = 0.1  #: m, starting extent when the run has no /prior size hint
+    size_bound: float = 0.5  #: m, largest extent when the run has no /prior size_bound
+    shape_sigma: float = 1.0  #: weak pull of the shape toward its start, in units of L
+
+
+@dataclass
+class Solver:
+    """IPOPT settings and the complementarity homotopy."""
+
+    linear_solver: str = "mumps"
+    tol: float = 1e-6
+    acceptable_tol: float = 1e-3
+    max_iter: int = 400  #: per homotopy stage
+    max_cpu_time: float = 600.0  #: s, per stage
+    #: relaxation stages: (smoothing epsilon of phi and slip, in units of the
+    #: contact gap / velocity scale;  complementarity weight multiplier)
+    homotopy: list = field(default_factory=lambda: [[1.0, 0.1], [0.1, 1.0], [0.01, 10.0]])
+    #: first stage with mass and friction held at their start values (DESIGN pitfalls)
+    staged: bool = False
+    print_every: int = 10  #: iterations between progress lines
+
+
+@dataclass
+class EstimatorConfig:
+    noise: Noise = field(default_factory=Noise)
+    weights: Weights = field(default_factory=Weights)
+    prior: Prior = field(default_factory=Prior)
+    solver: Solver = field(default_factory=Solver)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _fill(cls, data: dict, where: str):
+    if not isinstance(data, dict):
+        raise TacestError(f"{where}: expected a table")
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise TacestError(f"{where}: unknown key(s) {', '.join(unknown)}; valid: {', '.join(sorted(names))}")
+    kwargs = {}
+    for k, v in data.items():
+        default = getattr(cls(), k)
+        if dataclasses.is_dataclass(default):
+            kwargs[k] = _fill(type(default), v, f"{where}.{k}")
+        elif isinstance(default, bool):
+            if not isinstance(v, bool):
+                raise TacestError(f"{where}.{k}: expected true or false, got {v!r}")
+            kwargs[k] = v
+        elif isinstance(default, (int, float)) and not isinstance(default, bool):
+            if not isinstance(v, (int, float)) or isinstance(v, bool):
+                raise TacestError(f"{where}.{k}: expected a number, got {v!r}")
+            kwargs[k] = type(default)(v)
+        else:
+            kwargs[k] = v
+    return cls(**kwargs)
+
+
+def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
+    """Defaults, updated by the TOML file at ``path`` (if any) and then ``overrides``."""
+    data: dict = {}
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise TacestError(f"{p}: no such config file")
+        try:
+            data = tomllib.loads(p.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise TacestError(f"{p}: not valid TOML ({exc})") from None
+    for section, values in (overrides or {}).items():
+        data.setdefault(section, {}).update(values)
+    cfg = _fill(EstimatorConfig, data, str(path) if path else "config")
+    hom = cfg.solver.homotopy
+    if not hom or not all(isinstance(s, (list, tuple)) and len(s) == 2 and all(x > 0 for x in s) for s in hom):
+        raise TacestError("solver.homotopy: expected a list of [epsilon, weight] pairs of positive numbers")
+    if cfg.solver.linear_solver not in ("mumps", "spral", "ma27", "ma57", "ma86", "ma97"):
+        raise TacestError(f"solver.linear_solver: unknown {cfg.solver.linear_solver!r}")
+    return cfg

@@ -1,0 +1,105 @@
+"""Turn run files into the NLP's parameter vector (data are parameters, never variables)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.problem import G, G_NAMES, TERMS, Problem2D
+from tacest.io.run import Run
+
+GRAVITY = 9.81
+
+
+@dataclass
+class Scales:
+    """Problem scales: L (m) length, m0 (kg) reference mass.  Impulses are scaled per run by
+    m0·g·dt (N·s), velocities by L per second."""
+
+    L: float
+    m0: float
+
+
+def choose_scales(runs: list[Run], config: EstimatorConfig) -> Scales:
+    """Length scale from the prior size hint (or the config default); mass from the prior."""
+    sizes = [float(r.prior["size"]) for r in runs if "size" in r.prior]
+    L = float(np.median(sizes)) if sizes else config.prior.size
+    masses = [float(r.prior["mass"]) for r in runs if "mass" in r.prior]
+    m0 = float(np.median(masses)) if masses else config.prior.mass
+    return Scales(L=L, m0=m0)
+
+
+def finger_velocity(run: Run) -> np.ndarray:
+    """(T, F, D) backward-difference fingertip velocity, m/s (0 at sample 0)."""
+    fp = run.finger_position
+    v = np.zeros_like(fp)
+    v[1:] = np.diff(fp, axis=0) / run.dt
+    return v
+
+
+def data_matrix(run: Run, F: int) -> np.ndarray:
+    """(T, n_data) per-sample data in the layout of :meth:`Problem2D.n_data`."""
+    T = run.n_samples
+    cols = []
+    if F:
+        fp = run.finger_position
+        contact = run.contact.astype(float)
+        valid = np.ones(T) if run.missing is None else 1.0 - run.missing.astype(float)
+        n_meas = np.where(np.isfinite(run.normal), run.normal, 0.0)
+        force = run.force if run.force is not None else np.zeros_like(fp)
+        w_force = np.zeros((T, F)) if run.force is None else np.repeat(valid[:, None], F, 1)
+        w_tact = np.repeat(valid[:, None], F, 1)
+        contact = contact * w_tact
+        cols += [fp.reshape(T, -1), finger_velocity(run).reshape(T, -1), contact, n_meas.reshape(T, -1),
+                 force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0)]
+    if run.pose_obs is not None:
+        obs = run.pose_obs.copy()
+        ok = np.all(np.isfinite(obs), axis=1)
+        if ok.any():
+            obs[ok, 2] = np.unwrap(obs[ok, 2])
+        obs[~ok] = 0.0
+        cols += [obs, ok.astype(float)[:, None]]
+    else:
+        cols += [np.zeros((T, 3)), np.zeros((T, 1))]
+    D = np.concatenate(cols, axis=1)
+    return D
+
+
+def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float, comp_mult: float) -> np.ndarray:
+    nz = config.noise
+    g = np.zeros(len(G_NAMES))
+    up = run.up
+    vals = dict(dt=run.dt, L=scales.L, Lam=scales.m0 * GRAVITY * run.dt, m0=scales.m0, nx=up[0], ny=up[1],
+                h=run.ground_height, sig_force=nz.force, sig_normal=nz.normal, sig_gap=nz.contact_gap,
+                sig_proc=nz.process, sig_pen=nz.penetration, sig_rest=nz.rest,
+                sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult)
+    for k, v in vals.items():
+        g[G[k]] = v
+    return g
+
+
+def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config: EstimatorConfig,
+                     eps: float, comp_mult: float, s_ref: np.ndarray, weights_override: dict | None = None):
+    """The full parameter vector p for :attr:`Problem2D.nlp`."""
+    if len(runs) != len(problem.structures):
+        raise TacestError("internal: runs do not match the problem structure")
+    parts = [np.array([scales.L, scales.m0])]
+    for run, st in zip(runs, problem.structures):
+        if run.n_samples != st.T:
+            raise TacestError("internal: run length does not match the problem structure")
+        parts.append(global_vector(run, scales, config, eps, comp_mult))
+        parts.append(data_matrix(run, st.F).reshape(-1))
+    w = config.weights
+    wd = {t: getattr(w, t) for t in TERMS}
+    wd.update(weights_override or {})
+    parts.append(np.array([wd[t] for t in TERMS], float))
+    pr = config.prior
+    parts.append(np.array([pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
+                           pr.shape_sigma, 1.0]))
+    parts.append(np.asarray(s_ref, float))
+    p = np.concatenate(parts)
+    assert p.shape[0] == problem.n_p_total
+    return p

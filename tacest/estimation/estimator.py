@@ -1,0 +1,252 @@
+"""``estimate(runs, shape, config)``: the implicit (physics-residual) estimator, end to end.
+
+Pipeline: scales → shape start → consistent initial guess → staged homotopy solves
+(IPOPT) → unscaled trajectories, per-sample residuals, observed information → an
+:class:`tacest.io.estimate.Estimate`.  A failed IPOPT solve raises SolveFailedError.
+"""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector
+from tacest.estimation.initial import initial_extents, initial_guess
+from tacest.estimation.problem import PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, TERMS, RunStructure
+from tacest.estimation.solver import SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
+from tacest.geometry.shapes import make_shape, numeric_vertices
+from tacest.io.estimate import Estimate, RunEstimate
+from tacest.io.h5util import sha256_file
+from tacest.io.run import Run
+
+#: log(I / I_uniform) bounds: below, a ring-like mass distribution; ln 2 keeps
+#: I <= m · r_max² for any convex shape (physically valid)
+LOG_INERTIA_BOUNDS = (-1.5, float(np.log(2.0)))
+LOG_MASS_BOUNDS = (-6.0, 6.0)
+FRICTION_BOUNDS = (0.01, 2.0)
+
+
+def _noop(*_a, **_k):
+    pass
+
+
+def check_runs(runs: list[Run]):
+    if not runs:
+        raise TacestError("no run files given")
+    dims = {r.dim for r in runs}
+    if len(dims) > 1:
+        raise TacestError("runs mix 2-D and 3-D recordings; estimate them separately")
+    if dims != {2}:
+        raise TacestError("3-D estimation is not available in this version (2-D runs only)")
+    for r in runs:
+        if r.n_samples < 3:
+            raise TacestError(f"{r.filename}: needs at least 3 samples")
+
+
+class ImplicitEstimator:
+    """Implicit estimator for a set of runs of one object (2-D)."""
+
+    def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
+                 echo=None):
+        check_runs(runs)
+        self.runs = runs
+        self.config = config or EstimatorConfig()
+        self.echo = echo or _noop
+        self.shape = make_shape(shape_spec, dim=2)
+        self.scales: Scales = choose_scales(runs, self.config)
+        self.structures = [RunStructure(T=r.n_samples, F=r.n_fingers) for r in runs]
+        self.has_force = any(r.force is not None for r in runs)
+        size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
+        self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound
+        w, h = initial_extents(runs, self.scales.L)
+        self.s0 = self.shape.initial(w / self.scales.L, h / self.scales.L)
+        t0 = time.perf_counter()
+        self.built = get_solver(self.shape, self.structures, self.config)
+        self.build_time = time.perf_counter() - t0
+        self.problem = self.built.problem
+
+    # --------------------------------------------------------------------------------
+    def variable_bounds(self, fix_phys: bool):
+        pr, K = self.problem, self.problem.K
+        lbx = np.full(pr.n_z, -np.inf)
+        ubx = np.full(pr.n_z, np.inf)
+        ns = pr.n_shape
+        lo, hi = self.shape.bounds(self.size_bound / self.scales.L)
+        lbx[:ns], ubx[:ns] = lo, hi
+        lbx[ns:ns + 4] = [LOG_MASS_BOUNDS[0], LOG_INERTIA_BOUNDS[0], FRICTION_BOUNDS[0], FRICTION_BOUNDS[0]]
+        ubx[ns:ns + 4] = [LOG_MASS_BOUNDS[1], LOG_INERTIA_BOUNDS[1], FRICTION_BOUNDS[1], FRICTION_BOUNDS[1]]
+        if not self.has_force:  # DESIGN: without a force stream mass is not identifiable
+            lbx[ns] = ubx[ns] = 0.0
+        if fix_phys:
+            z0 = self.z
+            for j in range(ns, ns + 4):
+                lbx[j] = ubx[j] = z0[j]
+        for i, (run, st) in enumerate(zip(self.runs, self.structures)):
+            off = pr.offsets[i]
+            a, n = off["LG"]
+            lg_lb = lbx[a: a + n].reshape(-1, 2 * K).T
+            lg_lb[:K] = 0.0  # lambda_n >= 0
+            lbx[a: a + n] = lg_lb.T.reshape(-1)
+            if st.F:
+                a, n = off["LF"]
+                lf_lb = np.full((2 * st.F, st.T - 1), -np.inf)
+                lf_ub = np.full((2 * st.F, st.T - 1), np.inf)
+                lf_lb[: st.F] = 0.0
+                on = run.contact[1:].astype(bool).T
+                if run.missing is not None:
+                    on &= ~run.missing[1:].astype(bool)[None, :]
+                off_rows = np.vstack([~on, ~on])
+                lf_lb[off_rows] = 0.0
+                lf_ub[off_rows] = 0.0
+                lbx[a: a + n] = lf_lb.T.reshape(-1)
+                ubx[a: a + n] = lf_ub.T.reshape(-1)
+        if self.shape.name != "box" and not any(r.pose_obs is not None for r in self.runs):
+            # gauge: a free polygon can rotate in its body frame; fix the start angle of run 0
+            a = pr.offsets[0]["Q"][0] + 2
+            lbx[a] = ubx[a] = self.z[a]
+        return lbx, ubx
+
+    def params(self, eps, comp_mult):
+        return parameter_vector(self.problem, self.runs, self.scales, self.config, eps, comp_mult, self.s0)
+
+    # --------------------------------------------------------------------------------
+    def solve(self) -> SolveOutcome:
+        cfg = self.config.solver
+        self.z = initial_guess(self.problem, self.runs, self.scales, self.s0)
+        stages = []
+        hom = list(cfg.homotopy)
+        plan = []
+        if cfg.staged:
+            plan.append(("shape+pose", hom[0][0], hom[0][1], True))
+        for k, (eps, w) in enumerate(hom):
+            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, False))
+        lam_x = lam_g = None
+        total_t = 0.0
+        for label, eps, w, fix in plan:
+            lbx, ubx = self.variable_bounds(fix_phys=fix)
+            self.z = np.clip(self.z, lbx, ubx)
+            sol, info = self.built.solve(self.z, self.params(eps, w), lbx, ubx, lam_x, lam_g,
+                                         label=label, echo=self.echo)
+            stages.append(info)
+            total_t += info.wall_time
+            self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
+                      f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+            check_success(info)
+            self.z = np.asarray(sol["x"]).reshape(-1)
+            lam_x = np.asarray(sol["lam_x"]).reshape(-1)
+            lam_g = np.asarray(sol["lam_g"]).reshape(-1)
+        last = stages[-1]
+        self.p_final = self.params(plan[-1][1], plan[-1][2])
+        return SolveOutcome(z=self.z, lam_g=lam_g, lam_x=lam_x, status=last.status,
+                            success=last.status in SUCCESS_STATUSES,
+                            iterations=sum(s.iterations for s in stages), wall_time=total_t,
+                            objective=last.objective, stages=stages)
+
+    # --------------------------------------------------------------------------------
+    def physical(self, z):
+        V, mass, inertia, mu_g, mu_f, area = self.problem.phys_fun(z, self.p_final)
+        return (np.array(V), float(mass), float(inertia), float(mu_g), float(mu_f))
+
+    def per_sample_residuals(self, z, i):
+        """{term: (T,)} value of each loss term per sample of run i (0.5 ||r||² for the
+        squared terms, the penalty value for the others), weights not applied."""
+        pr = self.problem
+        st = self.structures[i]
+        Q, Vv, LG, LF = pr.run_blocks(z, i)
+        p = self.p_final
+        a, ng, nd = pr.p_offsets[i]
+        g = p[a: a + ng]
+        D = p[a + ng: a + ng + nd].reshape(st.T, -1).T
+        V, mass, inertia, mu_g, mu_f = self.physical(z)
+        phys = np.concatenate([V.T.reshape(-1), [mass, inertia, mu_g, mu_f]])
+        out = pr.stage_funs[i].map(st.T - 1)(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, D[:, 1:], g)
+        res = dict(zip(pr.stage_funs[i].name_out(), out))
+        o0 = dict(zip(["rest", "penetration", "pose", "contact"],
+                      pr._start_function(st.F)(Q[:, 0], Vv[:, 0], phys, D[:, 0], g)))
+        result = {}
+        for t in TERMS:
+            arr = np.asarray(res[t])
+            vals = 0.5 * np.sum(arr**2, axis=0) if t in SQUARED_TERMS else arr.reshape(-1)
+            first = 0.0
+            if t == "dynamics":
+                first = 0.5 * float(ca.sumsqr(o0["rest"]))
+            elif t in ("penetration", "pose", "contact"):
+                first = 0.5 * float(ca.sumsqr(o0[t]))
+            result[t] = np.concatenate([[first], vals])
+        result["kinematics"] = np.concatenate([[0.0], np.linalg.norm(np.asarray(res["g_kin"]), axis=0)])
+        return result
+
+    def trajectories(self, z, i):
+        """Unscaled pose (T, 3), velocity (T, 3) and impulses of run i."""
+        Q, Vv, LG, LF = self.problem.run_blocks(z, i)
+        L = self.scales.L
+        scale = np.array([L, L, 1.0])
+        pose = Q.T * scale
+        vel = Vv.T * scale
+        run = self.runs[i]
+        Lam = self.scales.m0 * GRAVITY * run.dt
+        K = self.problem.K
+        T = run.n_samples
+        imp = {
+            "ground_normal": np.vstack([np.zeros((1, K)), LG[:K].T * Lam]),
+            "ground_tangent": np.vstack([np.zeros((1, K)), LG[K:].T * Lam]),
+        }
+        F = self.structures[i].F
+        if F:
+            imp["finger_normal"] = np.vstack([np.zeros((1, F)), LF[:F].T * Lam])
+            imp["finger_tangent"] = np.vstack([np.zeros((1, F)), LF[F:].T * Lam])
+        assert imp["ground_normal"].shape[0] == T
+        return pose, vel, imp
+
+
+def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
+                  echo=None, method: str = "implicit") -> Estimate:
+    """Estimate one object's parameters and each run's trajectory.  See module docstring."""
+    from tacest.information.observed import observed_information
+
+    echo = echo or _noop
+    t_start = time.perf_counter()
+    if method == "shooting":
+        from tacest.estimation.shooting import estimate_shooting
+
+        return estimate_shooting(runs, shape_spec, config, echo)
+    if method != "implicit":
+        raise TacestError(f"unknown method {method!r}: use implicit or shooting")
+    est = ImplicitEstimator(runs, shape_spec, config, echo)
+    echo(f"built NLP: {est.problem.n_z} variables, {est.problem.g.shape[0]} constraints "
+         f"({est.build_time:.1f} s)")
+    out = est.solve()
+    V, mass, inertia, mu_g, mu_f = est.physical(out.z)
+    run_ests = []
+    for i, run in enumerate(runs):
+        pose, vel, imp = est.trajectories(out.z, i)
+        res = est.per_sample_residuals(out.z, i)
+        src = run.filename or ""
+        sha = sha256_file(src) if src else ""
+        run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res,
+                                    source_file=src, source_sha256=sha))
+    info, names, std = observed_information(est, out.z)
+    params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
+    identifiable = {
+        "mass": est.has_force,
+        "inertia": est.has_force,
+        "friction_ground": True,
+        "friction_finger": any(r.n_fingers for r in runs),
+    }
+    for k in ("friction_ground", "friction_finger"):
+        if k in std and np.isfinite(std[k]) and std[k] > 0.5 * max(params[k], 1e-3):
+            identifiable[k] = False
+    wall = time.perf_counter() - t_start
+    return Estimate(
+        dim=2, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=[],
+        solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
+        objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
+        config=est.config.to_dict(), method="implicit",
+        extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
+                                          for s in out.stages),
+                     "length_scale": est.scales.L, "mass_scale": est.scales.m0},
+    )

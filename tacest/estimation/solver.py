@@ -1,0 +1,149 @@
+"""Solving the NLP with IPOPT: build once per structure, homotopy, warm starts, honest status."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from tacest.errors import SolveFailedError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.problem import Problem2D, RunStructure
+
+#: IPOPT statuses that count as a solution
+SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+_CACHE: dict = {}
+
+
+@dataclass
+class StageInfo:
+    name: str
+    status: str
+    iterations: int
+    wall_time: float
+    objective: float
+
+
+@dataclass
+class SolveOutcome:
+    """What IPOPT returned over all homotopy stages."""
+
+    z: np.ndarray
+    lam_g: np.ndarray
+    lam_x: np.ndarray
+    status: str
+    success: bool
+    iterations: int
+    wall_time: float
+    objective: float
+    stages: list = field(default_factory=list)
+
+
+class _Progress(ca.Callback):
+    """IPOPT iteration callback: one progress line every ``every`` iterations."""
+
+    def __init__(self, nx, ng, lbg, ubg, every):
+        ca.Callback.__init__(self)
+        self.nx, self.ng = nx, ng
+        self.lbg, self.ubg = lbg, ubg
+        self.every = max(1, int(every))
+        self.echo = None
+        self.label = ""
+        self.it = 0
+        self.construct("progress", {"enable_fd": False})
+
+    def get_n_in(self):
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self):
+        return 1
+
+    def get_name_in(self, i):
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i):
+        return "ret"
+
+    def get_sparsity_in(self, i):
+        n = ca.nlpsol_out(i)
+        if n == "f":
+            return ca.Sparsity.scalar()
+        if n in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.nx)
+        if n in ("g", "lam_g"):
+            return ca.Sparsity.dense(self.ng)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg):
+        if self.echo is not None and self.it % self.every == 0:
+            g = np.asarray(arg[ca.nlpsol_out().index("g")]).reshape(-1)
+            inf = float(np.max(np.concatenate([[0.0], self.lbg - g, g - self.ubg]))) if g.size else 0.0
+            f = float(arg[ca.nlpsol_out().index("f")])
+            self.echo(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
+        self.it += 1
+        return [0]
+
+
+class BuiltSolver:
+    """A Problem2D and its IPOPT solver, built once per (shape, structures, options)."""
+
+    def __init__(self, problem: Problem2D, config: EstimatorConfig):
+        self.problem = problem
+        sc = config.solver
+        self.progress = _Progress(problem.n_z, problem.g.shape[0], problem.lbg, problem.ubg, sc.print_every)
+        opts = {
+            "expand": True,
+            "print_time": False,
+            "iteration_callback": self.progress,
+            "ipopt": {
+                "print_level": 0,
+                "sb": "yes",
+                "linear_solver": sc.linear_solver,
+                "tol": sc.tol,
+                "acceptable_tol": sc.acceptable_tol,
+                "acceptable_iter": 10,
+                "max_iter": sc.max_iter,
+                "max_cpu_time": sc.max_cpu_time,
+                "mu_strategy": "adaptive",
+                "warm_start_init_point": "yes",
+                "warm_start_bound_push": 1e-6,
+                "warm_start_mult_bound_push": 1e-6,
+                "bound_relax_factor": 1e-9,
+            },
+        }
+        self.solver = ca.nlpsol("tacest_nlp", "ipopt", problem.nlp, opts)
+
+    def solve(self, z0, p, lbx, ubx, lam_x0=None, lam_g0=None, label="", echo=None):
+        pr = self.problem
+        self.progress.echo = echo
+        self.progress.label = label
+        self.progress.it = 0
+        args = dict(x0=z0, p=p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
+        if lam_x0 is not None:
+            args["lam_x0"] = lam_x0
+        if lam_g0 is not None:
+            args["lam_g0"] = lam_g0
+        t0 = time.perf_counter()
+        sol = self.solver(**args)
+        wall = time.perf_counter() - t0
+        st = self.solver.stats()
+        return sol, StageInfo(name=label, status=st.get("return_status", "unknown"),
+                              iterations=int(st.get("iter_count", 0)), wall_time=wall,
+                              objective=float(sol["f"]))
+
+
+def get_solver(shape, structures: list[RunStructure], config: EstimatorConfig) -> BuiltSolver:
+    """The cached solver for this structure (built on first use)."""
+    key = (shape.name, tuple(structures), repr(config.solver))
+    if key not in _CACHE:
+        _CACHE[key] = BuiltSolver(Problem2D(shape, structures, config), config)
+    return _CACHE[key]
+
+
+def check_success(info: StageInfo):
+    if info.status not in SUCCESS_STATUSES:
+        raise SolveFailedError(f"IPOPT failed in stage {info.name!r}: {info.status} after {info.iterations} "
+                               "iterations (no estimate written)")

@@ -1,0 +1,110 @@
+"""Observed (Gauss–Newton) information of the parameters from CasADi's symbolic Jacobians.
+
+With r(z) the stacked whitened residuals (each term times sqrt of its weight) and J its
+Jacobian with respect to the free decision variables z = (theta, states, impulses),
+the observed information is I = Jᵀ J.  The states and impulses are nuisance variables:
+the information of theta (and the final pose of the last run) is the Schur complement
+
+    I_θ = I_θθ - I_θx (I_xx + δ I)⁻¹ I_xθ,
+
+with δ a tiny ridge for directions the squared residuals do not see (e.g. impulse
+splits among ground vertices that only the complementarity penalties decide).  The
+kinematic equality constraints (eq. D2) enter as residuals with a tight sigma
+(:data:`KINEMATICS_SIGMA`), their Gauss–Newton stand-in.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from tacest.estimation.problem import SQUARED_TERMS, TERMS
+
+#: scaled units (L per second) of the stand-in residual for eq. D2; 1e-4 is far tighter
+#: than any measurement, so it acts as the constraint without dominating the conditioning
+KINEMATICS_SIGMA = 1e-4
+#: relative ridge on the nuisance block (times its largest diagonal entry)
+RIDGE = 1e-10
+
+
+def residual_jacobian_function(problem):
+    """CasADi Function (z, p) -> (r, J) of the stacked whitened residuals; cached per problem."""
+    if getattr(problem, "_rjac", None) is None:
+        w = problem.weight_sym
+        parts = [ca.sqrt(w[TERMS.index(t)]) * problem.residual_stack[t] for t in SQUARED_TERMS]
+        parts.append(problem.residual_stack["kinematics"] / KINEMATICS_SIGMA)
+        r = ca.vertcat(*parts)
+        z = problem.z_sym
+        J = ca.jacobian(r, z)
+        problem._rjac = ca.Function("r_jac", [z, problem.p_sym], [r, J]).expand()
+    return problem._rjac
+
+
+def information_names(est):
+    """Row names of the reported information matrix (physical parameters + final pose)."""
+    shape = est.shape
+    if shape.name == "box":
+        shape_names = ["width", "height"]
+    else:
+        shape_names = [f"vertex{k}_{c}" for k in range(shape.n_vertices) for c in "xy"]
+    return shape_names + ["mass", "inertia_log_ratio", "friction_ground", "friction_finger",
+                          "final_x", "final_y", "final_angle"]
+
+
+def observed_information(est, z, lbx=None, ubx=None):
+    """(I (n, n), names (n,), std {name: sigma}) at the solution z of an ImplicitEstimator.
+
+    Parameters are in physical units: lengths m, mass kg, inertia as log ratio to the
+    uniform-density value, friction dimensionless, final pose m / rad.  Fixed variables
+    (bounds equal) get zero information and infinite std.
+    """
+    pr = est.problem
+    rj = residual_jacobian_function(pr)
+    _, J = rj(z, est.p_final)
+    J = J.sparse() if hasattr(J, "sparse") else sp.csc_matrix(np.array(J))
+    J = sp.csc_matrix(J)
+    n_theta = pr.n_theta
+    last = len(pr.structures) - 1
+    qa = pr.offsets[last]["Q"][0] + 3 * (pr.structures[last].T - 1)
+    keep = list(range(n_theta)) + [qa, qa + 1, qa + 2]
+    if lbx is None:
+        lbx, ubx = est.variable_bounds(fix_phys=False)
+    fixed = np.asarray(lbx) == np.asarray(ubx)
+    n = pr.n_z
+    is_keep = np.zeros(n, bool)
+    is_keep[keep] = True
+    nuis = np.nonzero(~is_keep & ~fixed)[0]
+    A = J[:, keep]
+    B = J[:, nuis]
+    I_tt = (A.T @ A).toarray()
+    I_tx = (A.T @ B).tocsc()
+    I_xx = (B.T @ B).tocsc()
+    ridge = RIDGE * max(float(I_xx.diagonal().max()), 1.0)
+    lu = spla.splu((I_xx + ridge * sp.identity(I_xx.shape[0], format="csc")).tocsc())
+    X = lu.solve(I_tx.T.toarray())
+    I_s = I_tt - I_tx @ X
+    I_s = 0.5 * (I_s + I_s.T)
+    # scaled -> physical units: z_scaled = D · physical  =>  I_phys = D I D
+    L = est.scales.L
+    V, mass, *_ = est.physical(z)
+    d = np.ones(len(keep))
+    d[: pr.n_shape] = 1.0 / L
+    d[pr.n_shape] = 1.0 / mass  # d log m / d m
+    d[n_theta: n_theta + 2] = 1.0 / L
+    I_phys = I_s * np.outer(d, d)
+    kept_fixed = fixed[keep]
+    I_phys[kept_fixed, :] = 0.0
+    I_phys[:, kept_fixed] = 0.0
+    names = information_names(est)
+    std = {}
+    free = ~kept_fixed
+    try:
+        cov = np.full_like(I_phys, np.nan)
+        cov[np.ix_(free, free)] = np.linalg.pinv(I_phys[np.ix_(free, free)], rcond=1e-12, hermitian=True)
+        for k, name in enumerate(names):
+            std[name] = float(np.sqrt(cov[k, k])) if free[k] and cov[k, k] > 0 else float("inf")
+    except np.linalg.LinAlgError:
+        std = {name: float("nan") for name in names}
+    return I_phys, names, std
