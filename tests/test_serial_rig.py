@@ -433,3 +433,20 @@ def test_header_for_run_matches_format():
     text = format_header(header_for_run(run))
     assert text == "#TACEST,1,dim=3,fingers=2,radius=0.01,dt=0.001"
     assert math.isclose(header_for_run(run).dt, 0.001)
+
+
+def test_output_folder_vanishing_is_a_one_line_error(tmp_path):
+    import shutil
+
+    folder = tmp_path / "sub"
+    folder.mkdir()
+    out = folder / "rec.h5"
+    _, chunks = _chunks(100, per=10)
+
+    def remove(i):
+        if i == 5:
+            shutil.rmtree(folder)
+
+    with pytest.raises(TacestError) as exc:
+        record_stream(FakeStream(chunks, on_read=remove), out, echo=quiet, snapshot_interval=0.0)
+    assert "does not exist" in str(exc.value) and "\n" not in str(exc.value)
