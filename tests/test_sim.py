@@ -1,0 +1,309 @@
+"""The 2-D pymunk recorder: contact force and normal conventions on hand-built cases,
+known-answer physics, recorded files for every object kind, plans and continuation."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from tacest.errors import TacestError
+from tacest.io.plan import Plan, write_plan
+from tacest.io.run import read_run, write_run
+from tacest.sim.effects import effects_from_json
+from tacest.sim.objects import SimObject, box_vertices, polygon_properties
+from tacest.sim.pokes import POKE_NAMES
+from tacest.sim.record import (SimOptions, WorldState, initial_state, record_sim, simulate_pokes,
+                               state_from_run)
+from tacest.sim.world import MAX_FINGER_FORCE
+
+G = 9.81
+#: noise-free recordings, so the tests see the physics exactly
+CLEAN = dict(noise_force=0.0, noise_position=0.0, noise_normal=0.0)
+#: pymunk's contact slop (1e-4 m) plus solver drift: how far a resting body may sink
+SLOP_TOL = 3e-4
+#: normals from pymunk's circle-polygon contact are exact face normals up to the tilt
+#: the iterative solver leaves on a resting box (~1e-5 rad); 1e-3 is far above that
+NORMAL_TOL = 1e-3
+
+
+def _box(mass=0.5, w=0.1, h=0.06, mu_g=0.3, mu_f=0.4):
+    v = box_vertices(w, h)
+    area, _, j = polygon_properties(v)
+    return SimObject(v, mass, mass * j / area, mu_g, mu_f, "box")
+
+
+def _state(obj, finger_at, y0=None):
+    h = np.max(obj.vertices[:, 1])
+    pose = np.array([0.0, h if y0 is None else y0, 0.0])
+    return WorldState(obj, pose, np.zeros(3), np.array([finger_at], float), np.array([0.01]))
+
+
+def test_press_down_on_top_force_points_down_normal_up():
+    obj = _box()
+    run = simulate_pokes(_state(obj, (0.0, 0.2)), [[0, math.pi / 2, 0.0, 0.03, 0.01, 0.03]], SimOptions(**CLEAN))
+    on = run.contact[:, 0] == 1
+    assert on.sum() > 20
+    f, n = run.force[on, 0], run.normal[on, 0]
+    # (a touching sample may carry no impulse, e.g. as the finger leaves)
+    assert np.all(f[:, 1] <= 0) and np.mean(f[:, 1] < 0) > 0.9, "the finger pushes the object down (-y)"
+    assert np.allclose(n, [0.0, 1.0], atol=NORMAL_TOL), "normal out of the top face, into the finger (+y)"
+    # pressing a resting box into the table, the drive saturates at its force limit;
+    # 1e-3 relative: pymunk clamps the joint impulse exactly at max_force·h
+    assert np.max(-f[:, 1]) == pytest.approx(MAX_FINGER_FORCE, rel=1e-3)
+    assert np.all(run.force[~on] == 0) and np.all(np.isnan(run.normal[~on]))
+    # the box stays where it is (it only sinks into the contact slop)
+    assert np.max(np.abs(run.truth.pose[:, :2] - run.truth.pose[0, :2])) < SLOP_TOL
+
+
+def test_push_from_left_force_plus_x_normal_minus_x_and_coulomb_sliding():
+    obj = _box(mass=0.5, mu_g=0.3)
+    run = simulate_pokes(_state(obj, (-0.2, 0.2)), [[0, math.pi, 0.0, 0.03, 0.03, 0.03]], SimOptions(**CLEAN))
+    on = run.contact[:, 0] == 1
+    f, n = run.force[on, 0], run.normal[on, 0]
+    assert np.all(f[:, 0] >= 0) and np.mean(f[:, 0] > 0) > 0.9, "the finger pushes the object to the right (+x)"
+    assert np.allclose(n, [-1.0, 0.0], atol=NORMAL_TOL), "normal out of the left face (-x)"
+    assert run.truth.pose[-1, 0] > 0.02, "the box slid to the right"
+    # steady sliding (the middle of the contact, velocity constant): the push balances
+    # Coulomb friction on the ground, fx = mu_g·(m·g - fy); 1e-3 relative is the
+    # convergence of pymunk's 30 solver iterations
+    mid = f[len(f) // 4: 3 * len(f) // 4]
+    assert np.allclose(mid[:, 0], 0.3 * (0.5 * G - mid[:, 1]), rtol=1e-3)
+
+
+def test_fingers_are_compliant_when_pushed_into_the_ground():
+    # a poke aimed into the table far from the object: the finger stops on the ground
+    obj = _box()
+    state = _state(obj, (0.3, 0.2))
+    state.pose[0] = -0.5
+    run = simulate_pokes(state, [[0, math.pi / 2, 0.3, 0.0, 0.05, 0.05]], SimOptions(**CLEAN))
+    assert run.contact.sum() == 0
+    # the fingertip never sinks into the ground by more than the contact slop
+    assert np.min(run.finger_position[:, 0, 1]) > 0.01 - SLOP_TOL
+
+
+def test_segments_tile_the_run_and_params_are_pokes():
+    run = record_sim(SimOptions(seed=3, pokes=3, **CLEAN))
+    seg = run.actions.segments
+    assert seg[0, 0] == 0 and seg[-1, 1] == run.n_samples
+    assert np.all(seg[1:, 0] == seg[:-1, 1])
+    assert run.actions.names == list(POKE_NAMES) and run.actions.kind == "poke"
+    ang = run.actions.params[:, 1]
+    assert np.all((ang > 0) & (ang < math.pi))
+    # random pokes aim at the true centroid at poke start (no com_offset: the COM)
+    for (s, _), p in zip(seg, run.actions.params):
+        assert np.allclose(p[2:4], run.truth.pose[s, :2], atol=1e-9)
+    # every poke touched the object
+    for s, e in seg:
+        assert run.contact[s:e].any()
+
+
+def test_same_seed_same_run_other_seed_other_run():
+    a = record_sim(SimOptions(seed=5, pokes=2))
+    b = record_sim(SimOptions(seed=5, pokes=2))
+    c = record_sim(SimOptions(seed=6, pokes=2))
+    assert np.array_equal(a.force, b.force) and np.array_equal(a.finger_position, b.finger_position)
+    assert a.truth.mass != c.truth.mass
+
+
+@pytest.mark.parametrize("spec,kind,k", [("box", "box", 4), ("box:0.08,0.05", "box", 4),
+                                         ("polygon", "polygon", None), ("polygon:6", "polygon", 6)])
+def test_recorded_objects_validate_and_round_trip(tmp_path, spec, kind, k):
+    run = record_sim(SimOptions(object_spec=spec, seed=2, pokes=2, observe_pose=1e-3))
+    path = tmp_path / "run.h5"
+    write_run(run, path)
+    back = read_run(path)
+    for name in ("time", "finger_position", "contact", "force", "pose_obs"):
+        assert np.array_equal(getattr(back, name), getattr(run, name)), name
+    assert np.array_equal(back.normal, run.normal, equal_nan=True)
+    assert np.array_equal(back.truth.pose, run.truth.pose)
+    assert back.prior["shape"] == kind and back.prior["size_bound"] == pytest.approx(0.3)
+    assert json.loads(json.dumps(back.truth.effects)) == [{"name": "none"}]
+    v = back.truth.vertices
+    if k is not None:
+        assert len(v) == k
+    if spec == "box:0.08,0.05":
+        assert np.ptp(v[:, 0]) == pytest.approx(0.08) and np.ptp(v[:, 1]) == pytest.approx(0.05)
+    area, centroid, _ = polygon_properties(v)
+    assert area > 0, "counter-clockwise"
+    assert np.allclose(centroid, 0.0, atol=1e-12), "body frame at the COM (uniform density)"
+    assert 0.1 <= back.truth.mass <= 1.0
+    assert 0.2 <= back.truth.friction_ground <= 0.8 and 0.1 <= back.truth.friction_finger <= 0.6
+    # at rest on the ground at the start: lowest vertex on y = 0
+    c, s = math.cos(run.truth.pose[0, 2]), math.sin(run.truth.pose[0, 2])
+    y = v @ np.array([s, c]) + run.truth.pose[0, 1]
+    assert abs(y.min()) < SLOP_TOL
+
+
+@pytest.mark.parametrize("fmt", ["txt", "csv", "json", "jsondict"])
+def test_object_from_file(tmp_path, fmt):
+    pts = [[0.0, 0.0], [0.1, 0.0], [0.12, 0.05], [0.03, 0.07]]
+    p = tmp_path / f"obj.{'json' if fmt.startswith('json') else fmt}"
+    if fmt == "txt":
+        p.write_text("# x y in metres\n" + "\n".join(f"{x} {y}" for x, y in pts) + "\n")
+    elif fmt == "csv":
+        p.write_text("\n".join(f"{x},{y}" for x, y in pts))
+    elif fmt == "json":
+        p.write_text(json.dumps(pts))
+    else:
+        p.write_text(json.dumps({"vertices": pts[::-1]}))  # clockwise is fine too
+    run = record_sim(SimOptions(object_spec=str(p), seed=1, pokes=1))
+    write_run(run, tmp_path / "r.h5")
+    back = read_run(tmp_path / "r.h5")
+    v = back.truth.vertices
+    area, centroid, _ = polygon_properties(v)
+    ref_area, ref_c, _ = polygon_properties(np.array(pts))
+    assert area == pytest.approx(ref_area) and np.allclose(centroid, 0.0, atol=1e-12)
+    # the same polygon up to the shift to its centroid (rows may start elsewhere)
+    assert {tuple(np.round(r, 9)) for r in v + ref_c} == {tuple(np.round(r, 9)) for r in np.array(pts)}
+    assert back.prior["shape"] == "polygon"
+
+
+@pytest.mark.parametrize("text,msg", [
+    ("0 0\n0.1 0\n0.05 0.01\n0.1 0.1\n0 0.1\n", "not convex"),
+    ("0 0\n0.1 zero\n", "line 2"),
+    ("0 0\n1 0\n1 1\n", "outside"),  # 1 m: forgot to convert from mm/cm?
+    ("0 0\n0.1 0\n", "at least 3"),
+])
+def test_bad_object_files(tmp_path, text, msg):
+    p = tmp_path / "o.txt"
+    p.write_text(text)
+    with pytest.raises(TacestError, match=msg):
+        record_sim(SimOptions(object_spec=str(p), pokes=1))
+
+
+@pytest.mark.parametrize("spec", ["sphere", "box:1,2,3", "box:-0.1,0.1", "polygon:2", "polygon:x"])
+def test_bad_object_specs(spec):
+    with pytest.raises(TacestError):
+        record_sim(SimOptions(object_spec=spec, pokes=1))
+
+
+def test_dim3_is_a_clear_error():
+    with pytest.raises(TacestError, match="not available yet"):
+        record_sim(SimOptions(dim=3))
+
+
+def test_streams_options_no_force_and_noise():
+    run = record_sim(SimOptions(seed=1, pokes=1, force_stream=False))
+    assert run.force is None and run.contact.any()
+    clean = record_sim(SimOptions(seed=1, pokes=1, **CLEAN))
+    noisy = record_sim(SimOptions(seed=1, pokes=1, noise_force=0.1, noise_position=1e-3, noise_normal=0.05))
+    on = clean.contact == 1
+    assert np.array_equal(on, noisy.contact == 1), "noise does not change the physics"
+    # sample standard deviations of the added noise: with hundreds of samples the
+    # estimate is within ~10 % of sigma, so 0.8-1.2 x sigma is a safe band
+    dp = (noisy.finger_position - clean.finger_position).ravel()
+    assert 0.8e-3 < dp.std() < 1.2e-3
+    df = (noisy.force - clean.force)[on].ravel()
+    assert 0.08 < df.std() < 0.12
+    assert np.all(noisy.force[~on] == 0)
+    assert np.allclose(np.linalg.norm(noisy.normal[on], axis=-1), 1.0, atol=1e-12)
+    a, b = clean.normal[on], noisy.normal[on]
+    ang = np.arctan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], np.sum(a * b, -1))
+    assert 0.04 < ang.std() < 0.06
+
+
+def test_speed_of_a_default_recording():
+    import time
+
+    t = time.perf_counter()
+    run = record_sim(SimOptions(seed=0))
+    elapsed = time.perf_counter() - t
+    duration = run.time[-1] - run.time[0]
+    assert duration > 6.0
+    # the issue: an 8 s recording takes a few seconds at most (here ~1 s)
+    assert elapsed < 0.5 * duration
+
+
+def test_several_fingers():
+    run = record_sim(SimOptions(seed=4, pokes=4, fingers=2))
+    assert run.finger_position.shape[1] == 2 and run.contact.shape[1] == 2
+    assert set(run.actions.params[:, 0].astype(int)) <= {0, 1}
+
+
+# ---------------------------------------------------------------------------------
+# plans and continuation
+
+
+def _plan(tmp_path, chosen, names=POKE_NAMES):
+    p = tmp_path / "plan.h5"
+    write_plan(Plan(chosen=np.asarray(chosen, float), candidates=np.asarray([chosen], float),
+                    scores=np.array([1.0]), method="random", score="logdet", names=list(names)), p)
+    return p
+
+
+def test_plan_executes_one_poke_with_the_plans_target(tmp_path):
+    base = initial_state(SimOptions(seed=9))
+    target = base.pose[:2] + np.array([0.005, 0.0])  # "an estimate": off the true COM
+    chosen = [0, 2.5, target[0], target[1], 0.02, 0.04]
+    run = record_sim(SimOptions(seed=9), plan_path=_plan(tmp_path, chosen))
+    assert run.actions.params.shape == (1, 6)
+    assert np.allclose(run.actions.params[0], chosen)
+    assert run.contact.any()
+
+
+def test_plan_parameters_are_matched_by_name(tmp_path):
+    base = initial_state(SimOptions(seed=9))
+    names = ["speed", "depth", "target_y", "target_x", "approach_angle", "finger"]
+    chosen = [0.04, 0.02, base.pose[1], base.pose[0], 2.5, 0]
+    run = record_sim(SimOptions(seed=9), plan_path=_plan(tmp_path, chosen, names))
+    assert np.allclose(run.actions.params[0], chosen[::-1])
+
+
+def test_bad_plan_poke_is_a_clear_error(tmp_path):
+    with pytest.raises(TacestError, match="approach_angle"):
+        record_sim(SimOptions(seed=9), plan_path=_plan(tmp_path, [0, -1.0, 0, 0.03, 0.02, 0.04]))
+    with pytest.raises(TacestError, match="finger"):
+        record_sim(SimOptions(seed=9), plan_path=_plan(tmp_path, [3, 1.0, 0, 0.03, 0.02, 0.04]))
+
+
+def test_plan_appends_to_an_existing_run(tmp_path):
+    opts = SimOptions(seed=11, pokes=2, effects=["force_bias"])
+    first = record_sim(opts)
+    path = tmp_path / "run.h5"
+    write_run(first, path)
+    last = first.truth.pose[-1]
+    chosen = [0, 0.6, last[0], last[1], 0.02, 0.04]
+    run = record_sim(opts, plan_path=_plan(tmp_path, chosen), append_to=path)
+    write_run(run, path)
+    back = read_run(path)
+    T0 = first.n_samples
+    assert back.n_samples > T0
+    assert np.array_equal(back.truth.pose[:T0], first.truth.pose)
+    assert np.array_equal(back.time[:T0], first.time)
+    assert np.allclose(np.diff(back.time), back.dt)
+    # the world continues: the object starts where it was (at rest: within the slop)
+    assert np.allclose(back.truth.pose[T0], last, atol=SLOP_TOL)
+    seg = back.actions.segments
+    assert len(seg) == 3 and seg[2, 0] == T0 and seg[2, 1] == back.n_samples
+    assert np.allclose(back.actions.params[2], chosen)
+    # same effects, same parameters
+    assert effects_from_json(back.truth.effects) == effects_from_json(first.truth.effects)
+    assert back.contact[T0:].any()
+
+
+def test_append_needs_truth(tmp_path):
+    run = record_sim(SimOptions(seed=1, pokes=1))
+    path = tmp_path / "hidden.h5"
+    write_run(run, path, include_truth=False)
+    with pytest.raises(TacestError, match="no /truth"):
+        record_sim(SimOptions(seed=1), plan_path=_plan(tmp_path, [0, 1.0, 0, 0.03, 0.02, 0.04]), append_to=path)
+
+
+def test_state_from_run_round_trip():
+    run = record_sim(SimOptions(seed=2, pokes=1, effects=["face_friction", "latency:samples=2"]))
+    state = state_from_run(run)
+    assert np.allclose(state.pose, run.truth.pose[-1])
+    assert [e.name for e in state.effects] == ["face_friction", "latency"]
+    assert state.obj.mass == run.truth.mass
+
+
+def test_simulate_pokes_from_an_estimate_like_state():
+    # the planner's use: an object it believes in, pokes it chooses, no noise
+    obj = _box(mass=0.3, w=0.08, h=0.08)
+    state = _state(obj, (0.0, 0.15))
+    acts = np.array([[0, 0.4, 0.0, 0.04, 0.02, 0.04], [0, 2.7, 0.0, 0.04, 0.02, 0.04]])
+    run = simulate_pokes(state, acts, SimOptions(**CLEAN))
+    assert run.actions.segments.shape == (2, 2)
+    assert np.array_equal(run.actions.params, acts)
+    run.validate()
