@@ -2,6 +2,7 @@
 fault of the issue, the always-valid output file, and the emulator round trip."""
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -358,20 +359,21 @@ def _group(it, per):
 
 def test_output_is_a_valid_run_at_every_moment_and_unplug_keeps_what_arrived(tmp_path):
     out = tmp_path / "rec.h5"
-    src, chunks = _chunks(300, fingers=2, per=10)
+    src, chunks = _chunks(300, fingers=2, per=5)
     sizes = []
 
     def check(i):  # before every read: the file is absent (too little yet) or a valid run
         if out.exists():
             sizes.append(read_run(out).n_samples)
+        time.sleep(0.02)  # data trickles in: 40 reads take ~0.8 s, snapshots every 0.05 s
 
-    tick = iter(np.arange(0, 1000, 0.1))  # a fake clock: 0.1 s per read, snapshots every 0.25 s
-    s = record_stream(FakeStream(chunks[:20], end=serial.SerialException("device disconnected"), on_read=check),
-                      out, echo=quiet, clock=lambda: next(tick))
+    s = record_stream(FakeStream(chunks[:40], end=serial.SerialException("device disconnected"), on_read=check),
+                      out, echo=quiet, snapshot_interval=0.05)
     assert "link closed" in s.stop_reason and "disconnected" in s.stop_reason
-    assert len(sizes) > 5 and sizes == sorted(sizes)  # grew while recording
+    # grew while recording (at least 3 distinct sizes; a loaded machine may write fewer snapshots)
+    assert len(set(sizes)) >= 3 and sizes == sorted(sizes)
     rec = read_run(out)
-    assert rec.n_samples == 200 and s.kept_samples == 200  # 20 chunks of 10 samples
+    assert rec.n_samples == 200 and s.kept_samples == 200  # 40 chunks of 5 samples
     np.testing.assert_allclose(rec.finger_position, src.finger_position[:200], atol=TOL_POS, rtol=0)
     assert not list(tmp_path.glob(".*part"))  # no temporary file left behind
 
