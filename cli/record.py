@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
+
 
 @click.command()
 @click.option("--source", type=click.Choice(["sim", "serial", "video"]), default="sim", show_default=True,
@@ -14,12 +16,14 @@ import click
 # --- sim -------------------------------------------------------------------------
 @click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True, help="[sim] 2-D or 3-D world.")
 @click.option("--object", "object_spec", default="box", show_default=True,
-              help="[sim] box, box:W,H[,D] (m), polygon, polygon:K, polytope, or a file of vertices.")
+              help="[sim] box, box:W,H (m), polygon, polygon:K, or a file of x y vertex rows "
+                   "(m; docs/simulation.md).")
 @click.option("--seed", type=int, default=0, show_default=True, help="[sim] random seed.")
 @click.option("--pokes", type=click.IntRange(0, 1000), default=6, show_default=True, help="[sim] number of pokes.")
 @click.option("--fingers", type=click.IntRange(1, 3), default=1, show_default=True, help="[sim] fingertips.")
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:key=value,...]",
-              help="[sim] inject an unmodelled effect (repeatable); see docs/effects.md.")
+              help="[sim] inject an unmodelled effect (repeatable): " + ", ".join(EFFECT_NAMES)
+                   + "; parameters not given are random, e.g. latency:samples=2; see docs/effects.md.")
 @click.option("--noise-force", type=click.FloatRange(min=0), default=0.02, show_default=True,
               help="[sim] force noise, N (one sigma).")
 @click.option("--noise-position", type=click.FloatRange(min=0), default=1e-4, show_default=True,
