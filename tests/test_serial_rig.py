@@ -370,8 +370,8 @@ def test_output_is_a_valid_run_at_every_moment_and_unplug_keeps_what_arrived(tmp
     s = record_stream(FakeStream(chunks[:40], end=serial.SerialException("device disconnected"), on_read=check),
                       out, echo=quiet, snapshot_interval=0.05)
     assert "link closed" in s.stop_reason and "disconnected" in s.stop_reason
-    # grew while recording (at least 3 distinct sizes; a loaded machine may write fewer snapshots)
-    assert len(set(sizes)) >= 3 and sizes == sorted(sizes)
+    # grew while recording (>= 2 distinct sizes: a loaded machine may write few snapshots)
+    assert len(set(sizes)) >= 2 and sizes == sorted(sizes)
     rec = read_run(out)
     assert rec.n_samples == 200 and s.kept_samples == 200  # 40 chunks of 5 samples
     np.testing.assert_allclose(rec.finger_position, src.finger_position[:200], atol=TOL_POS, rtol=0)
@@ -449,6 +449,20 @@ def test_output_folder_vanishing_is_a_one_line_error(tmp_path):
         if i == 5:
             shutil.rmtree(folder)
 
+    # no snapshot before the end (interval 1000 s): the final write finds no folder
     with pytest.raises(TacestError) as exc:
-        record_stream(FakeStream(chunks, on_read=remove), out, echo=quiet, snapshot_interval=0.0)
+        record_stream(FakeStream(chunks, on_read=remove), out, echo=quiet, snapshot_interval=1000.0)
     assert "does not exist" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_write_error_in_the_snapshot_thread_reaches_the_caller(tmp_path, monkeypatch):
+    import tacest.sensors.serial_rig as rig
+
+    def broken(run, clock, output):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(rig, "write_snapshot", broken)
+    _, chunks = _chunks(100, per=10)
+    with pytest.raises(TacestError) as exc:
+        record_stream(FakeStream(chunks), tmp_path / "rec.h5", echo=quiet, snapshot_interval=0.0)
+    assert "cannot write the run file" in str(exc.value) and "No space left" in str(exc.value)
