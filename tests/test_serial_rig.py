@@ -466,3 +466,29 @@ def test_write_error_in_the_snapshot_thread_reaches_the_caller(tmp_path, monkeyp
     with pytest.raises(TacestError) as exc:
         record_stream(FakeStream(chunks), tmp_path / "rec.h5", echo=quiet, snapshot_interval=0.0)
     assert "cannot write the run file" in str(exc.value) and "No space left" in str(exc.value)
+
+
+def test_docs_example_session(tmp_path):
+    """The example session of docs/serial_protocol.md §9, line for line."""
+    session = (b"S,6,0.06,0,0.1,0.048,0,0,0,,*4E\n"
+               b"#TACEST,1,dim=2,fingers=1,radius=0.010,dt=0.01\n"
+               b"S,7,0.07,0,0.1,0.05,1,0.5,-0.2,0,1*63\n"
+               b"S,8,0.08,0,0.101,0.052,0,0,0,,*7A\n"
+               b"S,9,0.09,0,0.102,0.057,0,0,0,,*7F\n"
+               b"S,11,0.11,0,0.104,0.058,0,0,0,,*45\n"
+               b"#TACEST,1,dim=2,fingers=1,radius=0.010,dt=0.01\n"
+               b"S,12,0.12,0,0.105,0.06,1,0.2,-0.9,0.0,1.0*59\n")
+    msgs = []
+    out = tmp_path / "run.h5"
+    record_stream(FakeStream([session]), out, echo=msgs.append)
+    assert ("kept 4 samples (4 lines), dropped 2 lines (checksum 1, before header 1), "
+            "missing 2 samples in 1 gaps") in msgs
+    run = read_run(out)
+    np.testing.assert_allclose(run.time, [0, 0.01, 0.02, 0.03, 0.04, 0.05], atol=1e-15)
+    np.testing.assert_array_equal(run.missing, [0, 0, 1, 1, 0, 0])
+    np.testing.assert_array_equal(run.contact[:, 0], [1, 0, 0, 0, 0, 1])
+    np.testing.assert_allclose(run.finger_position[:, 0, 0], [0.1, 0.101, 0.102, 0.103, 0.104, 0.105], atol=1e-12)
+    import h5py
+
+    with h5py.File(out) as f:
+        np.testing.assert_allclose(f["robot/clock"][()], [0.07, 0.08, np.nan, np.nan, 0.11, 0.12])
