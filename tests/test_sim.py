@@ -307,3 +307,9 @@ def test_simulate_pokes_from_an_estimate_like_state():
     assert run.actions.segments.shape == (2, 2)
     assert np.array_equal(run.actions.params, acts)
     run.validate()
+    # or straight from the object: placed at rest at x = 0, fingers parked above it
+    again = simulate_pokes(obj, acts, SimOptions(**CLEAN))
+    assert np.allclose(again.truth.pose[0], [0.0, 0.04, 0.0], atol=SLOP_TOL)
+    assert np.all(again.finger_position[0, :, 1] > 0.08)
+    # the same pokes on the same object: the same outcome up to where the fingers started
+    assert again.truth.pose[-1, 0] == pytest.approx(run.truth.pose[-1, 0], abs=1e-3)

@@ -10,7 +10,7 @@ Layout (N candidate actions of n parameters each)::
     attrs estimate_sha256 str   SHA-256 of the estimate file it was planned from
                                 ("" when the plan used none, e.g. a random plan)
 
-tacest extensions (docs/formats.md): attrs ``format`` = ``"tacest.plan"`` and
+tacest extensions (docs/simulation.md, "Plan files"): attrs ``format`` = ``"tacest.plan"`` and
 ``version`` = 1 (optional on read, so plans written by other programs work), and on
 ``/chosen/params`` and ``/candidates/params`` the attrs ``kind`` (``"poke"``) and
 ``names`` (the n parameter names, as in a run file's /actions/params).  A plan

@@ -6,6 +6,7 @@ Public API::
     SimOptions                                   recorder settings (the CLI's options)
     WorldState                                   object, its state, fingers, effects
     initial_state(opts, echo=None) -> WorldState a new object at rest on the ground
+    state_at_rest(obj, x=0, angle=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState
     simulate_pokes(state, actions, opts=None, echo=None, names=POKE_NAMES) -> Run
     record_sim(opts, plan_path=None, append_to=None, echo=None) -> Run
     state_from_run(run) -> WorldState            continue from a run's last truth state
@@ -38,7 +39,7 @@ from tacest.errors import TacestError
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, polygon_properties,
-                                rest_angle, resting_pose, uniform_object)
+                                rest_angle, resting_pose, rot2, uniform_object)
 from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, poke_path, random_poke
 from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, World
 
@@ -194,18 +195,8 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState:
     if com is not None:
         obj = apply_com_offset(obj, com["dx"], com["dy"])
     angle = rest_angle(obj.vertices, rng, preferred)
-    pose = resting_pose(obj.vertices, angle)
-    F = int(opts.fingers)
-    top = float(np.max((obj.vertices @ _rot(angle).T)[:, 1])) + pose[1]
-    park = np.stack([(np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING,
-                     np.full(F, top + opts.finger_radius + PARK_HEIGHT)], axis=1)
-    soft = fx.find(effects, "soft_contact")
-    ground = np.array([-obj.mass * GRAVITY / soft["stiffness"], 0.0]) if soft else np.zeros(2)
-    state = WorldState(obj=obj, pose=pose, velocity=np.zeros(3), p_finger__world=park,
-                       finger_radius=np.full(F, float(opts.finger_radius)), effects=effects,
-                       ground_state=ground)
-    if soft is not None:  # start with the object sunk by its weight on the spring
-        state.pose = pose + np.array([0.0, ground[0], 0.0])
+    state = state_at_rest(obj, angle=angle, fingers=int(opts.fingers), finger_radius=opts.finger_radius,
+                          effects=effects)
     echo(f"object: {kind}, settling on the ground")  # no parameters: the truth may be hidden
     world = state.world(opts.max_finger_force)
     h = opts.dt / opts.n_substeps
@@ -218,9 +209,35 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState:
     return settled
 
 
-def _rot(angle):
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s], [s, c]])
+def _static_ground(obj, effects) -> np.ndarray:
+    """(2,) [y, vy] of the soft_contact plate carrying the object's weight (zeros if rigid)."""
+    soft = fx.find(effects, "soft_contact")
+    if soft is None:
+        return np.zeros(2)
+    return np.array([-obj.mass * GRAVITY / soft["stiffness"], 0.0])
+
+
+def state_at_rest(obj: SimObject, x=0.0, angle=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState:
+    """``obj`` resting on the ground with its COM at horizontal ``x`` (m), fingers parked.
+
+    angle : rad, or None for the stable resting orientation nearest to 0;
+    fingers : number of fingertips, parked PARK_HEIGHT above the object's top, spaced
+    PARK_SPACING apart; finger_radius : m; effects : resolved Effects (a soft_contact
+    ground starts sunk by the object's weight).  Not settled: the solver's first steps
+    take up the contact slop (~1e-4 m).
+    """
+    if angle is None:
+        angle = rest_angle(obj.vertices, None, preferred=0.0)
+    effects = list(effects)
+    pose = resting_pose(obj.vertices, angle, x=x)
+    top = float(np.max((obj.vertices @ rot2(angle).T)[:, 1])) + pose[1]
+    F = int(fingers)
+    park = np.stack([x + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING,
+                     np.full(F, top + finger_radius + PARK_HEIGHT)], axis=1)
+    ground = _static_ground(obj, effects)  # the object starts sunk into a soft ground
+    pose = pose + np.array([0.0, ground[0], 0.0])
+    return WorldState(obj=obj, pose=pose, velocity=np.zeros(3), p_finger__world=park,
+                      finger_radius=np.full(F, float(finger_radius)), effects=effects, ground_state=ground)
 
 
 # ---------------------------------------------------------------------------------
@@ -389,12 +406,13 @@ def _make_run(traj: _Trajectory, state0: WorldState, opts: SimOptions, rng_noise
     return run
 
 
-def simulate_pokes(state: WorldState, actions, opts: SimOptions = None, echo: Callable = None,
+def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = None,
                    names=POKE_NAMES, noise_key: int = 0) -> Run:
     """Simulate the given pokes from ``state`` and return the recorded Run (with truth).
 
     state : WorldState, e.g. from :func:`initial_state`, :func:`state_from_run`, or built
         from an estimate (``WorldState(SimObject(...), pose, zeros(3), p_finger, radius)``);
+        or a SimObject, placed by :func:`state_at_rest` with ``opts.fingers`` fingers;
     actions : (A, n) poke parameter vectors whose columns are ``names`` (default
         POKE_NAMES); targets are used as given;
     opts : noise levels, dt, streams (SimOptions; its object/seed/pokes/effects are not
@@ -404,6 +422,8 @@ def simulate_pokes(state: WorldState, actions, opts: SimOptions = None, echo: Ca
     """
     opts = (opts or SimOptions()).validate()
     echo = echo or _no_echo
+    if isinstance(state, SimObject):
+        state = state_at_rest(state, fingers=opts.fingers, finger_radius=opts.finger_radius)
     acts = np.asarray(actions, float)
     if acts.size == 0:
         acts = acts.reshape(0, len(names))
@@ -452,12 +472,10 @@ def state_from_run(run: Run) -> WorldState:
     dt_true = run.dt / scale
     pose = np.asarray(tr.pose[-1], float)
     velocity = (pose - np.asarray(tr.pose[-2], float)) / dt_true
-    soft = fx.find(effects, "soft_contact")
-    ground = np.array([-obj.mass * GRAVITY / soft["stiffness"], 0.0]) if soft else np.zeros(2)
     return WorldState(obj=obj, pose=pose, velocity=velocity,
                       p_finger__world=np.asarray(run.finger_position[-1], float).copy(),
                       finger_radius=np.asarray(run.finger_radius, float).copy(), effects=effects,
-                      time=float(run.time[-1]) / scale, ground_state=ground)
+                      time=float(run.time[-1]) / scale, ground_state=_static_ground(obj, effects))
 
 
 def append_run(old: Run, new: Run) -> Run:
