@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -88,7 +87,6 @@ def bench_snapshot(lengths=(10_000, 100_000, 1_000_000), dim=3, fingers=1):
     with tempfile.TemporaryDirectory() as tmp:
         for T in lengths:
             src = builtin_run(dim, fingers, T, 0.001)
-            a = Assembler()
             run = src.replace(missing=np.zeros(T, np.uint8), source="serial")
             clock = src.time.copy()
             out = Path(tmp) / "snap.h5"
@@ -102,7 +100,6 @@ def bench_snapshot(lengths=(10_000, 100_000, 1_000_000), dim=3, fingers=1):
             interval = max(0.25, SNAPSHOT_DUTY * c)
             print(f"[snapshot]  T = {T:>9,} samples ({T / 1000:g} s at 1 kHz, {fingers} finger, {dim}-D): "
                   f"{mb:6.1f} MB written in {1e3 * c:7.1f} ms -> snapshot every {interval:.2f} s")
-            del a
 
 
 _SWMR_READER = """
@@ -122,8 +119,8 @@ def bench_swmr(T=100_000, chunk=250):
         path = Path(tmp) / "swmr.h5"
         f = h5py.File(path, "w", libver="latest")
         f.attrs.update(format="tacest.run", version=1, dim=3, dt=0.001, gravity=[0, 0, -9.81], source="serial")
-        dsets = {"time": f.create_dataset("time", (0,), maxshape=(None,), chunks=(4096,)),
-                 "pos": f.create_dataset("robot/finger_position", (0, 1, 3), maxshape=(None, 1, 3),
+        dsets = {"time": f.create_dataset("time", (0,), dtype="f8", maxshape=(None,), chunks=(4096,)),
+                 "pos": f.create_dataset("robot/finger_position", (0, 1, 3), dtype="f8", maxshape=(None, 1, 3),
                                          chunks=(4096, 1, 3))}
         f.create_dataset("robot/finger_radius", data=[0.01])
         f.swmr_mode = True

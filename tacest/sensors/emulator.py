@@ -31,7 +31,6 @@ seed, so a stream is reproducible):
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time

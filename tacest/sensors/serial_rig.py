@@ -153,6 +153,7 @@ class Assembler:
         self.messages: list[str] = []  # notable events, for the user
         self._buf = b""
         self._skipping = False  # inside an over-long line
+        self._finished = False
         self._reset_samples()
 
     # -- storage -----------------------------------------------------------------
@@ -340,7 +341,7 @@ class Assembler:
     def finish(self) -> None:
         """End of input: flush the partial line and close the open sample."""
         self.flush()
-        if self.header is not None and self._cap and not getattr(self, "_finished", False):
+        if self.header is not None and self._cap and not self._finished:
             self._close_open_sample()
             self._finished = True
 
