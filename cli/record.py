@@ -50,6 +50,20 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
               help="[video] dome calibration JSON (docs/tactile_video.md).")
 @click.option("--finger-log", type=click.Path(exists=True, dir_okay=False), default=None,
               help="[video] CSV of time stamps and fingertip positions.")
+@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="[video] frame rate, Hz: for a folder without timestamps.csv, or to override a video's.")
+@click.option("--t0", "frames_t0", type=float, default=0.0, show_default=True,
+              help="[video] time of the first frame, s, when times come from the frame rate.")
+@click.option("--reference", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="[video] no-contact reference image (default: the first frame).")
+@click.option("--flow-scale", type=click.FloatRange(0.05, 1.0), default=0.5, show_default=True,
+              help="[video] resize frames by this factor before the optical flow.")
+@click.option("--flow-preset", type=click.Choice(["tactile", "ultrafast", "fast", "medium"]), default="tactile",
+              show_default=True, help="[video] DIS optical flow settings (docs/tactile_video.md).")
+@click.option("--noise-frames", type=click.IntRange(min=1), default=10, show_default=True,
+              help="[video] contact-free frames after the reference used to measure the noise level.")
+@click.option("--contact-k", type=click.FloatRange(min=0, min_open=True), default=3.0, show_default=True,
+              help="[video] contact starts above this many times the noise level (ends below 2/3 of it).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def record(source, output, **kw):
     """Record a run file (SPEC run format) from SOURCE."""
@@ -68,10 +82,16 @@ def record(source, output, **kw):
         missing = [n for n in ("frames", "calib", "finger_log") if not kw[n]]
         if missing:
             raise click.UsageError("--source video needs " + ", ".join("--" + m.replace("_", "-") for m in missing))
-        from tacest.sensors.video import record_video
+        from tacest.sensors.tactile_flow import DetectSettings, FlowSettings
+        from tacest.sensors.video import VideoOptions, record_video
 
+        options = VideoOptions(
+            fps=kw["fps"], t0=kw["frames_t0"], reference=kw["reference"],
+            flow=FlowSettings(work_scale=kw["flow_scale"], dis_preset=kw["flow_preset"]),
+            detect=DetectSettings(noise_frames=kw["noise_frames"], k_on=kw["contact_k"], k_off=kw["contact_k"] * 2 / 3),
+        )
         record_video(kw["frames"], kw["calib"], kw["finger_log"], output=output,
-                     echo=(lambda *a, **k: None) if quiet else _echo_err)
+                     echo=(lambda *a, **k: None) if quiet else _echo_err, options=options)
 
 
 def _echo_err(*args, **kwargs):

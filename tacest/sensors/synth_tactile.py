@@ -74,6 +74,10 @@ class SynthConfig:
     shading : relative brightening of the contact patch at full depth
     finger_rate_hz, finger_lead_s : finger log rate and how long it starts before the
         first frame (and ends after the last)
+    events : None (random schedule and locations), or a list of explicit contacts
+        ``(start_frame, stop_frame, polar_deg, azimuth_deg)``: frames [start, stop), the
+        contact point's polar angle on the dome and its azimuth in the image
+        (atan2(v - v_c, u - u_c)); amplitude factor 1, no shear
     """
 
     width: int = 640
@@ -106,6 +110,7 @@ class SynthConfig:
     shading: float = 0.08
     finger_rate_hz: float = 200.0
     finger_lead_s: float = 0.5
+    events: Optional[list] = None
 
 
 @dataclass
@@ -204,19 +209,24 @@ def generate(cfg: SynthConfig | None = None) -> SynthSequence:
     # per-frame contact state
     depth = np.zeros(N)
     event_of = np.full(N, -1)
-    events = _schedule(cfg, rng)
+    explicit = cfg.events is not None
+    events = [(int(e[0]), int(e[1])) for e in cfg.events] if explicit else _schedule(cfg, rng)
     params = []
     for e, (a, b) in enumerate(events):
-        theta = np.deg2rad(cfg.max_polar_deg) * np.sqrt(rng.uniform(0.0, 1.0))  # ~uniform over the cap
-        if cfg.dim == 2:  # keep the normal mostly in the world plane (image u axis)
-            az = rng.choice([0.0, np.pi]) + rng.uniform(-np.pi / 6, np.pi / 6)
+        if explicit:
+            theta, az = np.deg2rad(cfg.events[e][2]), np.deg2rad(cfg.events[e][3])
         else:
-            az = rng.uniform(-np.pi, np.pi)
+            theta = np.deg2rad(cfg.max_polar_deg) * np.sqrt(rng.uniform(0.0, 1.0))  # ~uniform over the cap
+            if cfg.dim == 2:  # keep the normal mostly in the world plane (image u axis)
+                az = rng.choice([0.0, np.pi]) + rng.uniform(-np.pi / 6, np.pi / 6)
+            else:
+                az = rng.uniform(-np.pi, np.pi)
         n_f = np.array([np.sin(theta) * np.cos(az), np.sin(theta) * np.sin(az), np.cos(theta)])
         uv = calib.pixel_of_finger_direction(n_f)
-        amp = A0 * rng.uniform(*cfg.amplitude_range)
+        amp = A0 if explicit else A0 * rng.uniform(*cfg.amplitude_range)
         shear_dir = rng.uniform(-np.pi, np.pi)
-        shear = cfg.shear_fraction * amp * np.array([np.cos(shear_dir), np.sin(shear_dir)])
+        shear_frac = 0.0 if explicit else cfg.shear_fraction
+        shear = shear_frac * amp * np.array([np.cos(shear_dir), np.sin(shear_dir)])
         params.append((uv, amp, shear))
         n = b - a
         r = cfg.ramp_frames

@@ -57,7 +57,8 @@ class FlowSettings:
     method : "dis" (default; ~1-4 ms at 320 x 240) or "farneback" (~12 ms, for comparison)
     dis_preset : "tactile" (default) | "ultrafast" | "fast" | "medium" (see DIS_PRESETS)
     work_scale : frames are resized by this factor before the flow (0.5: 640x480 -> 320x240)
-    grid_step : work px per HHD grid cell (4 at scale 0.5: 8 full px, an 80 x 60 grid)
+    grid_px : full-resolution px per HHD grid cell (8: an 80 x 60 grid on 640 x 480; the
+        flow is block-averaged over round(grid_px * work_scale) work px)
     smooth_cells : sigma, in grid cells, of the Gaussian smoothing of the divergence map
     mask_rho : contacts are looked for within this fraction of the rim radius (the rim's
         own edge makes flow artefacts)
@@ -70,7 +71,7 @@ class FlowSettings:
     method: str = "dis"
     dis_preset: str = "tactile"
     work_scale: float = 0.5
-    grid_step: int = 4
+    grid_px: int = 8
     smooth_cells: float = 1.0
     mask_rho: float = 0.9
     region_fraction: float = 0.5
@@ -83,8 +84,8 @@ class FlowSettings:
             raise TacestError(f"DIS preset must be one of {', '.join(DIS_PRESETS)}, got {self.dis_preset!r}")
         if not 0.05 <= self.work_scale <= 1.0:
             raise TacestError(f"flow scale must be in [0.05, 1], got {self.work_scale}")
-        if not (isinstance(self.grid_step, int) and self.grid_step >= 1):
-            raise TacestError(f"grid step must be a positive integer, got {self.grid_step!r}")
+        if not (isinstance(self.grid_px, int) and self.grid_px >= 1):
+            raise TacestError(f"grid size must be a positive integer number of px, got {self.grid_px!r}")
         if not 0.1 <= self.mask_rho <= 1.0:
             raise TacestError(f"mask radius must be in [0.1, 1] of the rim radius, got {self.mask_rho}")
         if not 0.0 < self.region_fraction < 1.0:
@@ -158,18 +159,19 @@ class TactileFlow:
         # the effective scale per axis after rounding
         self.scale_xy = np.array([self.work_size[0] / W, self.work_size[1] / H])
         Ww, Hw = self.work_size
-        self.grid_shape = (Hw // s.grid_step, Ww // s.grid_step)
+        self.grid_step = max(1, int(round(s.grid_px * s.work_scale)))  # work px per grid cell
+        self.grid_shape = (Hw // self.grid_step, Ww // self.grid_step)
         if min(self.grid_shape) < 8:
             raise TacestError(f"the analysis grid {self.grid_shape[1]}x{self.grid_shape[0]} is too coarse; "
-                              "use a larger flow scale or a smaller grid step")
+                              "use a larger flow scale or a smaller grid size")
         Hg, Wg = self.grid_shape
         # grid cell centres in full-resolution px (pixel centres at integers):
         # work = (grid + 0.5) * step - 0.5 ; full = (work + 0.5) / scale - 0.5
-        gx = ((np.arange(Wg) + 0.5) * s.grid_step) / self.scale_xy[0] - 0.5
-        gy = ((np.arange(Hg) + 0.5) * s.grid_step) / self.scale_xy[1] - 0.5
+        gx = ((np.arange(Wg) + 0.5) * self.grid_step) / self.scale_xy[0] - 0.5
+        gy = ((np.arange(Hg) + 0.5) * self.grid_step) / self.scale_xy[1] - 0.5
         self.grid_u, self.grid_v = np.meshgrid(gx, gy)
         # spacing of the grid in full px (mean of the axes; they differ only by rounding)
-        self.spacing = float(s.grid_step / self.scale_xy.mean())
+        self.spacing = float(self.grid_step / self.scale_xy.mean())
         rho = np.hypot(self.grid_u - calib.center_px[0], self.grid_v - calib.center_px[1]) / calib.rim_radius_px
         self.mask = rho < s.mask_rho
         if self.mask.sum() < 9:
@@ -232,7 +234,7 @@ class TactileFlow:
         """Block mean of a work-resolution flow onto the grid, in full-resolution px:
         (Hw, Ww, 2) -> (Hg, Wg, 2)."""
         Hg, Wg = self.grid_shape
-        k = self.settings.grid_step
+        k = self.grid_step
         # INTER_AREA with an integer factor is the exact block mean (5x faster than numpy)
         f = self._cv2.resize(flow_work[: Hg * k, : Wg * k], (Wg, Hg), interpolation=self._cv2.INTER_AREA)
         return f / self.scale_xy
