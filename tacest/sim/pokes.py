@@ -24,6 +24,8 @@ The fingertip path of one poke (a piecewise-linear motion of the control body):
    along d at which the finger circle first touches the object in its pose at poke
    start (0 if the line misses it);
 3. retreat: straight back to the start point in RETREAT_TIME.
+
+(tacest.sim.record then holds the fingers still until the object is at rest.)
 """
 
 from __future__ import annotations

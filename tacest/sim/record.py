@@ -49,6 +49,11 @@ MAX_SUBSTEP = 5e-4
 PRE_ROLL = 0.5
 #: s, the fingers hold still this long after the last poke (the object comes to rest)
 SETTLE_TIME = 0.3
+#: s, longest wait after a poke for the object to come to rest
+REST_WAIT = 2.0
+#: at rest: speed below this (m/s) and angular speed below REST_OMEGA (rad/s)
+REST_SPEED = 2e-3
+REST_OMEGA = 0.05
 #: s, length of a recording without pokes
 EMPTY_TIME = 1.0
 #: m, park height of the fingers above the object's top at the start
@@ -259,6 +264,10 @@ class _Trajectory:
     final: WorldState
 
 
+def _at_rest(velocity) -> bool:
+    return math.hypot(velocity[0], velocity[1]) < REST_SPEED and abs(velocity[2]) < REST_OMEGA
+
+
 def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lead_idle=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (6,) POKE_NAMES vector or None for a random
     poke) from ``state``.  Every poke but the first (and the first too with
@@ -314,6 +323,11 @@ def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lea
             for j in range(n_sub):
                 world.step(ctl[k * n_sub + j], h)
             record(world.take_measurement())
+        # like a robot, wait until the object has stopped (a tipped object may still fall)
+        for _ in range(int(round(REST_WAIT / dt))):
+            if _at_rest(world.velocity):
+                break
+            hold(1)
         segments.append((start, len(cols["q"])))
         params.append(poke.to_vector())
     if A == 0:
