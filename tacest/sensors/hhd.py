@@ -134,7 +134,7 @@ def solve_poisson_free_space(source: np.ndarray, spacing: float = 1.0) -> np.nda
     return out if np.iscomplexobj(source) else out.real
 
 
-def hhd(field: np.ndarray, spacing: float = 1.0) -> HHDResult:
+def hhd(field: np.ndarray, spacing: float = 1.0, mask: np.ndarray | None = None) -> HHDResult:
     """Natural Helmholtz–Hodge decomposition of ``field``.
 
     Parameters
@@ -142,6 +142,12 @@ def hhd(field: np.ndarray, spacing: float = 1.0) -> HHDResult:
     field : (H, W, 2) float, e.g. optical flow in px; component 0 along x (columns),
         component 1 along y (rows).  H, W >= 3.
     spacing : float, grid spacing in the units of x and y (e.g. px per grid cell).
+    mask : optional (H, W) bool, the domain where the field is data (e.g. the dome's
+        disc in a tactile image).  Divergence and curl count as sources only where the
+        cell and its four neighbours are in the domain (the central differences then use
+        data only); outside it the field is ignored, so the edge of the data (a rim with
+        flow inside and none outside) is not mistaken for a sheet of sources and
+        vortices.  The parts are returned on the whole grid; they mean something inside.
 
     Returns
     -------
@@ -155,6 +161,17 @@ def hhd(field: np.ndarray, spacing: float = 1.0) -> HHDResult:
         raise TacestError("HHD input contains NaN or inf")
     d = divergence(f, spacing)
     c = curl(f, spacing)
+    if mask is not None:
+        m = np.asarray(mask, bool)
+        if m.shape != f.shape[:2]:
+            raise TacestError(f"HHD mask has shape {m.shape}, the field {f.shape[:2]}")
+        inner = m.copy()
+        inner[1:, :] &= m[:-1, :]
+        inner[:-1, :] &= m[1:, :]
+        inner[:, 1:] &= m[:, :-1]
+        inner[:, :-1] &= m[:, 1:]
+        d = np.where(inner, d, 0.0)
+        c = np.where(inner, c, 0.0)
     pot = solve_poisson_free_space(d + 1j * c, spacing)
     phi, psi = pot.real, pot.imag
     cf = gradient(phi, spacing)

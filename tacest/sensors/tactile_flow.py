@@ -41,6 +41,11 @@ from tacest.sensors.hhd import divergence, hhd
 #: at pyramid level 2 (80 x 60 px), where the dots are sub-pixel, and lose weak contacts
 #: (F1 0.97-0.98, median normal error 2.4-3.4 deg); "medium" matches "tactile" in
 #: accuracy at twice the cost.
+#: The HHD domain: the dome disc up to this fraction of the rim radius.  Outside the rim
+#: there are no dots and the flow is noise; the rim's soft edge (and a grid cell
+#: straddling it) is left out with a 3 % margin.
+HHD_DOMAIN_RHO = 0.97
+
 DIS_PRESETS = {
     "tactile": (1, 8, 4, 16, 5),
     "ultrafast": (2, 8, 4, 12, 0),
@@ -174,6 +179,8 @@ class TactileFlow:
         self.spacing = float(self.grid_step / self.scale_xy.mean())
         rho = np.hypot(self.grid_u - calib.center_px[0], self.grid_v - calib.center_px[1]) / calib.rim_radius_px
         self.mask = rho < s.mask_rho
+        #: the HHD's domain: the dome's disc short of its rim, where the dots are
+        self.domain = rho < HHD_DOMAIN_RHO
         if self.mask.sum() < 9:
             raise TacestError("the dome mask covers fewer than 9 grid cells; check center_px and rim_radius_px")
         # work-resolution mask of the dome (for brightness matching)
@@ -244,7 +251,7 @@ class TactileFlow:
         cv2 = self._cv2
         s = self.settings
         fg = self.coarse_flow(self.flow(grey)).astype(float)
-        parts = hhd(fg, spacing=self.spacing)
+        parts = hhd(fg, spacing=self.spacing, mask=self.domain)
         div_c = divergence(parts.curl_free, self.spacing)
         if s.smooth_cells > 0:
             div_c = cv2.GaussianBlur(div_c, (0, 0), s.smooth_cells, borderType=cv2.BORDER_REPLICATE)
