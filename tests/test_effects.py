@@ -10,7 +10,9 @@ import pytest
 from tacest.errors import TacestError
 from tacest.io.run import read_run, write_run
 from tacest.sim import effects as fx
-from tacest.sim.objects import SimObject, box_vertices, polygon_properties, rot2
+from tacest.geometry.polygon import box_vertices, polygon_centroid, polygon_inertia
+from tacest.geometry.transforms import rot2
+from tacest.sim.objects import SimObject
 from tacest.sim.record import SimOptions, WorldState, record_sim, simulate_pokes
 from tacest.sim.world import MAX_FINGER_FORCE
 
@@ -24,8 +26,7 @@ SLOP = 1e-4
 
 def _box(mass=0.5, w=0.1, h=0.06, mu_g=0.3, mu_f=0.4):
     v = box_vertices(w, h)
-    area, _, j = polygon_properties(v)
-    return SimObject(v, mass, mass * j / area, mu_g, mu_f, "box")
+    return SimObject(v, mass, polygon_inertia(v, mass), mu_g, mu_f, "box")
 
 
 def _state(obj, effects, pose=None, velocity=(0, 0, 0), finger=(0.5, 0.3)):
@@ -261,7 +262,7 @@ def test_com_offset_moves_the_truth_vertices():
     off = record_sim(SimOptions(effects=["com_offset:dx=0.01,dy=0.005"], **opts))
     d = np.array([0.01, 0.005])
     assert np.allclose(off.truth.vertices, base.truth.vertices - d, atol=1e-12)
-    assert np.allclose(polygon_properties(off.truth.vertices)[1], -d, atol=1e-12)
+    assert np.allclose(polygon_centroid(off.truth.vertices), -d, atol=1e-12)
     assert off.truth.inertia == pytest.approx(base.truth.inertia)
     # random pokes aim at the centroid, which is no longer the COM
     for (s, _), p in zip(off.actions.segments, off.actions.params):

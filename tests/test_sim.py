@@ -11,7 +11,10 @@ from tacest.errors import TacestError
 from tacest.io.plan import Plan, write_plan
 from tacest.io.run import read_run, write_run
 from tacest.sim.effects import effects_from_json
-from tacest.sim.objects import SimObject, box_vertices, polygon_properties
+from tacest.geometry.polygon import box_vertices, polygon_area, polygon_centroid, polygon_inertia, signed_area
+from tacest.geometry.transforms import rot2
+from tacest.sim.objects import (SimObject, convex_ccw, face_normals, inradius, random_polygon, rest_angle,
+                                resting_pose)
 from tacest.sim.pokes import POKE_NAMES
 from tacest.sim.record import (SimOptions, WorldState, initial_state, record_sim, simulate_pokes,
                                state_from_run)
@@ -29,8 +32,7 @@ NORMAL_TOL = 1e-3
 
 def _box(mass=0.5, w=0.1, h=0.06, mu_g=0.3, mu_f=0.4):
     v = box_vertices(w, h)
-    area, _, j = polygon_properties(v)
-    return SimObject(v, mass, mass * j / area, mu_g, mu_f, "box")
+    return SimObject(v, mass, polygon_inertia(v, mass), mu_g, mu_f, "box")
 
 
 def _state(obj, finger_at, y0=None):
@@ -124,15 +126,46 @@ def test_recorded_objects_validate_and_round_trip(tmp_path, spec, kind, k):
         assert len(v) == k
     if spec == "box:0.08,0.05":
         assert np.ptp(v[:, 0]) == pytest.approx(0.08) and np.ptp(v[:, 1]) == pytest.approx(0.05)
-    area, centroid, _ = polygon_properties(v)
-    assert area > 0, "counter-clockwise"
-    assert np.allclose(centroid, 0.0, atol=1e-12), "body frame at the COM (uniform density)"
+    assert signed_area(v) > 0, "counter-clockwise"
+    assert np.allclose(polygon_centroid(v), 0.0, atol=1e-12), "body frame at the COM (uniform density)"
+    assert back.truth.inertia == pytest.approx(polygon_inertia(v, back.truth.mass), rel=1e-12)
     assert 0.1 <= back.truth.mass <= 1.0
     assert 0.2 <= back.truth.friction_ground <= 0.8 and 0.1 <= back.truth.friction_finger <= 0.6
     # at rest on the ground at the start: lowest vertex on y = 0
     c, s = math.cos(run.truth.pose[0, 2]), math.sin(run.truth.pose[0, 2])
     y = v @ np.array([s, c]) + run.truth.pose[0, 1]
     assert abs(y.min()) < SLOP_TOL
+
+
+def test_object_geometry_hand_computed():
+    v = box_vertices(0.1, 0.06)
+    assert np.allclose(face_normals(v), [[0, -1], [1, 0], [0, 1], [-1, 0]])
+    assert inradius(v) == pytest.approx(0.03)
+    assert inradius(v, point=[0.01, 0.0]) == pytest.approx(0.03)
+    assert inradius(v, point=[0.045, 0.0]) == pytest.approx(0.005)
+    rng = np.random.default_rng(0)
+    assert rest_angle(v, rng, preferred=0.0) == pytest.approx(0.0)
+    assert rest_angle(v, rng, preferred=1.4) == pytest.approx(math.pi / 2)
+    assert np.allclose(resting_pose(v, math.pi / 2, x=0.2), [0.2, 0.05, math.pi / 2])
+    # a right triangle whose COM is over the corner of its hypotenuse face only: the
+    # long legs are stable faces, the short one is too, the hypotenuse is not (t ~ 1/3)
+    tri = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.02]])
+    tri = tri - polygon_centroid(tri)
+    for seed in range(20):
+        a = rest_angle(tri, np.random.default_rng(seed))
+        n_down = face_normals(tri) @ rot2(a).T
+        assert np.min(n_down[:, 1]) == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("k", [3, 4, 5, 6, 7, 8, 12])
+def test_random_polygons_have_k_vertices_and_plausible_size(k):
+    for seed in range(10):
+        v = random_polygon(np.random.default_rng(seed), k)
+        assert v.shape == (k, 2) and signed_area(v) > 0
+        assert np.allclose(convex_ccw(v), np.roll(v, -int(np.argmin(v[:, 0])), axis=0))  # convex, same order
+        diameter = np.max(np.linalg.norm(v[:, None] - v[None], axis=-1))
+        assert 0.06 - 1e-12 <= diameter <= 0.14 + 1e-12
+        assert np.allclose(polygon_centroid(v), 0.0, atol=1e-15)
 
 
 @pytest.mark.parametrize("fmt", ["txt", "csv", "json", "jsondict"])
@@ -151,9 +184,8 @@ def test_object_from_file(tmp_path, fmt):
     write_run(run, tmp_path / "r.h5")
     back = read_run(tmp_path / "r.h5")
     v = back.truth.vertices
-    area, centroid, _ = polygon_properties(v)
-    ref_area, ref_c, _ = polygon_properties(np.array(pts))
-    assert area == pytest.approx(ref_area) and np.allclose(centroid, 0.0, atol=1e-12)
+    ref_c = polygon_centroid(np.array(pts))
+    assert signed_area(v) == pytest.approx(polygon_area(pts)) and np.allclose(polygon_centroid(v), 0.0, atol=1e-12)
     # the same polygon up to the shift to its centroid (rows may start elsewhere)
     assert {tuple(np.round(r, 9)) for r in v + ref_c} == {tuple(np.round(r, 9)) for r in np.array(pts)}
     assert back.prior["shape"] == "polygon"

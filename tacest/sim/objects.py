@@ -26,6 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.geometry.polygon import (box_vertices, convex_hull_2d, polygon_boundary_distance,
+                                     polygon_centroid, polygon_inertia)
+from tacest.geometry.transforms import rot2, wrap_angle
+
 
 #: Random box sides and random polygon diameters, m (the issue: 6-14 cm).
 SIZE_RANGE = (0.06, 0.14)
@@ -41,6 +45,10 @@ FRICTION_FINGER_RANGE = (0.1, 0.6)
 #: Object sizes accepted from a spec or a file, m: below 5 mm the 1e-4 m contact slop
 #: is no longer small; above 0.3 m it breaks the size bound written to /prior.
 SIZE_LIMITS = (0.005, 0.3)
+#: a vertex farther than this fraction of the object's extent inside the hull makes a
+#: file's polygon non-convex (1e-9: far above float rounding of coordinates given to
+#: ~15 digits, far below any intended dent)
+NONCONVEX_REL_TOL = 1e-9
 
 
 @dataclass
@@ -67,7 +75,7 @@ class SimObject:
     @property
     def centroid__body(self) -> np.ndarray:
         """(2,) m, the area centroid in the body frame (zero unless the COM is offset)."""
-        return polygon_properties(self.vertices)[1]
+        return polygon_centroid(self.vertices)
 
     @property
     def face_normals__body(self) -> np.ndarray:
@@ -77,27 +85,6 @@ class SimObject:
 
 # ---------------------------------------------------------------------------------
 # polygon geometry
-
-
-def polygon_properties(vertices):
-    """Area, centroid and polar second moment of area of a simple polygon.
-
-    vertices : (K, 2) m, counter-clockwise.
-    Returns ``(area m², centroid (2,) m, J m⁴)`` with J about the centroid, so a
-    uniform body of mass m has inertia m·J/area about its centroid.
-    """
-    v = np.asarray(vertices, float)
-    x, y = v[:, 0], v[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    cross = x * yn - xn * y
-    area = 0.5 * np.sum(cross)
-    cx = np.sum((x + xn) * cross) / (6.0 * area)
-    cy = np.sum((y + yn) * cross) / (6.0 * area)
-    # second moments about the origin, then shifted to the centroid (parallel axis)
-    jxx = np.sum((y * y + y * yn + yn * yn) * cross) / 12.0
-    jyy = np.sum((x * x + x * xn + xn * xn) * cross) / 12.0
-    j_origin = jxx + jyy
-    return float(area), np.array([cx, cy]), float(j_origin - area * (cx * cx + cy * cy))
 
 
 def face_normals(vertices) -> np.ndarray:
@@ -111,45 +98,31 @@ def face_normals(vertices) -> np.ndarray:
 def inradius(vertices, point=None) -> float:
     """m, distance from ``point`` (default: the centroid) to the nearest face line."""
     v = np.asarray(vertices, float)
-    p = polygon_properties(v)[1] if point is None else np.asarray(point, float)
+    p = polygon_centroid(v) if point is None else np.asarray(point, float)
     return float(np.min(np.sum((v - p) * face_normals(v), axis=1)))
 
 
 def convex_ccw(points, what="polygon") -> np.ndarray:
-    """The points as a counter-clockwise convex polygon, starting at the lowest-index point.
+    """The points as a counter-clockwise convex polygon (tacest.geometry's hull: starts
+    at the lowest-x vertex, collinear points dropped).
 
-    Collinear points on an edge are dropped; a point inside the hull (a non-convex
-    polygon) or fewer than 3 hull points is a TacestError.
+    A point inside the hull (a non-convex polygon), fewer than 3 points or no area is a
+    TacestError naming ``what``.
     """
-    from scipy.spatial import ConvexHull, QhullError
-
     p = np.asarray(points, float)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3:
         raise TacestError(f"{what}: needs at least 3 vertices with x and y")
-    if not np.all(np.isfinite(p)):
-        raise TacestError(f"{what}: vertices must be finite numbers")
     try:
-        hull = ConvexHull(p)
-    except QhullError:
-        raise TacestError(f"{what}: vertices are degenerate (all on one line?)") from None
-    idx = list(hull.vertices)  # counter-clockwise in 2-D
-    # a point that is neither a hull vertex nor on a hull edge makes the polygon non-convex
-    hull_pts = p[idx]
-    for i in range(len(p)):
-        if i in idx:
-            continue
-        d = np.max(hull.equations[:, :2] @ p[i] + hull.equations[:, 2])
-        if d < -1e-9 * max(1.0, np.ptp(p)):
-            raise TacestError(f"{what}: not convex (vertex {i} at {p[i].tolist()} is inside the hull); "
-                              "tacest objects are convex")
-    start = int(np.argmin(idx))
-    return np.roll(hull_pts, -start, axis=0)
-
-
-def box_vertices(width, height) -> np.ndarray:
-    """(4, 2) counter-clockwise corners of a W × H box centred at the origin, m."""
-    w, h = 0.5 * width, 0.5 * height
-    return np.array([[-w, -h], [w, -h], [w, h], [-w, h]], float)
+        hull = convex_hull_2d(p)
+    except TacestError as exc:
+        raise TacestError(f"{what}: {exc}") from None
+    # every given vertex must be on the hull's boundary (up to rounding, relative to size)
+    inside = polygon_boundary_distance(p, hull) > NONCONVEX_REL_TOL * float(np.max(np.ptp(p, axis=0)))
+    if np.any(inside):
+        i = int(np.argmax(inside))
+        raise TacestError(f"{what}: not convex (vertex {i} at {p[i].tolist()} is inside the hull); "
+                          "tacest objects are convex")
+    return hull
 
 
 def random_polygon(rng: np.random.Generator, k: int) -> np.ndarray:
@@ -169,7 +142,7 @@ def random_polygon(rng: np.random.Generator, k: int) -> np.ndarray:
     diameter = np.max(np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1))
     pts *= rng.uniform(*SIZE_RANGE) / diameter
     pts = convex_ccw(pts)
-    return pts - polygon_properties(pts)[1]
+    return pts - polygon_centroid(pts)
 
 
 def read_polygon_file(path) -> np.ndarray:
@@ -269,21 +242,20 @@ def make_shape(spec: str, rng: np.random.Generator):
         raise TacestError(f"--object {spec}: is a folder, expected a file of vertices")
     v = convex_ccw(read_polygon_file(path), what=str(path))
     _check_size(v, str(path))
-    area, c, _ = polygon_properties(v)
-    return v - c, "polygon", 0.0
+    return v - polygon_centroid(v), "polygon", 0.0
 
 
 def uniform_object(vertices, kind, rng: np.random.Generator) -> SimObject:
     """A uniform-density object of the given shape with random mass and frictions.
 
     vertices : (K, 2) m, centred at the centroid.  Draws mass ~ U(0.1, 1) kg,
-    friction_ground ~ U(0.2, 0.8), friction_finger ~ U(0.1, 0.6); inertia = m·J/A.
+    friction_ground ~ U(0.2, 0.8), friction_finger ~ U(0.1, 0.6); inertia = m·J/A
+    (tacest.geometry.polygon.polygon_inertia).
     """
     mass = float(rng.uniform(*MASS_RANGE))
     fg = float(rng.uniform(*FRICTION_GROUND_RANGE))
     ff = float(rng.uniform(*FRICTION_FINGER_RANGE))
-    area, _, j = polygon_properties(vertices)
-    return SimObject(vertices=np.asarray(vertices, float), mass=mass, inertia=mass * j / area,
+    return SimObject(vertices=np.asarray(vertices, float), mass=mass, inertia=polygon_inertia(vertices, mass),
                      friction_ground=fg, friction_finger=ff, shape=kind)
 
 
@@ -299,12 +271,6 @@ def apply_com_offset(obj: SimObject, dx: float, dy: float) -> SimObject:
     return SimObject(vertices=obj.vertices - d, mass=obj.mass, inertia=obj.inertia,
                      friction_ground=obj.friction_ground, friction_finger=obj.friction_finger,
                      shape=obj.shape)
-
-
-def rot2(angle) -> np.ndarray:
-    """(2, 2) rotation matrix, body to world, for a counter-clockwise angle in rad."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, -s], [s, c]])
 
 
 def rest_angle(vertices, rng: np.random.Generator, preferred=None) -> float:
@@ -323,10 +289,10 @@ def rest_angle(vertices, rng: np.random.Generator, preferred=None) -> float:
         stable = np.arange(len(v))
     # the angle that turns outward normal n_i to point straight down (-y)
     angles = -0.5 * math.pi - np.arctan2(n[stable, 1], n[stable, 0])
-    angles = (angles + math.pi) % (2 * math.pi) - math.pi
+    angles = wrap_angle(angles)
     if preferred is None:
         return float(angles[int(rng.integers(len(angles)))])
-    diff = np.abs((angles - preferred + math.pi) % (2 * math.pi) - math.pi)
+    diff = np.abs(wrap_angle(angles - preferred))
     return float(angles[int(np.argmin(diff))])
 
 

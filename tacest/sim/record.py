@@ -38,8 +38,10 @@ import numpy as np
 from tacest.errors import TacestError
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
-from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, polygon_properties,
-                                rest_angle, resting_pose, rot2, uniform_object)
+from tacest.geometry.polygon import signed_area
+from tacest.geometry.transforms import rot2
+from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, rest_angle, resting_pose,
+                                uniform_object)
 from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, poke_path, random_poke
 from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, World
 
@@ -477,7 +479,7 @@ def state_from_run(run: Run) -> WorldState:
         if v is None or not np.isfinite(v) or v <= 0:
             raise TacestError(f"{where}: /truth attrs {name} is missing or not > 0")
     vertices = np.asarray(tr.vertices, float)
-    if polygon_properties(vertices)[0] < 0:  # clockwise: make it counter-clockwise
+    if signed_area(vertices) < 0:  # clockwise: make it counter-clockwise
         vertices = vertices[::-1].copy()
     obj = SimObject(vertices=vertices, mass=float(tr.mass), inertia=float(tr.inertia),
                     friction_ground=float(tr.friction_ground), friction_finger=float(tr.friction_finger),

@@ -33,7 +33,8 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.sim.effects import find
-from tacest.sim.objects import SimObject, rot2
+from tacest.geometry.transforms import rot2
+from tacest.sim.objects import SimObject
 
 GRAVITY = 9.81  # m/s², along -y
 #: kg, mass of each fingertip body (small next to the 0.1-1 kg objects)
