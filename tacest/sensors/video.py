@@ -424,11 +424,11 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     time = t_start + dt * np.arange(T)
     jitter = float(np.max(np.abs(np.diff(ft) - dt)))
 
+    # (progress is reported after the analysis, so a bad frame fails with one line only)
+    strength, uv, tracker = analyse_frames(src.open(), cal, opts, len(ft), src.names, ref_img)
     echo(f"video: {src.description}; dt = {dt * 1e3:.3f} ms"
          + (f" (frame times jitter up to {jitter * 1e3:.3f} ms; resampled to a uniform grid)"
             if jitter > UNIFORM_JITTER * dt else ""))
-
-    strength, uv, tracker = analyse_frames(src.open(), cal, opts, len(ft), src.names, ref_img)
     first_noise = 1 if ref_img is None else 0
     dec = decide_contacts(strength, opts.detect, first_noise_frame=first_noise)
     if dec.contact[first_noise:first_noise + opts.detect.noise_frames].any():
