@@ -77,6 +77,10 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--dim", type=int, choices=(2, 3), default=3)
+    p.add_argument("--noise", type=float, default=3.0, help="pixel noise sigma, grey levels (default 3)")
+    p.add_argument("--amplitude", type=float, default=1.0,
+                   help="indentation amplitude relative to the generator's default (default 1)")
+    p.add_argument("--max-polar", type=float, default=60.0, help="largest contact polar angle, deg (default 60)")
     p.add_argument("--png", action="store_true", help="also time the end-to-end recorder on a PNG folder")
     p.add_argument("--compare", action="store_true", help="also run other flow settings")
     a = p.parse_args(argv)
@@ -92,10 +96,14 @@ def main(argv=None) -> int:
             "Farneback, scale 0.5": FlowSettings(method="farneback"),
         })
     print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (other work slows the wall clock)")
+    print(f"sequences: noise sigma {a.noise} grey levels, amplitude x{a.amplitude}, contacts up to {a.max_polar} deg, "
+          f"dim {a.dim}")
     seqs = []
     for seed in a.seeds:
         t0 = time.perf_counter()
-        seqs.append(generate(SynthConfig(n_frames=a.frames, seed=seed, dim=a.dim)))
+        cfg = SynthConfig(n_frames=a.frames, seed=seed, dim=a.dim, noise_sigma=a.noise, max_polar_deg=a.max_polar)
+        cfg.indent_amplitude_px = a.amplitude * 0.02 * 0.46 * min(cfg.width, cfg.height)
+        seqs.append(generate(cfg))
         print(f"seed {seed}: generated {a.frames} frames 640x480, {int(seqs[-1].contact.sum())} in contact "
               f"({time.perf_counter() - t0:.1f} s)")
     ok = True
