@@ -36,7 +36,7 @@ from typing import Callable, Iterator, Optional
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.sensors.dome import DomeCalibration, check_rotation, load_calibration
+from tacest.sensors.dome import DomeCalibration, load_calibration
 from tacest.sensors.tactile_flow import DetectSettings, FlowSettings, TactileFlow, decide_contacts
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
@@ -407,6 +407,10 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     ref_img = None
     if opts.reference is not None:
         ref_img = _read_grey(Path(opts.reference))
+        W, H = cal.image_size
+        if ref_img.shape != (H, W):
+            raise TacestError(f"{opts.reference}: reference image is {ref_img.shape[1]}x{ref_img.shape[0]} px, "
+                              f"the calibration's image_size is {W}x{H}")
 
     # the run's uniform grid, checked before any decoding
     ft = src.times
