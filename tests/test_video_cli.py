@@ -104,3 +104,22 @@ def test_cli_errors_are_one_line(seqdir, tmp_path):
     # missing video options
     _one_line_error(_tacest("record", "--source", "video", "-o", out), "--frames")
     assert not out.exists()
+
+
+def test_cli_reference_image_and_quiet(seqdir, tmp_path):
+    seq, paths = seqdir
+    out = tmp_path / "run.h5"
+    p = _record(paths, out, "--reference", paths["frames"] / "frame_00000.png", "--quiet")
+    assert p.returncode == 0 and p.stderr == ""
+    assert read_run(out).contact[17:38, 0].all()
+
+
+def test_synth_module_command(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "tacest.sensors.synth_tactile", tmp_path / "s", "--frames", "12",
+                        "--size", "160x120", "--dim", "2"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    names = sorted(x.name for x in (tmp_path / "s").iterdir())
+    assert names == ["calib.json", "fingers.csv", "frames", "truth.csv"]
+    assert len(list((tmp_path / "s" / "frames").glob("*.png"))) == 12
+    assert (tmp_path / "s" / "fingers.csv").read_text().startswith("t,x,y\n")
+    assert (tmp_path / "s" / "truth.csv").read_text().startswith("t,contact,nx,ny,u,v\n")
