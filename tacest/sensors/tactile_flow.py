@@ -3,7 +3,7 @@
 Per frame (grey, full resolution, e.g. 640 x 480)::
 
     frame --resize by work_scale--> work image --gain/offset matched to the reference-->
-    DIS optical flow reference -> frame (work px) --block mean over grid_step px-->
+    DIS optical flow reference -> frame (work px) --block mean over grid_px full px-->
     coarse flow (Hg, Wg, 2) in full-resolution px --natural HHD (hhd.py)-->
     div of the curl-free part (areal strain, dimensionless) --Gaussian smoothing-->
     strength = its peak inside the dome mask; location = divergence-weighted centroid of
