@@ -78,56 +78,97 @@ def sample_polytope_surface(vertices, n: int, seed=None, return_weights=False):
     vertices : (K, 3), m.  Returns points (M, 3), m, and with ``return_weights`` also
     weights (M,) summing to 1 (each point's share of the area).
 
-    Default (``seed=None``): deterministic quadrature.  Triangle i of the hull (area
-    a_i of total S) is split into m_i² congruent sub-triangles, m_i = round(sqrt(n
-    a_i / S)) >= 1, and the sub-triangles' centroids are the points, weighted
-    a_i / (m_i² S).  That is a midpoint-type rule: exact for linear functions and with
-    error O(h²) for smooth ones (h = sub-triangle size), unlike random samples whose
-    error falls only as 1/sqrt(n).  M is close to n, not exactly n.
+    Default (``seed=None``): deterministic quadrature, see :func:`surface_lattice`:
+    the centroids of congruent sub-triangles ("cells"), weighted by area.  That is a
+    midpoint-type rule: exact for linear functions and with error O(h²) for smooth
+    ones (h = cell size), unlike random samples whose error falls only as 1/sqrt(n).
+    M is close to n, not exactly n.
 
     With an integer ``seed``: exactly n random points (``trimesh.sample.sample_surface``
     with that seed), equal weights.
     """
-    mesh = convex_hull_mesh(vertices)
     n = int(n)
     if n < 1:
         raise TacestError(f"number of samples must be >= 1, got {n}")
     if seed is not None:
         import trimesh
 
-        pts, _ = trimesh.sample.sample_surface(mesh, n, seed=int(seed))
+        pts, _ = trimesh.sample.sample_surface(convex_hull_mesh(vertices), n, seed=int(seed))
         pts = np.asarray(pts, float)
         w = np.full(pts.shape[0], 1.0 / pts.shape[0])
         return (pts, w) if return_weights else pts
-    tri = np.asarray(mesh.triangles, float)  # (M, 3, 3)
+    lat = surface_lattice(vertices, n)
+    return (lat.points, lat.weights) if return_weights else lat.points
+
+
+class SurfaceLattice:
+    """A quadrature lattice on a triangulated surface (see :func:`surface_lattice`).
+
+    nodes (V, 3) m: lattice vertices; cells (M, 3) int: corner node indices of each
+    cell; points (M, 3) m: cell centroids; weights (M,): area shares, sum 1;
+    size (M,) m: longest cell edge.
+    """
+
+    def __init__(self, nodes, cells, weights):
+        self.nodes = nodes
+        self.cells = cells
+        self.weights = weights
+        corners = nodes[cells]  # (M, 3, 3)
+        self.points = corners.mean(axis=1)
+        self.size = np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1)
+
+    def sub_points(self, k: int) -> np.ndarray:
+        """Centroids (M, k², 3) of the k² congruent sub-cells of every cell."""
+        corners = self.nodes[self.cells]
+        return subdivide_triangles(corners, k).mean(axis=2)
+
+
+def surface_lattice(vertices, n: int) -> SurfaceLattice:
+    """Split the hull's surface into about ``n`` cells of nearly equal area.
+
+    Triangle i of the hull (area a_i of total S) is split into m_i² congruent
+    sub-triangles, m_i = round(sqrt(n a_i / S)) >= 1, each weighted a_i / (m_i² S)
+    (weights renormalised to sum to 1).  Lattice nodes are not shared between hull
+    triangles.
+    """
+    mesh = convex_hull_mesh(vertices)
+    tri = np.asarray(mesh.triangles, float)  # (T, 3, 3)
     area = np.asarray(mesh.area_faces, float)
     S = float(area.sum())
-    m = np.maximum(1, np.rint(np.sqrt(n * area / S))).astype(int)
-    pts, wts = [], []
+    m = np.maximum(1, np.rint(np.sqrt(max(1, int(n)) * area / S))).astype(int)
+    nodes, cells, wts = [], [], []
+    base = 0
     for mi in np.unique(m):
-        uv = _subtriangle_centroids(int(mi))  # (mi², 2)
-        sel = m == mi
+        sel = np.flatnonzero(m == mi)
+        uv, idx = _lattice(int(mi))  # (P, 2) node coordinates, (mi², 3) cells
         T = tri[sel]
         P = T[:, None, 0] + uv[None, :, :1] * (T[:, None, 1] - T[:, None, 0]) \
-            + uv[None, :, 1:] * (T[:, None, 2] - T[:, None, 0])
-        pts.append(P.reshape(-1, 3))
+            + uv[None, :, 1:] * (T[:, None, 2] - T[:, None, 0])  # (t, P, 3)
+        nodes.append(P.reshape(-1, 3))
+        offs = base + uv.shape[0] * np.arange(len(sel))
+        cells.append((idx[None] + offs[:, None, None]).reshape(-1, 3))
         wts.append(np.repeat(area[sel] / (mi * mi * S), mi * mi))
-    pts = np.concatenate(pts)
+        base += uv.shape[0] * len(sel)
     w = np.concatenate(wts)
-    w = w / w.sum()
-    return (pts, w) if return_weights else pts
+    return SurfaceLattice(np.concatenate(nodes), np.concatenate(cells), w / w.sum())
 
 
-def _subtriangle_centroids(m: int) -> np.ndarray:
-    """Barycentric (u, v) of the centroids of the m² congruent sub-triangles of the
-    reference triangle {u, v >= 0, u + v <= 1}: (m², 2)."""
-    i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
-    i, j = i.ravel(), j.ravel()
-    up = i + j <= m - 1
-    down = i + j <= m - 2
-    uv_up = np.stack([i[up] + 1.0 / 3.0, j[up] + 1.0 / 3.0], 1)
-    uv_dn = np.stack([i[down] + 2.0 / 3.0, j[down] + 2.0 / 3.0], 1)
-    return np.concatenate([uv_up, uv_dn]) / m
+def _lattice(m: int):
+    """Nodes (u, v) = (i/m, j/m), i + j <= m, of the reference triangle and the corner
+    indices (m², 3) of its m² congruent cells ("upward" cells first)."""
+    ij = [(i, j) for i in range(m + 1) for j in range(m + 1 - i)]
+    index = {p: k for k, p in enumerate(ij)}
+    up = [(index[i, j], index[i + 1, j], index[i, j + 1]) for i in range(m) for j in range(m - i)]
+    down = [(index[i + 1, j + 1], index[i, j + 1], index[i + 1, j])
+            for i in range(m - 1) for j in range(m - 1 - i)]
+    return np.array(ij, float) / m, np.array(up + down, int).reshape(-1, 3)
+
+
+def subdivide_triangles(triangles, m: int) -> np.ndarray:
+    """Split each triangle (T, 3, 3) into m² congruent sub-triangles: (T, m², 3, 3)."""
+    uv, idx = _lattice(int(m))
+    bary = np.concatenate([1.0 - uv.sum(1, keepdims=True), uv], 1)[idx]  # (m², 3, 3)
+    return np.einsum("skc,tcd->tskd", bary, np.asarray(triangles, float))
 
 
 class PolytopeSurface:
