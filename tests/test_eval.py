@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -118,8 +117,8 @@ def make_estimate(run, vertices=None, dpos=None, dangle=0.0, params=None, source
 
 @pytest.fixture(scope="module")
 def files2d(tmp_path_factory):
-    """run.h5 with truth, est.h5 (positions +2 mm in x, mass +10 %, friction_finger NaN),
-    notruth.h5."""
+    """run.h5 with truth, est.h5 (positions +2 mm in x, mass +10 % and flagged not
+    identifiable, friction_finger NaN), notruth.h5."""
     d = tmp_path_factory.mktemp("eval2d")
     run = make_run(2)
     write_run(run, d / "run.h5")
@@ -127,6 +126,7 @@ def files2d(tmp_path_factory):
     est = make_estimate(run, dpos=np.array([0.002, 0.0]),
                         params={"mass": 1.1 * MASS, "friction_finger": float("nan")},
                         source_sha256=sha256_file(d / "run.h5"), source_file=str(d / "run.h5"))
+    est.identifiable = {"mass": False}
     write_estimate(est, d / "est.h5")
     return d
 
@@ -244,18 +244,20 @@ def test_match_run():
 def test_json_safe_and_table(files2d):
     report, est, run = evaluate_files(files2d / "est.h5", files2d / "run.h5")
     assert report["matched_by"] == "sha256"
+    assert report["params"]["mass"]["identifiable"] is False
+    assert report["params"]["friction_ground"]["identifiable"] is None  # not stated
     assert math.isnan(report["friction_finger_rel"])
     js = json.loads(json.dumps(to_jsonable(report), allow_nan=False))
     assert js["friction_finger_rel"] is None
     text = format_report(report)
-    assert "chamfer_body" in text and "mass" in text and "n/a" in text
+    assert "chamfer_body" in text and "mass" in text and "n/a" in text and "not identifiable" in text
 
 
 def test_plot_2d_and_3d(tmp_path):
     from tacest.evaluation.plots import plot_evaluation
 
     for dim in (2, 3):
-        run = make_run(dim, T=120, spin=True)
+        run = make_run(dim, T=60, spin=True)
         est = make_estimate(run, dpos=np.full(dim, 0.001), dangle=0.02)
         report, series = evaluate(est, run, return_series=True)
         out = tmp_path / f"eval{dim}.png"
@@ -311,4 +313,4 @@ def test_written_estimate_round_trip(files2d):
     est = read_estimate(files2d / "est.h5")
     run = read_run(files2d / "run.h5")
     assert est.runs[0].pose.shape == run.truth.pose.shape
-    assert sys.version_info >= (3, 10)
+    assert est.runs[0].source_sha256 == sha256_file(files2d / "run.h5")

@@ -124,7 +124,9 @@ def evaluate(est, truth_run, run_index: int = 0, n_samples=None, max_frames: int
     for k in PARAM_KEYS:
         e, t = est.params.get(k), getattr(tr, k)
         rel = _inertia_rel(e, t, D) if k == "inertia" else _rel(e, t)
-        params[k] = {"estimate": _plain(e), "truth": _plain(t), "rel": rel}
+        ident = est.identifiable.get(k) if isinstance(est.identifiable, dict) else None
+        params[k] = {"estimate": _plain(e), "truth": _plain(t), "rel": rel,
+                     "identifiable": None if ident is None else bool(ident)}
     report = {
         "chamfer": float(np.mean(ch)),
         "chamfer_max": float(np.max(ch)),
@@ -294,8 +296,9 @@ def format_report(report: dict) -> str:
         lines.append(f"{name:<{w}}  {val:>22}  {note}")
     lines.append("")
     units = {"mass": "kg", "inertia": "kg m2", "friction_ground": "", "friction_finger": ""}
-    prow = [(k, _val(report["params"][k]["estimate"], units[k]), _val(report["params"][k]["truth"], units[k]),
-             _pct(report["params"][k]["rel"])) for k in PARAM_KEYS]
+    prow = [(k, _val(p["estimate"], units[k]), _val(p["truth"], units[k]),
+             _pct(p["rel"]) + ("  (not identifiable: the prior's value)" if p.get("identifiable") is False else ""))
+            for k, p in ((k, report["params"][k]) for k in PARAM_KEYS)]
     we = max(12, *(len(r[1]) for r in prow))
     wt = max(12, *(len(r[2]) for r in prow))
     lines.append(f"{'parameter':<{w}}  {'estimate':>{we}}  {'truth':>{wt}}  rel. error")
