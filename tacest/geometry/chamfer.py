@@ -169,7 +169,7 @@ class ConvexBoundary:
         """P (N, D) -> distance (N,) to the boundary; the same cases as :meth:`closest`
         without building closest points and normals (about twice as fast)."""
         P = np.asarray(P, float)
-        s = P @ self.n.T - self.d  # (N, F)
+        s = _plane_values(P, self.n, self.d)  # (N, F)
         j = np.argmax(s, axis=1)
         sj = np.take_along_axis(s, j[:, None], axis=1)[:, 0]
         dist = np.abs(sj)
@@ -191,7 +191,7 @@ class ConvexBoundary:
         outside), unit normal (N, D) with ``signed = normal · (p - closest)``."""
         P = np.asarray(P, float)
         N = P.shape[0]
-        s = P @ self.n.T - self.d  # (N, F)
+        s = _plane_values(P, self.n, self.d)  # (N, F)
         j = np.argmax(s, axis=1)
         sj = s[np.arange(N), j]
         signed = sj.copy()
@@ -223,6 +223,24 @@ class ConvexBoundary:
                 closest[r] = c[idx, k]
                 normal[r] = (P[r] - closest[r]) / np.maximum(dr, 1e-300)[:, None]
         return np.abs(signed), closest, signed, normal
+
+
+def _plane_values(P, n, d):
+    """``P @ n.T - d`` for P (N, D), n (F, D), d (F,), by broadcasting: with an inner
+    dimension of 2 or 3, BLAS matmul is several times slower (and threads badly)."""
+    s = P[:, 0:1] * n[:, 0] - d
+    for k in range(1, P.shape[1]):
+        s += P[:, k:k + 1] * n[:, k]
+    return s
+
+
+def _map_points(R, t, P):
+    """Rigid maps of one point set: R (L, D, D), t (L, D), P (M, D) -> (L, M, D),
+    ``R_l @ p + t_l``, by broadcasting (see :func:`_plane_values`)."""
+    out = P[None, :, 0, None] * R[:, None, :, 0] + t[:, None, :]
+    for k in range(1, P.shape[1]):
+        out += P[None, :, k, None] * R[:, None, :, k]
+    return out
 
 
 class Shape:
@@ -370,10 +388,10 @@ def _side_mean(src: Shape, dst: Shape, R, t, n, adaptive):
     tolerance and the centroid is already exact to it.
     """
     pts, w = src.samples(n)
-    d = dst.distance(np.einsum("lij,nj->lni", R, pts) + t[:, None, :])  # (L, M)
+    d = dst.distance(_map_points(R, t, pts))  # (L, M)
     if adaptive and src.dim == 3:
         lat = src.lattice(n)
-        dn = dst.distance(np.einsum("lij,nj->lni", R, lat.nodes) + t[:, None, :])  # (L, V)
+        dn = dst.distance(_map_points(R, t, lat.nodes))  # (L, V)
         bend = np.abs(d - dn[:, lat.cells].mean(axis=2))
         li, ci = np.nonzero(bend > ADAPT_TOL * max(src.size, dst.size))
         if li.size:
