@@ -119,7 +119,7 @@ def plot_evaluation(path, report: dict, series: dict, est, run, run_index: int =
                Line2D([], [], color="0.55", lw=0.9, label="finger path"),
                Line2D([], [], color="tab:red", lw=0, marker="o", mfc="none", alpha=0.6, label="finger in contact"),
                Line2D([], [], color="saddlebrown", lw=2, label="ground")]
-    ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
+    ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.85)
     ax.grid(alpha=0.25)
     cb = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, fraction=0.035, pad=0.02)
     cb.set_label("snapshot time (s)")
