@@ -23,6 +23,11 @@ class Noise:
     process: float = 0.05  #: dynamics residual, as a fraction of m·g·dt (model error)
     penetration: float = 5e-4  #: m, tolerated ground penetration
     rest: float = 1e-3  #: m/s, velocity at t = 0 (the object starts at rest)
+    #: complementarity violation lambda_n·psi(phi), in units of m·g·dt (a vertex off the
+    #: ground carrying 5 % of the weight is one sigma)
+    complementarity: float = 0.05
+    #: dissipation shortfall, in units of m·g·dt × (object lengths per second)
+    dissipation: float = 0.05
 
 
 @dataclass
@@ -35,8 +40,8 @@ class Weights:
     pose: float = 1.0
     dynamics: float = 1.0
     penetration: float = 1.0
-    complementarity: float = 1.0  #: per unit of (lambda_n / (m g dt)) · (phi / contact_gap)
-    dissipation: float = 1.0  #: per unit of (lambda / (m g dt)) · (slip / (L / s))
+    complementarity: float = 1.0
+    dissipation: float = 1.0
 
 
 @dataclass
@@ -58,13 +63,21 @@ class Solver:
     """IPOPT settings and the complementarity homotopy."""
 
     linear_solver: str = "mumps"
+    #: "gauss-newton" (J_rᵀ J_r for the squared terms: positive semi-definite, robust far
+    #: from the solution) or "exact" (full second derivatives)
+    hessian: str = "gauss-newton"
+    #: Levenberg–Marquardt ridge added to the Hessian model (scaled units); keeps
+    #: Gauss–Newton steps local where the data leave directions weakly determined
+    hessian_ridge: float = 1.0
     tol: float = 1e-6
     acceptable_tol: float = 1e-3
     max_iter: int = 400  #: per homotopy stage
     max_cpu_time: float = 600.0  #: s, per stage
-    #: relaxation stages: (smoothing epsilon of phi and slip, in units of the
-    #: contact gap / velocity scale;  complementarity weight multiplier)
-    homotopy: list = field(default_factory=lambda: [[1.0, 0.1], [0.1, 1.0], [0.01, 10.0]])
+    #: relaxation stages [epsilon, complementarity multiplier, dynamics multiplier]:
+    #: epsilon smooths max(phi, 0) (in contact-gap sigmas) and |slip|; the first stages
+    #: trust the touches more than the physics (a kinematic fit), the last one is the
+    #: model as configured
+    homotopy: list = field(default_factory=lambda: [[1.0, 0.01, 0.001], [0.3, 0.1, 0.03], [0.1, 1.0, 1.0]])
     #: first stage with mass and friction held at their start values (DESIGN pitfalls)
     staged: bool = False
     print_every: int = 10  #: iterations between progress lines
@@ -121,8 +134,11 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
         data.setdefault(section, {}).update(values)
     cfg = _fill(EstimatorConfig, data, str(path) if path else "config")
     hom = cfg.solver.homotopy
-    if not hom or not all(isinstance(s, (list, tuple)) and len(s) == 2 and all(x > 0 for x in s) for s in hom):
-        raise TacestError("solver.homotopy: expected a list of [epsilon, weight] pairs of positive numbers")
+    if not hom or not all(isinstance(s, (list, tuple)) and len(s) == 3 and all(x > 0 for x in s) for s in hom):
+        raise TacestError("solver.homotopy: expected a list of [epsilon, complementarity, dynamics] "
+                          "triples of positive numbers")
+    if cfg.solver.hessian not in ("gauss-newton", "exact"):
+        raise TacestError(f"solver.hessian: expected gauss-newton or exact, got {cfg.solver.hessian!r}")
     if cfg.solver.linear_solver not in ("mumps", "spral", "ma27", "ma57", "ma86", "ma97"):
         raise TacestError(f"solver.linear_solver: unknown {cfg.solver.linear_solver!r}")
     return cfg

@@ -68,21 +68,24 @@ def data_matrix(run: Run, F: int) -> np.ndarray:
     return D
 
 
-def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float, comp_mult: float) -> np.ndarray:
+def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float, comp_mult: float,
+                  dyn_mult: float = 1.0) -> np.ndarray:
     nz = config.noise
     g = np.zeros(len(G_NAMES))
     up = run.up
     vals = dict(dt=run.dt, L=scales.L, Lam=scales.m0 * GRAVITY * run.dt, m0=scales.m0, nx=up[0], ny=up[1],
                 h=run.ground_height, sig_force=nz.force, sig_normal=nz.normal, sig_gap=nz.contact_gap,
                 sig_proc=nz.process, sig_pen=nz.penetration, sig_rest=nz.rest,
-                sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult)
+                sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult,
+                dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation)
     for k, v in vals.items():
         g[G[k]] = v
     return g
 
 
 def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config: EstimatorConfig,
-                     eps: float, comp_mult: float, s_ref: np.ndarray, weights_override: dict | None = None):
+                     eps: float, comp_mult: float, s_ref: np.ndarray, weights_override: dict | None = None,
+                     dyn_mult: float = 1.0, ridge: float | None = None):
     """The full parameter vector p for :attr:`Problem2D.nlp`."""
     if len(runs) != len(problem.structures):
         raise TacestError("internal: runs do not match the problem structure")
@@ -90,7 +93,7 @@ def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config
     for run, st in zip(runs, problem.structures):
         if run.n_samples != st.T:
             raise TacestError("internal: run length does not match the problem structure")
-        parts.append(global_vector(run, scales, config, eps, comp_mult))
+        parts.append(global_vector(run, scales, config, eps, comp_mult, dyn_mult))
         parts.append(data_matrix(run, st.F).reshape(-1))
     w = config.weights
     wd = {t: getattr(w, t) for t in TERMS}
@@ -100,6 +103,7 @@ def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config
     parts.append(np.array([pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
                            pr.shape_sigma, 1.0]))
     parts.append(np.asarray(s_ref, float))
+    parts.append([config.solver.hessian_ridge if ridge is None else ridge])
     p = np.concatenate(parts)
     assert p.shape[0] == problem.n_p_total
     return p

@@ -88,30 +88,25 @@ class ImplicitEstimator:
         for i, (run, st) in enumerate(zip(self.runs, self.structures)):
             off = pr.offsets[i]
             a, n = off["LG"]
-            lg_lb = lbx[a: a + n].reshape(-1, 2 * K).T
-            lg_lb[:K] = 0.0  # lambda_n >= 0
-            lbx[a: a + n] = lg_lb.T.reshape(-1)
+            lbx[a: a + n] = 0.0  # lambda_n >= 0
             if st.F:
+                # finger impulses exist only where the tactile flag says the finger touched
                 a, n = off["LF"]
-                lf_lb = np.full((2 * st.F, st.T - 1), -np.inf)
-                lf_ub = np.full((2 * st.F, st.T - 1), np.inf)
-                lf_lb[: st.F] = 0.0
-                on = run.contact[1:].astype(bool).T
+                on = run.contact[1:].astype(bool)
                 if run.missing is not None:
-                    on &= ~run.missing[1:].astype(bool)[None, :]
-                off_rows = np.vstack([~on, ~on])
-                lf_lb[off_rows] = 0.0
-                lf_ub[off_rows] = 0.0
-                lbx[a: a + n] = lf_lb.T.reshape(-1)
-                ubx[a: a + n] = lf_ub.T.reshape(-1)
+                    on &= ~run.missing[1:].astype(bool)[:, None]
+                off_rows = np.repeat(~on, 2, axis=1)  # (T-1, 2F): [x, y] per finger
+                lbx[a: a + n] = np.where(off_rows, 0.0, -np.inf).reshape(-1)
+                ubx[a: a + n] = np.where(off_rows, 0.0, np.inf).reshape(-1)
         if self.shape.name != "box" and not any(r.pose_obs is not None for r in self.runs):
             # gauge: a free polygon can rotate in its body frame; fix the start angle of run 0
             a = pr.offsets[0]["Q"][0] + 2
             lbx[a] = ubx[a] = self.z[a]
         return lbx, ubx
 
-    def params(self, eps, comp_mult):
-        return parameter_vector(self.problem, self.runs, self.scales, self.config, eps, comp_mult, self.s0)
+    def params(self, eps, comp_mult, dyn_mult=1.0):
+        return parameter_vector(self.problem, self.runs, self.scales, self.config, eps, comp_mult, self.s0,
+                                dyn_mult=dyn_mult)
 
     # --------------------------------------------------------------------------------
     def solve(self) -> SolveOutcome:
@@ -121,15 +116,15 @@ class ImplicitEstimator:
         hom = list(cfg.homotopy)
         plan = []
         if cfg.staged:
-            plan.append(("shape+pose", hom[0][0], hom[0][1], True))
-        for k, (eps, w) in enumerate(hom):
-            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, False))
+            plan.append(("shape+pose", *hom[0], True))
+        for k, (eps, w, wd) in enumerate(hom):
+            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, False))
         lam_x = lam_g = None
         total_t = 0.0
-        for label, eps, w, fix in plan:
+        for label, eps, w, wd, fix in plan:
             lbx, ubx = self.variable_bounds(fix_phys=fix)
             self.z = np.clip(self.z, lbx, ubx)
-            sol, info = self.built.solve(self.z, self.params(eps, w), lbx, ubx, lam_x, lam_g,
+            sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, lam_x, lam_g,
                                          label=label, echo=self.echo)
             stages.append(info)
             total_t += info.wall_time
@@ -140,7 +135,7 @@ class ImplicitEstimator:
             lam_x = np.asarray(sol["lam_x"]).reshape(-1)
             lam_g = np.asarray(sol["lam_g"]).reshape(-1)
         last = stages[-1]
-        self.p_final = self.params(plan[-1][1], plan[-1][2])
+        self.p_final = self.params(*plan[-1][1:4])
         return SolveOutcome(z=self.z, lam_g=lam_g, lam_x=lam_x, status=last.status,
                             success=last.status in SUCCESS_STATUSES,
                             iterations=sum(s.iterations for s in stages), wall_time=total_t,
@@ -151,22 +146,32 @@ class ImplicitEstimator:
         V, mass, inertia, mu_g, mu_f, area = self.problem.phys_fun(z, self.p_final)
         return (np.array(V), float(mass), float(inertia), float(mu_g), float(mu_f))
 
+    def _stage_outputs(self, z, i):
+        """All stage-function outputs of run i at z: {name: (n_out, T-1)}."""
+        pr = self.problem
+        st = self.structures[i]
+        Q, Vv, LG, LF = pr.run_blocks(z, i)
+        g, D = self._run_data(i)
+        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
+        out = pr.stage_funs[i].map(st.T - 1)(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, D[:, 1:], g)
+        return dict(zip(pr.stage_funs[i].name_out(), out))
+
+    def _run_data(self, i):
+        pr = self.problem
+        a, ng, nd = pr.p_offsets[i]
+        p = self.p_final
+        return p[a: a + ng], p[a + ng: a + ng + nd].reshape(self.structures[i].T, -1).T
+
     def per_sample_residuals(self, z, i):
         """{term: (T,)} value of each loss term per sample of run i (0.5 ||r||² for the
         squared terms, the penalty value for the others), weights not applied."""
         pr = self.problem
-        st = self.structures[i]
         Q, Vv, LG, LF = pr.run_blocks(z, i)
-        p = self.p_final
-        a, ng, nd = pr.p_offsets[i]
-        g = p[a: a + ng]
-        D = p[a + ng: a + ng + nd].reshape(st.T, -1).T
-        V, mass, inertia, mu_g, mu_f = self.physical(z)
-        phys = np.concatenate([V.T.reshape(-1), [mass, inertia, mu_g, mu_f]])
-        out = pr.stage_funs[i].map(st.T - 1)(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, D[:, 1:], g)
-        res = dict(zip(pr.stage_funs[i].name_out(), out))
+        g, D = self._run_data(i)
+        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
+        res = self._stage_outputs(z, i)
         o0 = dict(zip(["rest", "penetration", "pose", "contact"],
-                      pr._start_function(st.F)(Q[:, 0], Vv[:, 0], phys, D[:, 0], g)))
+                      pr.start_funs[i](Q[:, 0], Vv[:, 0], phys, D[:, 0], g)))
         result = {}
         for t in TERMS:
             arr = np.asarray(res[t])
@@ -191,14 +196,15 @@ class ImplicitEstimator:
         Lam = self.scales.m0 * GRAVITY * run.dt
         K = self.problem.K
         T = run.n_samples
+        res = self._stage_outputs(z, i)
         imp = {
-            "ground_normal": np.vstack([np.zeros((1, K)), LG[:K].T * Lam]),
-            "ground_tangent": np.vstack([np.zeros((1, K)), LG[K:].T * Lam]),
+            "ground_normal": np.vstack([np.zeros((1, K)), LG.T * Lam]),
+            "ground_tangent": np.vstack([np.zeros((1, K)), np.asarray(res["lam_t_ground"]).T * Lam]),
         }
         F = self.structures[i].F
-        if F:
-            imp["finger_normal"] = np.vstack([np.zeros((1, F)), LF[:F].T * Lam])
-            imp["finger_tangent"] = np.vstack([np.zeros((1, F)), LF[F:].T * Lam])
+        fi = np.asarray(res["imp_finger"]).T  # (T-1, 2F)
+        for f in range(F):
+            imp[f"finger_{f}"] = np.vstack([np.zeros((1, 2)), fi[:, 2 * f: 2 * f + 2]])
         assert imp["ground_normal"].shape[0] == T
         return pose, vel, imp
 

@@ -114,6 +114,8 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
     ns = problem.n_shape
     z0[:ns] = s0
     z0[ns:ns + 4] = [0.0, 0.0, 0.5, 0.5]
+    z0[problem.phys_offset: problem.phys_offset + problem.n_phys] = np.asarray(
+        problem.phys_sx(z0[: problem.n_theta], scales.L, scales.m0)).reshape(-1)
     V = numeric_vertices(problem.shape, s0, scales.L)
     K = problem.K
     for i, run in enumerate(runs):
@@ -131,22 +133,19 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
         scale = np.array([scales.L, scales.L, 1.0])
         Q = (poses / scale).T
         Vv = (vel / scale).T
-        LG = np.zeros((2 * K, T - 1))
-        LF = np.zeros((2 * run.n_fingers, T - 1))
+        LG = np.zeros((K, T - 1))
         # ground: weight carried by the vertices within 1 mm of the ground
         for t in range(1, T):
             Rt = np.array([[np.cos(poses[t, 2]), -np.sin(poses[t, 2])], [np.sin(poses[t, 2]), np.cos(poses[t, 2])]])
             phi = (V @ Rt.T + poses[t, :2]) @ run.up - run.ground_height
             low = phi < phi.min() + 1e-3
-            LG[:K, t - 1][low] = 1.0 / low.sum()
+            LG[:, t - 1][low] = 1.0 / low.sum()
+        LF = np.zeros((2 * run.n_fingers, T - 1))
         if run.n_fingers:
             Lam = scales.m0 * GRAVITY * run.dt
             on = run.contact[1:].astype(bool)
-            if run.force is not None:
-                n = np.where(np.isfinite(run.normal[1:]), run.normal[1:], 0.0)
-                ln = np.maximum(-(run.force[1:] * n).sum(-1), 0.0) * run.dt / Lam
-            else:
-                ln = np.full(on.shape, 0.3)
-            LF[: run.n_fingers] = (ln * on).T
+            n = np.where(np.isfinite(run.normal[1:]), run.normal[1:], 0.0)
+            imp = run.force[1:] * run.dt / Lam if run.force is not None else -0.3 * n
+            LF = (imp * on[:, :, None]).reshape(T - 1, -1).T
         problem.set_run_blocks(z0, i, Q=Q, V=Vv, LG=LG, LF=LF)
     return z0

@@ -3,14 +3,17 @@
 Decision variables (all scaled to O(1); see :class:`Scales`):
 
 - shared parameters ``theta`` = [shape s (n_s), log(m/m0), log(I / I_uniform), mu_ground, mu_finger]
+- lifted physical quantities ``phys`` = [V / L (2K), m / m0, I / (m0 L²), mu_ground,
+  mu_finger] with the equality constraint phys = phys(theta)
 - per run i, per sample t: pose q[t] (3), velocity v[t] (3); per interval (t-1, t]:
-  ground impulses [lambda_n (K), lambda_t (K)] at each shape vertex and finger impulses
-  [lambda_n (F), lambda_t (F)] in the contact frame of each finger.
+  ground impulses [lambda_n (K), lambda_t (K)] at each shape vertex and, per finger,
+  its impulse on the object as a world-frame vector [x, y] (scaled by m0 g dt).
 
 Data (recorded streams, noise levels, homotopy settings) are CasADi *parameters*, so the
 NLP is built once per structure (shape, run lengths, fingers) and re-solved with new data.
 
-Loss (whitened residuals, names as written into estimate files)::
+Loss (whitened residuals, names as written into estimate files; every term is squared,
+so that a Gauss–Newton Hessian models the whole loss)::
 
     force          (lambda_f / dt - F_meas) / sigma_F                 where a force stream exists
     normal         c (n_meas - n_model) / sigma_n
@@ -18,12 +21,25 @@ Loss (whitened residuals, names as written into estimate files)::
     pose           (q - q_obs) / sigma_pose                           where observed
     dynamics       eq. D1 residual / (process · m0 g dt)
     penetration    min(phi_ground, 0) / sigma_pen
-    complementarity  lambda_n phi⁺ (eq. C1, relaxed; phi⁺ a smoothed max(phi, 0))
-    dissipation    mu lambda_n |s| + lambda_t s  >= 0 (eq. C3, zero at maximal dissipation)
+    complementarity  lambda_n psi(phi) / sigma_comp (eq. C1, relaxed): psi = phi⁺ / (phi⁺ + sigma_gap),
+                   phi⁺ a smoothed max(phi, 0); psi saturates at 1 so that a vertex far
+                   above the ground costs lambda_n, not lambda_n · phi (the unbounded
+                   bilinear form makes IPOPT's Hessian badly indefinite)
 
-subject to eq. D2 (kinematics, equality), the friction cones (eq. C2), lambda_n >= 0 and
+Ground friction (eq. C2, C3) is in closed form: the tangential impulse is on the cone's
+boundary against the slip, lambda_t = -mu lambda_n s / sqrt(s² + eps_s²) (maximal
+dissipation, regularized below eps_s), so no ground friction variables or bilinear cone
+constraints appear.  Finger impulses are free world-frame vectors inside the friction cone
+of the model's contact frame, with the maximal-dissipation penalty
+
+    dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss  >= 0 (eq. C3, zero at maximal dissipation)
+
+because fingertips often stick and their measured velocity is noisy.
+
+subject to eq. D2 (kinematics, equality), lambda_n >= 0 and
 the shape's validity constraints.  Objective = 0.5 Σ w ||r||² + w_c Σ comp + w_d Σ diss
-+ priors.
++ priors.  (The relaxations are squared too: complementarity and dissipation residuals
+are whitened by sigma_comp and sigma_diss, see configs/estimate.toml.)
 """
 
 from __future__ import annotations
@@ -38,15 +54,16 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_and_normal_function, rot2
 
 #: squared-residual terms, in the order the stage function returns them
-SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration")
-#: penalty terms (non-negative, not squared)
-PENALTY_TERMS = ("complementarity", "dissipation")
+SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration", "complementarity",
+                 "dissipation")
+#: penalty terms (non-negative, not squared); none at present: every term is a
+#: whitened residual, so the Gauss–Newton Hessian covers the whole loss
+PENALTY_TERMS = ()
 TERMS = SQUARED_TERMS + PENALTY_TERMS
-#: smoothing of |slip| relative to the gap smoothing epsilon: the homotopy's epsilon is
-#: in units of the contact-gap sigma for phi and of SLIP_EPS_RATIO · (L per second) for
-#: slip, so that eps = 1 smooths |s| over ±2 % of an object length per second (the
-#: penalty's bias mu·lambda_n·eps is then small against the measurement terms)
-SLIP_EPS_RATIO = 0.02
+#: m/s: slip velocity below which friction is regularized (times the homotopy epsilon).
+#: At eps = 1 an object held by static friction creeps at most ~2 mm/s; the last
+#: stage (eps = 0.1) brings it to 0.2 mm/s, below what 0.1 mm position noise resolves.
+SLIP_EPS = 2e-3
 #: names of the physical parameters in theta after the shape block
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
@@ -71,7 +88,7 @@ def smooth_abs(x, eps):
 
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
-           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult")
+           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss")
 G = {n: i for i, n in enumerate(G_NAMES)}
 
 
@@ -100,15 +117,17 @@ class Problem2D:
     def _layout(self):
         K = self.K
         self.offsets = []
-        n = self.n_theta
+        self.n_phys = 2 * K + 4
+        self.phys_offset = self.n_theta
+        n = self.n_theta + self.n_phys
         for st in self.structures:
             T, F = st.T, st.F
             blk = {"Q": (n, 3 * T)}
             n += 3 * T
             blk["V"] = (n, 3 * T)
             n += 3 * T
-            blk["LG"] = (n, 2 * K * (T - 1))
-            n += 2 * K * (T - 1)
+            blk["LG"] = (n, K * (T - 1))
+            n += K * (T - 1)
             blk["LF"] = (n, 2 * F * (T - 1))
             n += 2 * F * (T - 1)
             self.offsets.append(blk)
@@ -147,29 +166,47 @@ class Problem2D:
         self.n_p = np_
         p = ca.vertcat(*p_parts)
 
-        # physical quantities from theta (computed once, passed to the stage functions)
-        V = self.shape.vertices(s, L_sym)  # (K, 2) m
-        area, _, J = polygon_area_centroid_j(V)
-        mass = m0_sym * ca.exp(lm)
-        inertia = mass * (J / area) * ca.exp(lI)
-        phys = ca.vertcat(ca.vec(V), mass, inertia, mu_g, mu_f)
+        # physical quantities, lifted: decision variables phys (scaled) with the
+        # equality constraint phys = phys(theta), so that every per-sample Hessian block
+        # is local (the shape's nonlinear map enters only the small theta block)
+        self.phys_sx = self._phys_function()
+        phys = z[self.phys_offset: self.phys_offset + self.n_phys]
+        g_lift = phys - self.phys_sx(theta, L_sym, m0_sym)
+        w_sym = ca.MX.sym("w", len(TERMS))
+        # priors: lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma, on/off, s_ref (n_shape)
+        prior_sym = ca.MX.sym("prior", 6 + self.n_shape)
+        self.n_p_total = self.n_p + len(TERMS) + 6 + self.n_shape
+        p_all = ca.vertcat(p, w_sym, prior_sym)
+        lam_f = ca.MX.sym("lam_f")
+        lam_g_parts = []  # symbolic multipliers, in the order of g
 
         obj_terms = {t: 0 for t in TERMS}
         r_stack = {t: [] for t in SQUARED_TERMS + ("kinematics",)}
-        g_list, lbg, ubg = [], [], []
+        g_list, lbg, ubg = [g_lift], [np.zeros(self.n_phys)], [np.zeros(self.n_phys)]
+        hess_blocks = []  # (mapped local Hessians (n_y, n_y * N), global indices (N, n_y))
         self.stage_funs = []
+        self.start_funs = []
+        lam_lift = ca.MX.sym("lam_lift", self.n_phys)
+        #: per run: (first row in g, rows per sample, samples) of the finger cone constraints
+        self.cone_rows = []
+        #: per run: (first row in g, rows per sample, samples) of the gap constraints
+        self.gap_rows = []
+        lam_g_parts.append(lam_lift)
+        n_g = self.n_phys
         for i, st in enumerate(self.structures):
             gsym, dsym = run_syms[i]
-            stage = self._stage_function(st.F)
-            self.stage_funs.append(stage)
-            off = self.offsets[i]
             T, F = st.T, st.F
+            stage = self._stage_function(F)
+            start = self._start_function(F)
+            self.stage_funs.append(stage)
+            self.start_funs.append(start)
+            off = self.offsets[i]
             Q = ca.reshape(z[off["Q"][0]: off["Q"][0] + off["Q"][1]], 3, T)
             Vv = ca.reshape(z[off["V"][0]: off["V"][0] + off["V"][1]], 3, T)
-            LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], 2 * K, T - 1)
+            LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], K, T - 1)
             LF = ca.reshape(z[off["LF"][0]: off["LF"][0] + off["LF"][1]], 2 * F, T - 1)
-            mapped = stage.map(T - 1, "serial")
-            out = mapped(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, dsym[:, 1:], gsym)
+            out = stage.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
+                                             dsym[:, 1:], gsym)
             res = dict(zip(stage.name_out(), out))
             for t in SQUARED_TERMS:
                 obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(res[t])
@@ -178,59 +215,250 @@ class Problem2D:
             for t in PENALTY_TERMS:
                 obj_terms[t] = obj_terms[t] + ca.sum2(res[t])
             # sample 0: the object starts at rest and above the ground
-            s0 = self._start_function(st.F)
-            o0 = dict(zip(s0.name_out(), s0(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)))
-            obj_terms["dynamics"] = obj_terms["dynamics"] + 0.5 * ca.sumsqr(o0["rest"])
-            obj_terms["penetration"] = obj_terms["penetration"] + 0.5 * ca.sumsqr(o0["penetration"])
-            obj_terms["pose"] = obj_terms["pose"] + 0.5 * ca.sumsqr(o0["pose"])
-            obj_terms["contact"] = obj_terms["contact"] + 0.5 * ca.sumsqr(o0["contact"])
+            o0 = dict(zip(start.name_out(), start(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)))
             for t, name in (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
                             ("contact", "contact")):
+                obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(o0[name])
                 r_stack[t].append(ca.vec(o0[name]))
-            g_list += [ca.vec(res["g_kin"]), ca.vec(res["g_cone"])]
-            lbg += [np.zeros(3 * (T - 1)), np.zeros((2 * K + 2 * F) * (T - 1))]
-            ubg += [np.zeros(3 * (T - 1)), np.full((2 * K + 2 * F) * (T - 1), np.inf)]
-        sc = self.shape.constraints(s)
-        if sc:
-            g_list.append(ca.vertcat(*sc))
-            lbg.append(np.zeros(len(sc)))
-            ubg.append(np.full(len(sc), np.inf))
+            self.cone_rows.append((n_g + 3 * (T - 1), 2 * F, T - 1))
+            self.gap_rows.append((n_g + (3 + 2 * F) * (T - 1), K + F, T - 1))
+            g_list += [ca.vec(res["g_kin"]), ca.vec(res["g_cone"]), ca.vec(res["g_gap"])]
+            lbg += [np.zeros(3 * (T - 1)), np.zeros(2 * F * (T - 1)), np.zeros((K + F) * (T - 1))]
+            ubg += [np.zeros(3 * (T - 1)), np.full((2 * F + K + F) * (T - 1), np.inf)]
+            lam_kin = ca.MX.sym("lam_kin", 3, T - 1)
+            lam_cone = ca.MX.sym("lam_cone", 2 * F, T - 1)
+            lam_gap = ca.MX.sym("lam_gap", K + F, T - 1)
+            lam_g_parts += [ca.vec(lam_kin), ca.vec(lam_cone), ca.vec(lam_gap)]
+            n_g += (3 + 2 * F + K + F) * (T - 1)
+            # exact Hessian blocks of the Lagrangian, one small dense block per sample
+            hs = self._stage_hessian_function(stage)
+            Hs = hs.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
+                                         dsym[:, 1:], gsym, w_sym, lam_f, lam_kin, lam_cone, lam_gap)
+            hess_blocks.append((Hs, self._stage_indices(i)))
+            h0 = self._start_hessian_function(start)
+            H0 = h0(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym, w_sym, lam_f)
+            hess_blocks.append((H0, self._start_indices(i)))
+        # shape validity constraints and priors (theta only)
+        theta_sx = ca.SX.sym("theta", self.n_theta)
+        sc = self.shape.constraints(theta_sx[: self.n_shape])
+        n_sc = len(sc)
+        prior_sx = ca.SX.sym("prior", 6 + self.n_shape)
+        f_prior_sx = self._prior_expression(theta_sx, prior_sx)
+        lam_sc = ca.MX.sym("lam_shape", n_sc)
+        lam_sc_sx = ca.SX.sym("lam_shape", n_sc)
+        g_sc_sx = ca.vertcat(*sc) if n_sc else ca.SX.zeros(0)
+        self.prior_fun = ca.Function("prior", [theta_sx, prior_sx], [f_prior_sx])
+        lag_theta = prior_sx[5] * f_prior_sx + (ca.dot(lam_sc_sx, g_sc_sx) if n_sc else 0)
+        lf_sx = ca.SX.sym("lam_f")
+        lam_lift_sx = ca.SX.sym("lam_lift", self.n_phys)
+        L_sx, m0_sx = ca.SX.sym("L"), ca.SX.sym("m0")
+        lag_theta = lf_sx * prior_sx[5] * f_prior_sx - ca.dot(lam_lift_sx, self.phys_sx(theta_sx, L_sx, m0_sx))
+        if n_sc:
+            lag_theta = lag_theta + ca.dot(lam_sc_sx, g_sc_sx)
+        h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
+                              [ca.densify(ca.hessian(lag_theta, theta_sx)[0])])
+        hess_blocks.append((h_theta(theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym),
+                            np.arange(self.n_theta)[None, :]))
+        # Levenberg–Marquardt damping of the Hessian model (not of the objective): a ridge
+        # parameter times lam_f on every variable, so the Gauss–Newton steps stay local
+        ridge_sym = ca.MX.sym("ridge")
+        self.n_p_total += 1
+        p_all = ca.vertcat(p_all, ridge_sym)
+        hess_blocks.append((ca.repmat(ridge_sym * lam_f, 1, self.n_z), np.arange(self.n_z)[:, None]))
+        if n_sc:
+            g_list.append(ca.Function("g_shape", [theta_sx], [g_sc_sx])(theta))
+            lbg.append(np.zeros(n_sc))
+            ubg.append(np.full(n_sc, np.inf))
+            lam_g_parts.append(lam_sc)
+            n_g += n_sc
 
-        # weights (parameters, so that a config change needs no rebuild)
-        w_sym = ca.MX.sym("w", len(TERMS))
-        prior_sym = ca.MX.sym("prior", 6 + self.n_shape)  # lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma, on, s_ref
-        self.n_p_total = self.n_p + len(TERMS) + 6 + self.n_shape
-        p_all = ca.vertcat(p, w_sym, prior_sym)
         f = 0
         for k, t in enumerate(TERMS):
             f = f + w_sym[k] * obj_terms[t]
-        lm_sig, lI_sig, mu0, mu_sig, sh_sig = (prior_sym[i] for i in range(5))
-        s_ref = prior_sym[6:]
-        f_prior = 0.5 * (lm / lm_sig) ** 2 + 0.5 * (lI / lI_sig) ** 2 \
-            + 0.5 * ((mu_g - mu0) / mu_sig) ** 2 + 0.5 * ((mu_f - mu0) / mu_sig) ** 2 \
-            + 0.5 * ca.sumsqr((s - s_ref) / sh_sig)
+        f_prior = self.prior_fun(theta, prior_sym)
         f = f + prior_sym[5] * f_prior
         self.z_sym, self.p_sym = z, p_all
+        V, mass, inertia, mu_g, mu_f = self._unpack_phys(self.phys_sx(theta, L_sym, m0_sym), L_sym, m0_sym)
+        area, _, _ = polygon_area_centroid_j(V)
         self.phys_fun = ca.Function("phys", [z, p_all], [V, mass, inertia, mu_g, mu_f, area])
         self.f = f
         self.g = ca.vertcat(*g_list)
+        assert self.g.shape[0] == n_g
         self.lbg = np.concatenate(lbg)
         self.ubg = np.concatenate(ubg)
         self.term_fun = ca.Function("terms", [z, p_all], [ca.vertcat(*[obj_terms[t] for t in TERMS]), f_prior])
         self.nlp = {"x": z, "p": p_all, "f": f, "g": self.g}
+        lam_g = ca.vertcat(*lam_g_parts)
+        self.hess_lag = ca.Function("nlp_hess_l", [z, p_all, lam_f, lam_g],
+                                    [self._assemble_hessian(hess_blocks)],
+                                    ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
         #: stacked whitened residuals per squared term (for Gauss-Newton information);
         #: "kinematics" holds the eq. D2 constraint values
         self.residual_stack = {t: ca.vertcat(*v) if v else ca.MX.zeros(0) for t, v in r_stack.items()}
         self.weight_sym = w_sym
 
     # ------------------------------------------------------------------------------
+    # exact Lagrangian Hessian from small per-sample blocks (built in O(T))
+
+    def _phys_function(self):
+        """SX Function (theta, L, m0) -> scaled phys = [vec(V) / L (2K), mass / m0,
+        inertia / (m0 L²), mu_g, mu_f]."""
+        th = ca.SX.sym("theta", self.n_theta)
+        L = ca.SX.sym("L")
+        m0 = ca.SX.sym("m0")
+        s = th[: self.n_shape]
+        lm, lI, mu_g, mu_f = (th[self.n_shape + i] for i in range(4))
+        V = self.shape.vertices(s, L)
+        area, _, J = polygon_area_centroid_j(V)
+        mass = m0 * ca.exp(lm)
+        inertia = mass * (J / area) * ca.exp(lI)
+        return ca.Function("phys_of_theta", [th, L, m0],
+                           [ca.vertcat(ca.vec(V) / L, mass / m0, inertia / (m0 * L * L), mu_g, mu_f)])
+
+    def _prior_expression(self, theta, prior):
+        s = theta[: self.n_shape]
+        lm, lI, mu_g, mu_f = (theta[self.n_shape + i] for i in range(4))
+        lm_sig, lI_sig, mu0, mu_sig, sh_sig = (prior[i] for i in range(5))
+        s_ref = prior[6:]
+        return 0.5 * (lm / lm_sig) ** 2 + 0.5 * (lI / lI_sig) ** 2 \
+            + 0.5 * ((mu_g - mu0) / mu_sig) ** 2 + 0.5 * ((mu_f - mu0) / mu_sig) ** 2 \
+            + 0.5 * ca.sumsqr((s - s_ref) / sh_sig)
+
+    def _stage_lagrangian(self, stage_out, w, lam_f):
+        """sigma · (weighted stage loss) from a stage function's outputs (dict)."""
+        ell = 0
+        for k, t in enumerate(TERMS):
+            val = 0.5 * ca.sumsqr(stage_out[t]) if t in SQUARED_TERMS else stage_out[t]
+            ell = ell + w[k] * val
+        return lam_f * ell
+
+    def _stage_hessian_function(self, stage):
+        """SX Function: dense Hessian of one sample's Lagrangian contribution with respect
+        to its local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, theta]."""
+        ins = stage.sx_in()
+        qp, vp, q, v, lg, lf = ins[:6]
+        phys, d, g = ins[6], ins[7], ins[8]
+        w = ca.SX.sym("w", len(TERMS))
+        lam_f = ca.SX.sym("lam_f")
+        lk = ca.SX.sym("lam_kin", 3)
+        out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+        y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
+        lc = ca.SX.sym("lam_cone", stage.size1_out(stage.name_out().index("g_cone")))
+        lgap = ca.SX.sym("lam_gap", stage.size1_out(stage.name_out().index("g_gap")))
+        H = self._local_hessian(out, y, w, lam_f, extra=ca.dot(lk, out["g_kin"]) + ca.dot(lc, out["g_cone"])
+                                + ca.dot(lgap, out["g_gap"]))
+        return ca.Function("hess_stage", [qp, vp, q, v, lg, lf, phys, d, g, w, lam_f, lk, lc, lgap], [H])
+
+    def _local_hessian(self, out, y, w, lam_f, extra=0, names=None):
+        """Dense local Hessian of lam_f · (weighted loss) + extra with respect to y.
+
+        Gauss–Newton (config solver.hessian = "gauss-newton", the default): the squared
+        terms contribute J_rᵀ J_r (positive semi-definite, the right model of a
+        least-squares objective far from a zero-residual fit), the penalty terms and
+        the constraints their exact second derivatives.  "exact": everything exact.
+        names maps loss terms to the output names holding them.
+        """
+        names = names or {t: t for t in TERMS}
+        if self.config.solver.hessian == "exact":
+            lag = 0
+            for k, t in enumerate(TERMS):
+                if t not in names:
+                    continue
+                o = out[names[t]]
+                lag = lag + w[k] * (0.5 * ca.sumsqr(o) if t in SQUARED_TERMS else o)
+            return ca.densify(ca.hessian(lam_f * lag + extra, y)[0])
+        r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[names[t]]) for t in SQUARED_TERMS if t in names])
+        J = ca.jacobian(r, y)
+        rest = extra
+        for k, t in enumerate(TERMS):
+            if t in PENALTY_TERMS and t in names:
+                rest = rest + lam_f * w[k] * out[names[t]]
+        H = lam_f * ca.mtimes(J.T, J)
+        if not (isinstance(rest, (int, float)) and rest == 0):
+            H = H + ca.hessian(rest, y)[0]
+        return ca.densify(H)
+
+    def _start_hessian_function(self, start):
+        ins = start.sx_in()
+        q, v, phys, d, g = ins
+        w = ca.SX.sym("w", len(TERMS))
+        lam_f = ca.SX.sym("lam_f")
+        out = dict(zip(start.name_out(), start(q, v, phys, d, g)))
+        y = ca.vertcat(q, v, phys)
+        H = self._local_hessian(out, y, w, lam_f, names={"dynamics": "rest", "penetration": "penetration",
+                                                          "pose": "pose", "contact": "contact"})
+        return ca.Function("hess_start", [q, v, phys, d, g, w, lam_f], [H])
+
+    def _stage_indices(self, i):
+        """(T-1, n_y) global z indices of each sample's local variables (see above)."""
+        st, off, K = self.structures[i], self.offsets[i], self.K
+        T, F = st.T, st.F
+        t = np.arange(1, T)[:, None]
+        q_prev = off["Q"][0] + 3 * (t - 1) + np.arange(3)
+        v_prev = off["V"][0] + 3 * (t - 1) + np.arange(3)
+        q = off["Q"][0] + 3 * t + np.arange(3)
+        v = off["V"][0] + 3 * t + np.arange(3)
+        lg = off["LG"][0] + K * (t - 1) + np.arange(K)
+        lf = off["LF"][0] + 2 * F * (t - 1) + np.arange(2 * F)
+        ph = np.repeat(self.phys_offset + np.arange(self.n_phys)[None, :], T - 1, 0)
+        return np.hstack([q_prev, v_prev, q, v, lg, lf, ph])
+
+    def _start_indices(self, i):
+        off = self.offsets[i]
+        return np.concatenate([off["Q"][0] + np.arange(3), off["V"][0] + np.arange(3),
+                               self.phys_offset + np.arange(self.n_phys)])[None, :]
+
+    def _assemble_hessian(self, blocks):
+        """Sum the local dense blocks into the upper triangle of the global Hessian.
+
+        blocks: list of (MX (n_y, n_y * N) local Hessians side by side, (N, n_y) global indices).
+        The scatter-add is one constant sparse matrix times the stacked local entries.
+        """
+        import scipy.sparse as sp
+
+        rows, cols, src = [], [], []
+        base = 0
+        vecs = []
+        for H, idx in blocks:
+            N, n_y = idx.shape
+            gi = np.repeat(idx[:, :, None], n_y, 2)  # (N, i, j) -> row index of entry (i, j)
+            gj = np.repeat(idx[:, None, :], n_y, 1)
+            # vec() of (n_y, n_y*N) is column-major: entry (i, j) of block k sits at
+            # base + (k n_y + j) n_y + i
+            k = np.arange(N)[:, None, None]
+            ii = np.arange(n_y)[None, :, None]
+            jj = np.arange(n_y)[None, None, :]
+            pos = base + (k * n_y + jj) * n_y + ii
+            keep = gi <= gj
+            rows.append(gi[keep])
+            cols.append(gj[keep])
+            src.append(pos[keep])
+            base += n_y * n_y * N
+            vecs.append(ca.vec(H))
+        rows = np.concatenate(rows)
+        cols = np.concatenate(cols)
+        src = np.concatenate(src)
+        n = self.n_z
+        pattern = sp.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        pattern.sum_duplicates()
+        pattern.sort_indices()
+        # nonzero index of each (row, col) in CSC order
+        lookup = sp.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(n, n))
+        nz_of = np.asarray(lookup[rows, cols]).reshape(-1).astype(np.int64) - 1
+        A = sp.csc_matrix((np.ones(len(src)), (nz_of, src)), shape=(pattern.nnz, base))
+        A_dm = ca.DM(ca.Sparsity(A.shape[0], A.shape[1], A.indptr.tolist(), A.indices.tolist()), A.data)
+        h_nz = ca.mtimes(A_dm, ca.vertcat(*vecs))
+        sparsity = ca.Sparsity(n, n, pattern.indptr.tolist(), pattern.indices.tolist())
+        return ca.MX(sparsity, h_nz)
+
+    # ------------------------------------------------------------------------------
     # per-sample functions (SX, mapped over samples)
 
-    def _unpack_phys(self, phys):
+    def _unpack_phys(self, phys, L, m0):
+        """(V (K, 2) m, mass kg, inertia kg·m², mu_ground, mu_finger) from a scaled phys vector."""
         K = self.K
-        V = ca.reshape(phys[: 2 * K], K, 2)
-        mass, inertia, mu_g, mu_f = phys[2 * K], phys[2 * K + 1], phys[2 * K + 2], phys[2 * K + 3]
-        return V, mass, inertia, mu_g, mu_f
+        V = ca.reshape(phys[: 2 * K], K, 2) * L
+        return V, phys[2 * K] * m0, phys[2 * K + 1] * m0 * L * L, phys[2 * K + 2], phys[2 * K + 3]
 
     def _unpack_data(self, d, F):
         i = 0
@@ -269,14 +497,14 @@ class Problem2D:
         vp = ca.SX.sym("v_prev", 3)
         qs = ca.SX.sym("q", 3)
         vs = ca.SX.sym("v", 3)
-        lg = ca.SX.sym("lam_ground", 2 * K)
+        lg = ca.SX.sym("lam_ground", K)
         lf = ca.SX.sym("lam_finger", 2 * F)
         phys = ca.SX.sym("phys", 2 * K + 4)
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
         dt, L, Lam = g[G["dt"]], g[G["L"]], g[G["Lam"]]
         eps = g[G["eps"]]
-        V, mass, inertia, mu_g, mu_f = self._unpack_phys(phys)
+        V, mass, inertia, mu_g, mu_f = self._unpack_phys(phys, L, g[G["m0"]])
         c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose = self._unpack_data(d, F)
         # unscale: q = [x/L, y/L, angle], v = [vx/L, vy/L, omega] per second
         unscale = ca.vertcat(L, L, 1)
@@ -286,30 +514,42 @@ class Problem2D:
         t_g = perp(n_g)
         phi, slip, levers = ground_contacts(q, v, V, n_g, g[G["h"]])
         gen = ca.SX.zeros(3)
-        comp = 0
-        diss = 0
-        cone = []
+        comp = []
         pen = []
-        v_scale = L  # m/s: one object length per second
-        eps_slip = SLIP_EPS_RATIO * eps  # smoothing of |slip|, in units of v_scale
+        lt_ground = []
+        eps_slip = SLIP_EPS * eps  # m/s, smoothing of sign(slip)
         for k in range(K):
-            ln, lt = lg[k], lg[K + k]
+            ln = lg[k]
+            # eq. C2 + C3 in closed form (regularized Coulomb): on the cone's boundary,
+            # opposing the slip; |slip| << eps_slip behaves as sticking
+            lt = -mu_g * ln * slip[k] / smooth_abs(slip[k], eps_slip)
+            lt_ground.append(lt)
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
-            comp += ln * smooth_pos(phi[k] / g[G["sig_gap"]], eps)
-            diss += mu_g * ln * smooth_abs(slip[k] / v_scale, eps_slip) + lt * slip[k] / v_scale
-            cone += [mu_g * ln - lt, mu_g * ln + lt]
+            gap = smooth_pos(phi[k] / g[G["sig_gap"]], eps)
+            comp.append(ln * gap / (1 + gap))  # saturating: bounded curvature far from the ground
             pen.append(ca.fmin(phi[k], 0) / g[G["sig_pen"]])
         sd_fun = polygon_sd_and_normal_function(K)
-        r_force, r_normal, r_contact = [], [], []
+        gaps = [phi[k] / g[G["sig_gap"]] for k in range(K)]
+        r_force, r_normal, r_contact, imp_finger = [], [], [], []
+        cone = []
+        diss = []
         for f in range(F):
             phi_f, n_w, lever = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
+            gaps.append(phi_f / g[G["sig_gap"]])
             t_w = perp(n_w)
-            ln, lt = lf[f], lf[F + f]
-            imp = Lam * (-ln * n_w + lt * t_w)  # impulse ON the object, world frame
-            gen += generalized_impulse(lever, imp)
-            slip_f = ca.dot(t_w, point_velocity(v, lever) - v_f[:, f])
-            diss += mu_f * ln * smooth_abs(slip_f / v_scale, eps_slip) + lt * slip_f / v_scale
+            # finger impulse ON the object: a free world-frame vector, held in the friction
+            # cone of the model's contact frame (eq. C2).  Fingertips often stick to the
+            # object, and the measured fingertip velocity is noisy, so friction here is
+            # not a closed-form law but a cone plus a maximal-dissipation penalty (eq. C3)
+            imp_s = ca.vertcat(lf[2 * f], lf[2 * f + 1])
+            imp = Lam * imp_s
+            ln = -ca.dot(imp_s, n_w)
+            lt = ca.dot(imp_s, t_w)
+            slip_f = ca.dot(t_w, point_velocity(v, lever) - v_f[:, f]) / L  # object lengths per second
+            diss.append(mu_f * ln * smooth_abs(slip_f, eps_slip / L) + lt * slip_f)
             cone += [mu_f * ln - lt, mu_f * ln + lt]
+            imp_finger.append(imp)
+            gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (imp / dt - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
             r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * ca.fmin(phi_f, 0)) / g[G["sig_gap"]])
@@ -318,7 +558,7 @@ class Problem2D:
         grav = ca.vertcat(-9.81 * n_g * mass * dt, 0)
         r_dyn_raw = M * (v - v_prev) - grav - gen
         sig_lin = g[G["sig_proc"]] * g[G["m0"]] * 9.81 * dt
-        r_dyn = r_dyn_raw / ca.vertcat(sig_lin, sig_lin, sig_lin * L / 2)
+        r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_lin, sig_lin, sig_lin * L / 2)
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {
@@ -328,11 +568,21 @@ class Problem2D:
             "pose": r_pose,
             "dynamics": r_dyn,
             "penetration": ca.vertcat(*pen),
-            "complementarity": comp * g[G["comp_mult"]],
-            "dissipation": diss,
+            "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
+            "dissipation": (ca.vertcat(*diss) if F else ca.SX.zeros(0)) / g[G["sig_diss"]],
             "g_kin": g_kin,
-            "g_cone": ca.vertcat(*cone),
+            "g_cone": ca.vertcat(*cone) if F else ca.SX.zeros(0),
+            # non-penetration (eq. C1's phi >= 0) as hard constraints, in contact-gap sigmas:
+            # ground vertices always, fingers where the tactile flag is 0 (see
+            # constraint_bounds); the barrier keeps IPOPT's steps from crossing them
+            "g_gap": ca.vertcat(*gaps),
+            # diagnostics only (not in the loss): tangential ground impulses (scaled) and
+            # finger impulses on the object (N·s, world)
+            "lam_t_ground": ca.vertcat(*lt_ground),
+            "imp_finger": ca.vertcat(*imp_finger) if F else ca.SX.zeros(0),
+            "gap_finger": ca.SX.zeros(0) if not F else ca.vertcat(*[r / (g[G["sig_gap"]] ** -1) for r in []] or [ca.SX.zeros(0)]),
         }
+        del outs["gap_finger"]
         names = list(outs)
         return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g],
                            [outs[n] for n in names],
@@ -347,7 +597,7 @@ class Problem2D:
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
         L = g[G["L"]]
-        V, *_ = self._unpack_phys(phys)
+        V, *_ = self._unpack_phys(phys, L, g[G["m0"]])
         c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose = self._unpack_data(d, F)
         q = qs * ca.vertcat(L, L, 1)
         v = vs * ca.vertcat(L, L, 1)
@@ -369,7 +619,7 @@ class Problem2D:
     # helpers to slice z
 
     def run_blocks(self, z, i):
-        """Unscaled-free views (scaled values) of run i: Q (3, T), V (3, T), LG (2K, T-1), LF (2F, T-1)."""
+        """Views (scaled values) of run i: Q (3, T), V (3, T), LG (K, T-1), LF (F, T-1)."""
         st = self.structures[i]
         off = self.offsets[i]
         z = np.asarray(z, float).reshape(-1)
@@ -378,7 +628,32 @@ class Problem2D:
             a, n = off[name]
             return z[a: a + n].reshape(-1, rows).T
 
-        return blk("Q", 3), blk("V", 3), blk("LG", 2 * self.K), blk("LF", 2 * st.F)
+        LF = blk("LF", 2 * st.F) if st.F else np.zeros((0, st.T - 1))
+        return blk("Q", 3), blk("V", 3), blk("LG", self.K), LF
+
+    def constraint_bounds(self, active, ground_tolerance=0.0):
+        """lbg, ubg for the runs' tactile data.
+
+        - finger cone constraints off where a finger has no impulse (its variables are
+          fixed at 0 there, so 0 >= 0 would leave IPOPT a slack it can never make
+          strictly positive);
+        - finger non-penetration only where the finger is free (no impulse), where it
+          is in contact its gap is a measurement instead;
+        - ground non-penetration down to -ground_tolerance (in contact-gap sigmas).
+
+        active : list over runs of (T-1, F) bool, True where the finger impulse is free.
+        """
+        lbg = self.lbg.copy()
+        K = self.K
+        for (a, per, n), (ag, pg, ng), on in zip(self.cone_rows, self.gap_rows, active):
+            rows = lbg[a: a + per * n].reshape(n, per)
+            rows[~np.repeat(on, 2, axis=1)] = -np.inf
+            lbg[a: a + per * n] = rows.reshape(-1)
+            gap = lbg[ag: ag + pg * ng].reshape(ng, pg)
+            gap[:, :K] = -ground_tolerance
+            gap[:, K:][on] = -np.inf
+            lbg[ag: ag + pg * ng] = gap.reshape(-1)
+        return lbg, self.ubg
 
     def set_run_blocks(self, z, i, Q=None, V=None, LG=None, LF=None):
         off = self.offsets[i]

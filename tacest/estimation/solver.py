@@ -95,7 +95,8 @@ class BuiltSolver:
         sc = config.solver
         self.progress = _Progress(problem.n_z, problem.g.shape[0], problem.lbg, problem.ubg, sc.print_every)
         opts = {
-            "expand": True,
+            "expand": False,
+            "hess_lag": problem.hess_lag,
             "print_time": False,
             "iteration_callback": self.progress,
             "ipopt": {
