@@ -69,8 +69,8 @@ class Solver:
     #: Levenberg–Marquardt ridge added to the Hessian model (scaled units); keeps
     #: Gauss–Newton steps local where the data leave directions weakly determined
     hessian_ridge: float = 1.0
-    tol: float = 1e-6
-    acceptable_tol: float = 1e-3
+    tol: float = 1e-5  #: IPOPT's scaled KKT tolerance
+    acceptable_tol: float = 1e-2  #: see estimation/solver.py for the other acceptable criteria
     max_iter: int = 400  #: per homotopy stage
     max_cpu_time: float = 600.0  #: s, per stage
     #: relaxation stages [epsilon, complementarity multiplier, dynamics multiplier]:
@@ -78,8 +78,6 @@ class Solver:
     #: trust the touches more than the physics (a kinematic fit), the last one is the
     #: model as configured
     homotopy: list = field(default_factory=lambda: [[1.0, 0.01, 0.001], [0.3, 0.1, 0.03], [0.1, 1.0, 1.0]])
-    #: first stage with mass and friction held at their start values (DESIGN pitfalls)
-    staged: bool = False
     print_every: int = 10  #: iterations between progress lines
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector
-from tacest.estimation.initial import initial_extents, initial_guess
+from tacest.estimation.initial import initial_extents, initial_guess, start_trajectories
 from tacest.estimation.problem import PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, TERMS, RunStructure
 from tacest.estimation.solver import SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
 from tacest.geometry.shapes import make_shape, numeric_vertices
@@ -109,22 +109,59 @@ class ImplicitEstimator:
                                 dyn_mult=dyn_mult)
 
     # --------------------------------------------------------------------------------
+    def finger_active(self):
+        """Per run, (T-1, F) bool: where finger impulses are free (contact, not missing)."""
+        out = []
+        for run, st in zip(self.runs, self.structures):
+            if not st.F:
+                out.append(np.zeros((st.T - 1, 0), bool))
+                continue
+            on = run.contact[1:].astype(bool)
+            if run.missing is not None:
+                on &= ~run.missing[1:].astype(bool)[:, None]
+            out.append(on)
+        return out
+
+    def impulse_only_bounds(self, lbx, ubx):
+        """Bounds that hold everything but the contact impulses at the current z."""
+        pr = self.problem
+        free = np.zeros(pr.n_z, bool)
+        for off in pr.offsets:
+            for b in ("LG", "LF"):
+                a, n = off[b]
+                free[a: a + n] = True
+        return np.where(free, lbx, self.z), np.where(free, ubx, self.z)
+
     def solve(self) -> SolveOutcome:
+        """Staged solve.
+
+        1. "impulses": the contact impulses alone, with the initial trajectory, shape and
+           parameters held (a convex least-squares problem), so that every later stage
+           starts from a physically consistent point (small residuals, where the
+           Gauss–Newton model is good);
+        2. the homotopy stages of the config, everything free.
+        """
         cfg = self.config.solver
-        self.z = initial_guess(self.problem, self.runs, self.scales, self.s0)
+        pr = self.problem
+        self.s0, trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
+        self.z = initial_guess(pr, self.runs, self.scales, self.s0, trajectories)
+        active = self.finger_active()
         stages = []
         hom = list(cfg.homotopy)
-        plan = []
-        if cfg.staged:
-            plan.append(("shape+pose", *hom[0], True))
+        plan = [("impulses", *hom[0], "impulses")]
         for k, (eps, w, wd) in enumerate(hom):
-            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, False))
+            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, "all"))
         lam_x = lam_g = None
         total_t = 0.0
-        for label, eps, w, wd, fix in plan:
-            lbx, ubx = self.variable_bounds(fix_phys=fix)
+        for label, eps, w, wd, which in plan:
+            lbx, ubx = self.variable_bounds(fix_phys=False)
+            lbg, ubg = pr.constraint_bounds(active)
+            if which == "impulses":
+                lbx, ubx = self.impulse_only_bounds(lbx, ubx)
+                for a, per, n in pr.gap_rows:  # gaps do not depend on impulses
+                    lbg[a: a + per * n] = -np.inf
             self.z = np.clip(self.z, lbx, ubx)
-            sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, lam_x, lam_g,
+            sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, lbg, ubg, lam_x, lam_g,
                                          label=label, echo=self.echo)
             stages.append(info)
             total_t += info.wall_time
@@ -132,8 +169,9 @@ class ImplicitEstimator:
                       f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
             check_success(info)
             self.z = np.asarray(sol["x"]).reshape(-1)
-            lam_x = np.asarray(sol["lam_x"]).reshape(-1)
-            lam_g = np.asarray(sol["lam_g"]).reshape(-1)
+            if which == "all":
+                lam_x = np.asarray(sol["lam_x"]).reshape(-1)
+                lam_g = np.asarray(sol["lam_g"]).reshape(-1)
         last = stages[-1]
         self.p_final = self.params(*plan[-1][1:4])
         return SolveOutcome(z=self.z, lam_g=lam_g, lam_x=lam_x, status=last.status,

@@ -106,10 +106,65 @@ def push_tracker(run: Run, V_body: np.ndarray, pose0: np.ndarray) -> np.ndarray:
     return poses
 
 
-def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
+#: factor by which the starting shape shrinks while a free fingertip would be inside it
+SHRINK = 0.85
+#: m: clearance that free fingertips keep from the starting shape
+START_CLEARANCE = 2e-4
+
+
+def finger_gaps(run: Run, V_body: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(T, F) gap between each fingertip sphere and the shape placed at poses (T, 3), m."""
+    T, F = run.n_samples, run.n_fingers
+    if not F:
+        return np.zeros((T, 0))
+    sd_fun = polygon_sd_and_normal_function(V_body.shape[0]).map(T * F)
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    rel = run.finger_position - poses[:, None, :2]  # (T, F, 2) world
+    p_body = np.stack([c[:, None] * rel[..., 0] + s[:, None] * rel[..., 1],
+                       -s[:, None] * rel[..., 0] + c[:, None] * rel[..., 1]], -1)
+    sd = np.asarray(sd_fun(p_body.reshape(-1, 2).T, V_body)[0]).reshape(T, F)
+    return sd - run.finger_radius[None, :]
+
+
+def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray, max_shrink: int = 12):
+    """Shape parameters and (T, 3) pose trajectories to start from.
+
+    The shape shrinks (by :data:`SHRINK`) until no fingertip without contact is inside
+    it anywhere along the push-tracker trajectories, so that IPOPT starts inside the
+    feasible set of the non-penetration constraints and the touches pull the shape out
+    to where they are, rather than starting infeasible and jumping."""
+    s = np.asarray(s0, float).copy()
+    for _ in range(max_shrink + 1):
+        V = numeric_vertices(problem.shape, s, scales.L)
+        trajectories = [_tracked(run, V) for run in runs]
+        worst = 0.0
+        for run, poses in zip(runs, trajectories):
+            if run.n_fingers:
+                free = run.contact == 0
+                gaps = finger_gaps(run, V, poses)
+                if free.any():
+                    worst = min(worst, float(gaps[free].min()) - START_CLEARANCE)
+        if worst >= 0:
+            break
+        s = s * SHRINK
+    return s, trajectories
+
+
+def _tracked(run: Run, V: np.ndarray) -> np.ndarray:
+    w = V[:, 0].max() - V[:, 0].min()
+    h = V[:, 1].max() - V[:, 1].min()
+    pose0 = initial_pose(run, w, h)
+    # put the lowest vertex exactly on the ground at the start
+    R0 = np.array([[np.cos(pose0[2]), -np.sin(pose0[2])], [np.sin(pose0[2]), np.cos(pose0[2])]])
+    lowest = np.min((V @ R0.T + pose0[:2]) @ run.up) - run.ground_height
+    pose0[:2] -= lowest * run.up
+    return push_tracker(run, V, pose0)
+
+
+def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, trajectories=None):
     """Scaled decision vector z0 for :class:`Problem2D`: theta (shape s0, log mass 0,
-    log inertia ratio 0, friction 0.5, 0.5) and, per run, the push-tracker trajectory,
-    finite-difference velocities, and impulses that hold the object up."""
+    log inertia ratio 0, friction 0.5, 0.5) and, per run, the given (or push-tracker)
+    trajectory, finite-difference velocities, and impulses that hold the object up."""
     z0 = np.zeros(problem.n_z)
     ns = problem.n_shape
     z0[:ns] = s0
@@ -119,14 +174,7 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
     V = numeric_vertices(problem.shape, s0, scales.L)
     K = problem.K
     for i, run in enumerate(runs):
-        w = V[:, 0].max() - V[:, 0].min()
-        h = V[:, 1].max() - V[:, 1].min()
-        pose0 = initial_pose(run, w, h)
-        # put the lowest vertex exactly on the ground at the start
-        R0 = np.array([[np.cos(pose0[2]), -np.sin(pose0[2])], [np.sin(pose0[2]), np.cos(pose0[2])]])
-        lowest = np.min((V @ R0.T + pose0[:2]) @ run.up) - run.ground_height
-        pose0[:2] -= lowest * run.up
-        poses = push_tracker(run, V, pose0)
+        poses = trajectories[i] if trajectories is not None else _tracked(run, V)
         T = run.n_samples
         vel = np.zeros_like(poses)
         vel[1:] = np.diff(poses, axis=0) / run.dt

@@ -63,7 +63,7 @@ TERMS = SQUARED_TERMS + PENALTY_TERMS
 #: m/s: slip velocity below which friction is regularized (times the homotopy epsilon).
 #: At eps = 1 an object held by static friction creeps at most ~2 mm/s; the last
 #: stage (eps = 0.1) brings it to 0.2 mm/s, below what 0.1 mm position noise resolves.
-SLIP_EPS = 2e-3
+SLIP_EPS = 2e-2
 #: names of the physical parameters in theta after the shape block
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
