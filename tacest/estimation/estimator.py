@@ -17,7 +17,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector
 from tacest.estimation.initial import initial_extents, initial_guess, start_trajectories
 from tacest.estimation.problem import PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, TERMS, RunStructure
-from tacest.estimation.solver import SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
+from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
 from tacest.geometry.shapes import make_shape, numeric_vertices
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
@@ -145,7 +145,6 @@ class ImplicitEstimator:
         pr = self.problem
         self.s0, trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
         self.z = initial_guess(pr, self.runs, self.scales, self.s0, trajectories)
-        active = self.finger_active()
         stages = []
         hom = list(cfg.homotopy)
         plan = [("impulses", *hom[0], "impulses")]
@@ -155,19 +154,27 @@ class ImplicitEstimator:
         total_t = 0.0
         for label, eps, w, wd, which in plan:
             lbx, ubx = self.variable_bounds(fix_phys=False)
-            lbg, ubg = pr.constraint_bounds(active)
+            lbg, ubg = pr.lbg, pr.ubg
             if which == "impulses":
                 lbx, ubx = self.impulse_only_bounds(lbx, ubx)
-                for a, per, n in pr.gap_rows:  # gaps do not depend on impulses
-                    lbg[a: a + per * n] = -np.inf
             self.z = np.clip(self.z, lbx, ubx)
+            mode = cfg.hessian
+            if mode == "gauss-newton-then-exact":
+                mode = "exact" if label == plan[-1][0] and len(plan) > 2 else "gauss-newton"
+            max_iter = cfg.max_iter if label == plan[-1][0] else cfg.stage_max_iter
             sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, lbg, ubg, lam_x, lam_g,
-                                         label=label, echo=self.echo)
+                                         label=label, echo=self.echo, hessian=mode, max_iter=max_iter)
             stages.append(info)
             total_t += info.wall_time
             self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
                       f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
-            check_success(info)
+            final = label == plan[-1][0]
+            if final or which == "impulses":
+                check_success(info)
+            elif info.status in FATAL_STATUSES:
+                check_success(info)
+            # an intermediate homotopy stage only prepares the next one: its iterate is
+            # used whether or not IPOPT met its tolerance within the stage's budget
             self.z = np.asarray(sol["x"]).reshape(-1)
             if which == "all":
                 lam_x = np.asarray(sol["lam_x"]).reshape(-1)

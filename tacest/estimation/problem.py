@@ -17,10 +17,12 @@ so that a Gauss–Newton Hessian models the whole loss)::
 
     force          (lambda_f / dt - F_meas) / sigma_F                 where a force stream exists
     normal         c (n_meas - n_model) / sigma_n
-    contact        c phi_f / sigma_gap  +  (1 - c) min(phi_f, 0) / sigma_gap
+    contact        c phi_f / sigma_gap  +  (1 - c) min~(phi_f, 0) / sigma_gap
     pose           (q - q_obs) / sigma_pose                           where observed
     dynamics       eq. D1 residual / (process · m0 g dt)
-    penetration    min(phi_ground, 0) / sigma_pen
+    penetration    min~(phi_ground, 0) / sigma_pen
+    cone           min~(mu lambda_n ∓ lambda_t, 0) / sigma_comp   (fingertip friction cone, eq. C2)
+                   (min~ is a softplus-smoothed min(x, 0) of width sigma: see smooth_neg)
     complementarity  lambda_n psi(phi) / sigma_comp (eq. C1, relaxed): psi = phi⁺ / (phi⁺ + sigma_gap),
                    phi⁺ a smoothed max(phi, 0); psi saturates at 1 so that a vertex far
                    above the ground costs lambda_n, not lambda_n · phi (the unbounded
@@ -29,14 +31,17 @@ so that a Gauss–Newton Hessian models the whole loss)::
 Ground friction (eq. C2, C3) is in closed form: the tangential impulse is on the cone's
 boundary against the slip, lambda_t = -mu lambda_n s / sqrt(s² + eps_s²) (maximal
 dissipation, regularized below eps_s), so no ground friction variables or bilinear cone
-constraints appear.  Finger impulses are free world-frame vectors inside the friction cone
-of the model's contact frame, with the maximal-dissipation penalty
+constraints appear.  Finger impulses are free world-frame vectors kept in the friction cone
+of the model's contact frame by the smooth cone penalty, with the maximal-dissipation penalty
 
     dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss  >= 0 (eq. C3, zero at maximal dissipation)
 
 because fingertips often stick and their measured velocity is noisy.
 
-subject to eq. D2 (kinematics, equality), lambda_n >= 0 and
+Non-penetration and the fingertip cone are smooth penalties rather than inequality
+constraints: hard ones made IPOPT's filter trade huge objective increases for tiny
+feasibility gains, and hinge penalties are invisible to a Gauss–Newton model until
+crossed.  The problem is subject to eq. D2 (kinematics, equality), lambda_n >= 0 and
 the shape's validity constraints.  Objective = 0.5 Σ w ||r||² + w_c Σ comp + w_d Σ diss
 + priors.  (The relaxations are squared too: complementarity and dissipation residuals
 are whitened by sigma_comp and sigma_diss, see configs/estimate.toml.)
@@ -55,7 +60,7 @@ from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_an
 
 #: squared-residual terms, in the order the stage function returns them
 SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration", "complementarity",
-                 "dissipation")
+                 "dissipation", "cone")
 #: penalty terms (non-negative, not squared); none at present: every term is a
 #: whitened residual, so the Gauss–Newton Hessian covers the whole loss
 PENALTY_TERMS = ()
@@ -64,6 +69,8 @@ TERMS = SQUARED_TERMS + PENALTY_TERMS
 #: At eps = 1 an object held by static friction creeps at most ~2 mm/s; the last
 #: stage (eps = 0.1) brings it to 0.2 mm/s, below what 0.1 mm position noise resolves.
 SLIP_EPS = 2e-2
+#: Hessian models built for every problem (see Problem2D._local_hessian)
+HESSIAN_MODES = ("gauss-newton", "exact")
 #: names of the physical parameters in theta after the shape block
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
@@ -79,6 +86,14 @@ class RunStructure:
 def smooth_pos(x, eps):
     """Smoothed max(x, 0): 0.5 (x + sqrt(x² + eps²)); exact as eps → 0."""
     return 0.5 * (x + ca.sqrt(x * x + eps * eps))
+
+
+def smooth_neg(x, delta):
+    """Smoothed min(x, 0): -delta · log(1 + exp(-x / delta)), stable for any x; it keeps
+    a little curvature on the feasible side so that a Gauss–Newton model sees an
+    approaching limit before it is crossed."""
+    y = -x / delta
+    return -delta * (ca.fmax(y, 0) + ca.log1p(ca.exp(-ca.fabs(y))))
 
 
 def smooth_abs(x, eps):
@@ -183,14 +198,11 @@ class Problem2D:
         obj_terms = {t: 0 for t in TERMS}
         r_stack = {t: [] for t in SQUARED_TERMS + ("kinematics",)}
         g_list, lbg, ubg = [g_lift], [np.zeros(self.n_phys)], [np.zeros(self.n_phys)]
-        hess_blocks = []  # (mapped local Hessians (n_y, n_y * N), global indices (N, n_y))
+        # per Hessian model: (mapped local Hessians (n_y, n_y * N), global indices (N, n_y))
+        hess_blocks = {mode: [] for mode in HESSIAN_MODES}
         self.stage_funs = []
         self.start_funs = []
         lam_lift = ca.MX.sym("lam_lift", self.n_phys)
-        #: per run: (first row in g, rows per sample, samples) of the finger cone constraints
-        self.cone_rows = []
-        #: per run: (first row in g, rows per sample, samples) of the gap constraints
-        self.gap_rows = []
         lam_g_parts.append(lam_lift)
         n_g = self.n_phys
         for i, st in enumerate(self.structures):
@@ -220,24 +232,21 @@ class Problem2D:
                             ("contact", "contact")):
                 obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(o0[name])
                 r_stack[t].append(ca.vec(o0[name]))
-            self.cone_rows.append((n_g + 3 * (T - 1), 2 * F, T - 1))
-            self.gap_rows.append((n_g + (3 + 2 * F) * (T - 1), K + F, T - 1))
-            g_list += [ca.vec(res["g_kin"]), ca.vec(res["g_cone"]), ca.vec(res["g_gap"])]
-            lbg += [np.zeros(3 * (T - 1)), np.zeros(2 * F * (T - 1)), np.zeros((K + F) * (T - 1))]
-            ubg += [np.zeros(3 * (T - 1)), np.full((2 * F + K + F) * (T - 1), np.inf)]
+            g_list.append(ca.vec(res["g_kin"]))
+            lbg.append(np.zeros(3 * (T - 1)))
+            ubg.append(np.zeros(3 * (T - 1)))
             lam_kin = ca.MX.sym("lam_kin", 3, T - 1)
-            lam_cone = ca.MX.sym("lam_cone", 2 * F, T - 1)
-            lam_gap = ca.MX.sym("lam_gap", K + F, T - 1)
-            lam_g_parts += [ca.vec(lam_kin), ca.vec(lam_cone), ca.vec(lam_gap)]
-            n_g += (3 + 2 * F + K + F) * (T - 1)
-            # exact Hessian blocks of the Lagrangian, one small dense block per sample
-            hs = self._stage_hessian_function(stage)
-            Hs = hs.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
-                                         dsym[:, 1:], gsym, w_sym, lam_f, lam_kin, lam_cone, lam_gap)
-            hess_blocks.append((Hs, self._stage_indices(i)))
-            h0 = self._start_hessian_function(start)
-            H0 = h0(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym, w_sym, lam_f)
-            hess_blocks.append((H0, self._start_indices(i)))
+            lam_g_parts.append(ca.vec(lam_kin))
+            n_g += 3 * (T - 1)
+            # Hessian blocks of the Lagrangian, one small dense block per sample
+            for mode in HESSIAN_MODES:
+                hs = self._stage_hessian_function(stage, mode)
+                Hs = hs.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
+                                             dsym[:, 1:], gsym, w_sym, lam_f, lam_kin)
+                hess_blocks[mode].append((Hs, self._stage_indices(i)))
+                h0 = self._start_hessian_function(start, mode)
+                H0 = h0(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym, w_sym, lam_f)
+                hess_blocks[mode].append((H0, self._start_indices(i)))
         # shape validity constraints and priors (theta only)
         theta_sx = ca.SX.sym("theta", self.n_theta)
         sc = self.shape.constraints(theta_sx[: self.n_shape])
@@ -257,14 +266,14 @@ class Problem2D:
             lag_theta = lag_theta + ca.dot(lam_sc_sx, g_sc_sx)
         h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
                               [ca.densify(ca.hessian(lag_theta, theta_sx)[0])])
-        hess_blocks.append((h_theta(theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym),
-                            np.arange(self.n_theta)[None, :]))
+        shared = [(h_theta(theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym),
+                   np.arange(self.n_theta)[None, :])]
         # Levenberg–Marquardt damping of the Hessian model (not of the objective): a ridge
         # parameter times lam_f on every variable, so the Gauss–Newton steps stay local
         ridge_sym = ca.MX.sym("ridge")
         self.n_p_total += 1
         p_all = ca.vertcat(p_all, ridge_sym)
-        hess_blocks.append((ca.repmat(ridge_sym * lam_f, 1, self.n_z), np.arange(self.n_z)[:, None]))
+        shared.append((ca.repmat(ridge_sym * lam_f, 1, self.n_z), np.arange(self.n_z)[:, None]))
         if n_sc:
             g_list.append(ca.Function("g_shape", [theta_sx], [g_sc_sx])(theta))
             lbg.append(np.zeros(n_sc))
@@ -289,9 +298,13 @@ class Problem2D:
         self.term_fun = ca.Function("terms", [z, p_all], [ca.vertcat(*[obj_terms[t] for t in TERMS]), f_prior])
         self.nlp = {"x": z, "p": p_all, "f": f, "g": self.g}
         lam_g = ca.vertcat(*lam_g_parts)
-        self.hess_lag = ca.Function("nlp_hess_l", [z, p_all, lam_f, lam_g],
-                                    [self._assemble_hessian(hess_blocks)],
-                                    ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        #: {"gauss-newton" | "exact": CasADi Function (x, p, lam_f, lam_g) -> upper triangle
+        #: of the Lagrangian Hessian model}, for nlpsol's hess_lag option
+        self.hess_lag = {
+            mode: ca.Function("nlp_hess_l", [z, p_all, lam_f, lam_g],
+                              [self._assemble_hessian(hess_blocks[mode] + shared)],
+                              ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+            for mode in HESSIAN_MODES}
         #: stacked whitened residuals per squared term (for Gauss-Newton information);
         #: "kinematics" holds the eq. D2 constraint values
         self.residual_stack = {t: ca.vertcat(*v) if v else ca.MX.zeros(0) for t, v in r_stack.items()}
@@ -332,7 +345,7 @@ class Problem2D:
             ell = ell + w[k] * val
         return lam_f * ell
 
-    def _stage_hessian_function(self, stage):
+    def _stage_hessian_function(self, stage, mode):
         """SX Function: dense Hessian of one sample's Lagrangian contribution with respect
         to its local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, theta]."""
         ins = stage.sx_in()
@@ -343,23 +356,20 @@ class Problem2D:
         lk = ca.SX.sym("lam_kin", 3)
         out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
         y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-        lc = ca.SX.sym("lam_cone", stage.size1_out(stage.name_out().index("g_cone")))
-        lgap = ca.SX.sym("lam_gap", stage.size1_out(stage.name_out().index("g_gap")))
-        H = self._local_hessian(out, y, w, lam_f, extra=ca.dot(lk, out["g_kin"]) + ca.dot(lc, out["g_cone"])
-                                + ca.dot(lgap, out["g_gap"]))
-        return ca.Function("hess_stage", [qp, vp, q, v, lg, lf, phys, d, g, w, lam_f, lk, lc, lgap], [H])
+        H = self._local_hessian(out, y, w, lam_f, mode, extra=ca.dot(lk, out["g_kin"]))
+        return ca.Function("hess_stage", [qp, vp, q, v, lg, lf, phys, d, g, w, lam_f, lk], [H])
 
-    def _local_hessian(self, out, y, w, lam_f, extra=0, names=None):
+    def _local_hessian(self, out, y, w, lam_f, mode, extra=0, names=None):
         """Dense local Hessian of lam_f · (weighted loss) + extra with respect to y.
 
-        Gauss–Newton (config solver.hessian = "gauss-newton", the default): the squared
+        Gauss–Newton (mode "gauss-newton"): the squared
         terms contribute J_rᵀ J_r (positive semi-definite, the right model of a
         least-squares objective far from a zero-residual fit), the penalty terms and
-        the constraints their exact second derivatives.  "exact": everything exact.
+        the constraints their exact second derivatives.  Mode "exact": everything exact.
         names maps loss terms to the output names holding them.
         """
         names = names or {t: t for t in TERMS}
-        if self.config.solver.hessian == "exact":
+        if mode == "exact":
             lag = 0
             for k, t in enumerate(TERMS):
                 if t not in names:
@@ -378,14 +388,14 @@ class Problem2D:
             H = H + ca.hessian(rest, y)[0]
         return ca.densify(H)
 
-    def _start_hessian_function(self, start):
+    def _start_hessian_function(self, start, mode):
         ins = start.sx_in()
         q, v, phys, d, g = ins
         w = ca.SX.sym("w", len(TERMS))
         lam_f = ca.SX.sym("lam_f")
         out = dict(zip(start.name_out(), start(q, v, phys, d, g)))
         y = ca.vertcat(q, v, phys)
-        H = self._local_hessian(out, y, w, lam_f, names={"dynamics": "rest", "penetration": "penetration",
+        H = self._local_hessian(out, y, w, lam_f, mode, names={"dynamics": "rest", "penetration": "penetration",
                                                           "pose": "pose", "contact": "contact"})
         return ca.Function("hess_start", [q, v, phys, d, g, w, lam_f], [H])
 
@@ -527,7 +537,7 @@ class Problem2D:
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
             gap = smooth_pos(phi[k] / g[G["sig_gap"]], eps)
             comp.append(ln * gap / (1 + gap))  # saturating: bounded curvature far from the ground
-            pen.append(ca.fmin(phi[k], 0) / g[G["sig_pen"]])
+            pen.append(smooth_neg(phi[k], g[G["sig_pen"]]) / g[G["sig_pen"]])
         sd_fun = polygon_sd_and_normal_function(K)
         gaps = [phi[k] / g[G["sig_gap"]] for k in range(K)]
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
@@ -547,18 +557,22 @@ class Problem2D:
             lt = ca.dot(imp_s, t_w)
             slip_f = ca.dot(t_w, point_velocity(v, lever) - v_f[:, f]) / L  # object lengths per second
             diss.append(mu_f * ln * smooth_abs(slip_f, eps_slip / L) + lt * slip_f)
-            cone += [mu_f * ln - lt, mu_f * ln + lt]
+            # friction cone |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty
+            cone += [smooth_neg(mu_f * ln - lt, 0.05), smooth_neg(mu_f * ln + lt, 0.05)]
             imp_finger.append(imp)
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (imp / dt - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
-            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * ca.fmin(phi_f, 0)) / g[G["sig_gap"]])
-        # eq. D1: M (v - v_prev) - dt m g_vec - J^T lambda, gravity along -n_g
-        M = mass_matrix_diag(mass, inertia)
-        grav = ca.vertcat(-9.81 * n_g * mass * dt, 0)
-        r_dyn_raw = M * (v - v_prev) - grav - gen
-        sig_lin = g[G["sig_proc"]] * g[G["m0"]] * 9.81 * dt
-        r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_lin, sig_lin, sig_lin * L / 2)
+            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * smooth_neg(phi_f, g[G["sig_gap"]]))
+                             / g[G["sig_gap"]])
+        # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
+        # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, gravity along -n_g.  (Whitening
+        # the impulse form by a fixed scale would let a light object move for free.)
+        Minv = 1 / mass_matrix_diag(mass, inertia)
+        grav = ca.vertcat(-9.81 * n_g * dt, 0)
+        r_dyn_raw = (v - v_prev) - grav - Minv * gen
+        sig_v = g[G["sig_proc"]] * 9.81 * dt
+        r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {
@@ -570,19 +584,14 @@ class Problem2D:
             "penetration": ca.vertcat(*pen),
             "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
             "dissipation": (ca.vertcat(*diss) if F else ca.SX.zeros(0)) / g[G["sig_diss"]],
+            "cone": (ca.vertcat(*cone) if F else ca.SX.zeros(0)) / g[G["sig_comp"]],
             "g_kin": g_kin,
-            "g_cone": ca.vertcat(*cone) if F else ca.SX.zeros(0),
-            # non-penetration (eq. C1's phi >= 0) as hard constraints, in contact-gap sigmas:
-            # ground vertices always, fingers where the tactile flag is 0 (see
-            # constraint_bounds); the barrier keeps IPOPT's steps from crossing them
-            "g_gap": ca.vertcat(*gaps),
+            "gap": ca.vertcat(*gaps),
             # diagnostics only (not in the loss): tangential ground impulses (scaled) and
             # finger impulses on the object (N·s, world)
             "lam_t_ground": ca.vertcat(*lt_ground),
             "imp_finger": ca.vertcat(*imp_finger) if F else ca.SX.zeros(0),
-            "gap_finger": ca.SX.zeros(0) if not F else ca.vertcat(*[r / (g[G["sig_gap"]] ** -1) for r in []] or [ca.SX.zeros(0)]),
         }
-        del outs["gap_finger"]
         names = list(outs)
         return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g],
                            [outs[n] for n in names],
@@ -603,14 +612,15 @@ class Problem2D:
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         phi, _, _ = ground_contacts(q, v, V, n_g, g[G["h"]])
-        pen = ca.vertcat(*[ca.fmin(p, 0) / g[G["sig_pen"]] for p in phi])
+        pen = ca.vertcat(*[smooth_neg(p, g[G["sig_pen"]]) / g[G["sig_pen"]] for p in phi])
         rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         sd_fun = polygon_sd_and_normal_function(K)
         r_contact = []
         for f in range(F):
             phi_f, _, _ = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
-            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * ca.fmin(phi_f, 0)) / g[G["sig_gap"]])
+            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * smooth_neg(phi_f, g[G["sig_gap"]]))
+                             / g[G["sig_gap"]])
         return ca.Function("start", [qs, vs, phys, d, g],
                            [rest, pen, r_pose, ca.vertcat(*r_contact) if F else ca.SX.zeros(0)],
                            ["q", "v", "phys", "d", "g"], ["rest", "penetration", "pose", "contact"])
@@ -630,30 +640,6 @@ class Problem2D:
 
         LF = blk("LF", 2 * st.F) if st.F else np.zeros((0, st.T - 1))
         return blk("Q", 3), blk("V", 3), blk("LG", self.K), LF
-
-    def constraint_bounds(self, active, ground_tolerance=0.0):
-        """lbg, ubg for the runs' tactile data.
-
-        - finger cone constraints off where a finger has no impulse (its variables are
-          fixed at 0 there, so 0 >= 0 would leave IPOPT a slack it can never make
-          strictly positive);
-        - finger non-penetration only where the finger is free (no impulse), where it
-          is in contact its gap is a measurement instead;
-        - ground non-penetration down to -ground_tolerance (in contact-gap sigmas).
-
-        active : list over runs of (T-1, F) bool, True where the finger impulse is free.
-        """
-        lbg = self.lbg.copy()
-        K = self.K
-        for (a, per, n), (ag, pg, ng), on in zip(self.cone_rows, self.gap_rows, active):
-            rows = lbg[a: a + per * n].reshape(n, per)
-            rows[~np.repeat(on, 2, axis=1)] = -np.inf
-            lbg[a: a + per * n] = rows.reshape(-1)
-            gap = lbg[ag: ag + pg * ng].reshape(ng, pg)
-            gap[:, :K] = -ground_tolerance
-            gap[:, K:][on] = -np.inf
-            lbg[ag: ag + pg * ng] = gap.reshape(-1)
-        return lbg, self.ubg
 
     def set_run_blocks(self, z, i, Q=None, V=None, LG=None, LF=None):
         off = self.offsets[i]

@@ -14,6 +14,10 @@ from tacest.estimation.problem import Problem2D, RunStructure
 
 #: IPOPT statuses that count as a solution
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: statuses after which not even an intermediate iterate can be used
+FATAL_STATUSES = ("Invalid_Number_Detected", "Error_In_Step_Computation", "Insufficient_Memory",
+                  "Internal_Error", "Invalid_Problem_Definition", "Invalid_Option", "Unrecoverable_Exception",
+                  "NonIpopt_Exception_Thrown")
 
 _CACHE: dict = {}
 
@@ -94,9 +98,14 @@ class BuiltSolver:
         self.problem = problem
         sc = config.solver
         self.progress = _Progress(problem.n_z, problem.g.shape[0], problem.lbg, problem.ubg, sc.print_every)
+        self.config = config
+        self.solvers = {}
+
+    def _make(self, problem, config, mode, max_iter=None):
+        sc = config.solver
         opts = {
             "expand": False,
-            "hess_lag": problem.hess_lag,
+            "hess_lag": problem.hess_lag[mode],
             "print_time": False,
             "iteration_callback": self.progress,
             "ipopt": {
@@ -114,7 +123,7 @@ class BuiltSolver:
                 "acceptable_constr_viol_tol": 1e-6,
                 "acceptable_compl_inf_tol": 1e-3,
                 "acceptable_obj_change_tol": 1e-6,
-                "max_iter": sc.max_iter,
+                "max_iter": sc.max_iter if max_iter is None else max_iter,
                 "max_cpu_time": sc.max_cpu_time,
                 # every stage starts from a consistent point (see estimator.solve): a small
                 # barrier parameter and bound push keep IPOPT from pushing contact impulses
@@ -129,9 +138,15 @@ class BuiltSolver:
                 "warm_start_mult_bound_push": 1e-8,
             },
         }
-        self.solver = ca.nlpsol("tacest_nlp", "ipopt", problem.nlp, opts)
+        return ca.nlpsol(f"tacest_nlp_{mode.replace('-', '_')}", "ipopt", problem.nlp, opts)
 
-    def solve(self, z0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None, label="", echo=None):
+    def solve(self, z0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None, label="", echo=None,
+              hessian="gauss-newton", max_iter=None):
+        """One IPOPT solve with the given Hessian model; returns (solution dict, StageInfo)."""
+        key = (hessian, max_iter)
+        if key not in self.solvers:
+            self.solvers[key] = self._make(self.problem, self.config, hessian, max_iter)
+        solver = self.solvers[key]
         self.progress.echo = echo
         self.progress.label = label
         self.progress.lbg, self.progress.ubg = lbg, ubg
@@ -142,9 +157,9 @@ class BuiltSolver:
         if lam_g0 is not None:
             args["lam_g0"] = lam_g0
         t0 = time.perf_counter()
-        sol = self.solver(**args)
+        sol = solver(**args)
         wall = time.perf_counter() - t0
-        st = self.solver.stats()
+        st = solver.stats()
         return sol, StageInfo(name=label, status=st.get("return_status", "unknown"),
                               iterations=int(st.get("iter_count", 0)), wall_time=wall,
                               objective=float(sol["f"]))
