@@ -72,8 +72,8 @@ class Solver:
     #: Levenberg–Marquardt ridge added to the Hessian model (scaled units); keeps
     #: Gauss–Newton steps local where the data leave directions weakly determined
     hessian_ridge: float = 1.0
-    tol: float = 1e-5  #: IPOPT's scaled KKT tolerance
-    acceptable_tol: float = 1e-2  #: see estimation/solver.py for the other acceptable criteria
+    tol: float = 1e-5  #: IPOPT's (scaled) KKT tolerance
+    acceptable_tol: float = 1.0  #: see estimation/solver.py for the other acceptable criteria
     max_iter: int = 400  #: for the final stage
     stage_max_iter: int = 60  #: for the intermediate stages (they only prepare the next)
     max_cpu_time: float = 600.0  #: s, per stage
@@ -81,7 +81,7 @@ class Solver:
     #: epsilon smooths max(phi, 0) (in contact-gap sigmas) and |slip|; the last stage is
     #: the model as configured.  (Weakening the dynamics early lets the object float
     #: off: touches alone do not pin shape and trajectory apart.)
-    homotopy: list = field(default_factory=lambda: [[1.0, 0.1, 1.0], [0.1, 1.0, 1.0]])
+    homotopy: list = field(default_factory=lambda: [[1.0, 0.1, 1.0], [0.3, 1.0, 1.0]])
     print_every: int = 10  #: iterations between progress lines
 
 

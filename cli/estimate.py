@@ -1,0 +1,36 @@
+"""``tacest estimate``: physics-constrained estimate of pose, shape, mass, inertia, friction."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file to write (HDF5).")
+@click.option("--shape", default="box", show_default=True, help="Shape parameterization: box or polygon:K.")
+@click.option("--method", type=click.Choice(["implicit", "shooting"]), default="implicit", show_default=True,
+              help="implicit: one NLP over states, impulses and parameters; shooting: baseline.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="TOML settings (see configs/estimate.toml); unknown keys are an error.")
+@click.option("--quiet", is_flag=True, help="No progress output.")
+def estimate(runs, output, shape, method, config_path, quiet):
+    """Estimate one object from RUNS (run files of the same object; shared parameters,
+    one trajectory each) and write the estimate file OUTPUT."""
+    from tacest.estimation.config import load_config
+    from tacest.estimation.estimator import estimate_runs
+    from tacest.io.estimate import write_estimate
+    from tacest.io.run import read_run
+
+    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    config = load_config(config_path)
+    loaded = [read_run(p) for p in runs]
+    est = estimate_runs(loaded, shape, config=config, echo=echo, method=method)
+    write_estimate(est, Path(output))
+    if not quiet:
+        p = est.params
+        click.echo(f"wrote {output}: {est.solver_status} ({est.iterations} iterations, {est.wall_time:.1f} s); "
+                   f"mass {p['mass']:.4g} kg{'' if est.identifiable.get('mass', True) else ' (not identifiable: prior)'}, "
+                   f"friction ground {p['friction_ground']:.3g}, finger {p['friction_finger']:.3g}", err=True)
