@@ -112,10 +112,16 @@ def _fill(cls, data: dict, where: str):
             if not isinstance(v, bool):
                 raise TacestError(f"{where}.{k}: expected true or false, got {v!r}")
             kwargs[k] = v
-        elif isinstance(default, (int, float)) and not isinstance(default, bool):
+        elif isinstance(default, int) and not isinstance(default, bool):
+            if not isinstance(v, int) or isinstance(v, bool):
+                raise TacestError(f"{where}.{k}: expected an integer, got {v!r}")
+            kwargs[k] = v
+        elif isinstance(default, float):
             if not isinstance(v, (int, float)) or isinstance(v, bool):
                 raise TacestError(f"{where}.{k}: expected a number, got {v!r}")
-            kwargs[k] = type(default)(v)
+            if cls in (Noise, Prior) and not v > 0 and k != "friction":
+                raise TacestError(f"{where}.{k}: must be > 0, got {v!r}")
+            kwargs[k] = float(v)
         else:
             kwargs[k] = v
     return cls(**kwargs)
@@ -136,7 +142,9 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
         data.setdefault(section, {}).update(values)
     cfg = _fill(EstimatorConfig, data, str(path) if path else "config")
     hom = cfg.solver.homotopy
-    if not hom or not all(isinstance(s, (list, tuple)) and len(s) == 3 and all(x > 0 for x in s) for s in hom):
+    if not isinstance(hom, list) or not hom or not all(
+            isinstance(s, (list, tuple)) and len(s) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0 for x in s) for s in hom):
         raise TacestError("solver.homotopy: expected a list of [epsilon, complementarity, dynamics] "
                           "triples of positive numbers")
     if cfg.solver.hessian not in ("gauss-newton", "exact", "gauss-newton-then-exact"):
