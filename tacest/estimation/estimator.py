@@ -288,8 +288,9 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         "friction_ground": True,
         "friction_finger": any(r.n_fingers for r in runs),
     }
-    for k in ("friction_ground", "friction_finger"):
-        if k in std and np.isfinite(std[k]) and std[k] > 0.5 * max(params[k], 1e-3):
+    # a parameter the data leave (nearly) undetermined: one-sigma above half its value
+    for k in ("friction_ground", "friction_finger", "mass"):
+        if k in std and not std[k] <= 0.5 * max(params[k], 1e-3):
             identifiable[k] = False
     wall = time.perf_counter() - t_start
     return Estimate(

@@ -94,7 +94,8 @@ def write_estimate(est: Estimate, path) -> None:
         g.create_dataset("vertices", data=np.asarray(est.vertices, float))
         for k, v in est.params.items():
             g.attrs[k] = np.asarray(v, float) if np.ndim(v) else float(v)
-        g.attrs["std"] = json.dumps({k: _jsonable(v) for k, v in est.std.items()})
+        # strict JSON: an unbounded sigma (a direction the data do not inform) is null
+        g.attrs["std"] = json.dumps({k: (_jsonable(v) if np.isfinite(v) else None) for k, v in est.std.items()})
         g.attrs["identifiable"] = json.dumps({k: bool(v) for k, v in est.identifiable.items()})
         runs = f.create_group("runs")
         for i, r in enumerate(est.runs):
@@ -154,7 +155,7 @@ def read_estimate(path) -> Estimate:
         for k in CORE_PARAMS:
             if k not in params:
                 r.fail(f"/params attrs {k}", "required attribute is missing")
-        std = json.loads(attr_str(pattrs.get("std", "{}")))
+        std = {k: (float("inf") if v is None else v) for k, v in json.loads(attr_str(pattrs.get("std", "{}"))).items()}
         identifiable = json.loads(attr_str(pattrs.get("identifiable", "{}")))
         runs = []
         if "runs" not in f:

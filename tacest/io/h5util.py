@@ -35,6 +35,9 @@ def atomic_h5(path):
     try:
         with h5py.File(tmp, "w") as f:
             yield f
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a finished file follows the umask
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
