@@ -15,7 +15,7 @@ import numpy as np
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector
-from tacest.estimation.initial import initial_extents, initial_guess, start_trajectories
+from tacest.estimation.initial import choose_start_shape, initial_extents, initial_guess, start_trajectories
 from tacest.estimation.problem import PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, TERMS, RunStructure
 from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
 from tacest.geometry.shapes import make_shape, numeric_vertices
@@ -143,7 +143,8 @@ class ImplicitEstimator:
         """
         cfg = self.config.solver
         pr = self.problem
-        self.s0, trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
+        self.s0 = choose_start_shape(pr, self.runs, self.scales, self.s0)
+        trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
         self.z = initial_guess(pr, self.runs, self.scales, self.s0, trajectories)
         stages = []
         hom = list(cfg.homotopy)

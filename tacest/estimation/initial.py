@@ -106,12 +106,6 @@ def push_tracker(run: Run, V_body: np.ndarray, pose0: np.ndarray) -> np.ndarray:
     return poses
 
 
-#: factor by which the starting shape shrinks while a free fingertip would be inside it
-SHRINK = 0.85
-#: m: clearance that free fingertips keep from the starting shape
-START_CLEARANCE = 2e-4
-
-
 def finger_gaps(run: Run, V_body: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(T, F) gap between each fingertip sphere and the shape placed at poses (T, 3), m."""
     T, F = run.n_samples, run.n_fingers
@@ -126,28 +120,49 @@ def finger_gaps(run: Run, V_body: np.ndarray, poses: np.ndarray) -> np.ndarray:
     return sd - run.finger_radius[None, :]
 
 
-def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray, max_shrink: int = 12):
-    """Shape parameters and (T, 3) pose trajectories to start from.
+#: candidate extents of the starting shape, as factors of the length scale L (geometric grid)
+EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
 
-    The shape shrinks (by :data:`SHRINK`) until no fingertip without contact is inside
-    it anywhere along the push-tracker trajectories, so that IPOPT starts inside the
-    feasible set of the non-penetration constraints and the touches pull the shape out
-    to where they are, rather than starting infeasible and jumping."""
-    s = np.asarray(s0, float).copy()
-    for _ in range(max_shrink + 1):
-        V = numeric_vertices(problem.shape, s, scales.L)
-        trajectories = [_tracked(run, V) for run in runs]
-        worst = 0.0
-        for run, poses in zip(runs, trajectories):
-            if run.n_fingers:
-                free = run.contact == 0
-                gaps = finger_gaps(run, V, poses)
-                if free.any():
-                    worst = min(worst, float(gaps[free].min()) - START_CLEARANCE)
-        if worst >= 0:
-            break
-        s = s * SHRINK
-    return s, trajectories
+
+def touch_inconsistency(run: Run, V_body: np.ndarray, poses: np.ndarray) -> float:
+    """m²: how badly a shape moved along poses (T, 3) disagrees with the contact flags:
+    sum over samples of max(gap, 0)² where a finger touched and min(gap, 0)² where it
+    did not."""
+    if not run.n_fingers:
+        return 0.0
+    gaps = finger_gaps(run, V_body, poses)
+    on = run.contact.astype(bool)
+    if run.missing is not None:
+        valid = ~run.missing.astype(bool)[:, None]
+        on, off = on & valid, ~on & valid
+    else:
+        off = ~on
+    return float(np.sum(np.maximum(gaps[on], 0) ** 2) + np.sum(np.minimum(gaps[off], 0) ** 2))
+
+
+def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray) -> np.ndarray:
+    """Starting shape parameters: among shapes of width × height on :data:`EXTENT_GRID`
+    (and the given guess), the one whose push-tracker trajectories agree best with the
+    contact flags (:func:`touch_inconsistency`).  Touches from both sides of a resting
+    object fix its width; top touches its height."""
+    if not any(r.n_fingers for r in runs):
+        return np.asarray(s_guess, float)
+    L = scales.L
+    best, best_cost = np.asarray(s_guess, float), np.inf
+    candidates = [np.asarray(s_guess, float)] + [problem.shape.initial(w, h) for w in EXTENT_GRID
+                                                   for h in EXTENT_GRID]
+    for s in candidates:
+        V = numeric_vertices(problem.shape, s, L)
+        cost = sum(touch_inconsistency(run, V, _tracked(run, V)) for run in runs)
+        if cost < best_cost - 1e-12:
+            best, best_cost = s, cost
+    return best
+
+
+def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
+    """(T, 3) push-tracker pose trajectories of the starting shape, one per run."""
+    V = numeric_vertices(problem.shape, s0, scales.L)
+    return [_tracked(run, V) for run in runs]
 
 
 def _tracked(run: Run, V: np.ndarray) -> np.ndarray:

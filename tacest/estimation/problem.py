@@ -537,7 +537,10 @@ class Problem2D:
             lt_ground.append(lt)
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
             gap = smooth_pos(phi[k] / g[G["sig_gap"]], eps)
-            comp.append(ln * gap / (1 + gap))  # saturating: bounded curvature far from the ground
+            # saturating (bounded curvature far from the ground), and relative to the
+            # object's own weight m·g·dt (ln is in units of m0·g·dt): whitened by a fixed
+            # scale, a lighter object would make every contact violation cheaper
+            comp.append(ln * (g[G["m0"]] / mass) * gap / (1 + gap))
             pen.append(smooth_neg(phi[k], g[G["sig_pen"]]) / g[G["sig_pen"]])
         sd_fun = polygon_sd_and_normal_function(K)
         gaps = [phi[k] / g[G["sig_gap"]] for k in range(K)]
