@@ -115,14 +115,16 @@ class BuiltSolver:
                 "tol": sc.tol,
                 "acceptable_tol": sc.acceptable_tol,
                 "acceptable_iter": 5,
-                # An acceptable point: constraints (kinematics, lifted parameters) met to
-                # 1e-6, and the objective, a chi-square sum of thousands of whitened
-                # residuals, changing by less than 1e-4 of itself per iteration for
-                # acceptable_iter iterations: a change far below one chi² unit, which no
-                # estimate would move by visibly.
-                "acceptable_constr_viol_tol": 1e-6,
+                # An acceptable point: constraints (kinematics in object lengths per
+                # second, lifted parameters relative) met to 1e-4, and the objective, a
+                # chi-square sum of thousands of whitened residuals, changing by less than
+                # 1e-3 of itself per iteration for acceptable_iter iterations.  The last
+                # iterations mostly slide along the weakly determined mass–friction
+                # valley (only mu·m·g is seen in steady sliding), which the information
+                # matrix reports; shape and trajectory have long settled by then.
+                "acceptable_constr_viol_tol": 1e-4,
                 "acceptable_compl_inf_tol": 1e-3,
-                "acceptable_obj_change_tol": 1e-4,
+                "acceptable_obj_change_tol": 1e-3,
                 "max_iter": sc.max_iter if max_iter is None else max_iter,
                 "max_cpu_time": sc.max_cpu_time,
                 # every stage starts from a consistent point (see estimator.solve): a small
