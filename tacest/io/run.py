@@ -32,6 +32,7 @@ from typing import Optional
 import numpy as np
 
 from tacest.errors import FileFormatError
+from tacest.geometry.transforms import pose_size
 from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5
 
 FORMAT = "tacest.run"
@@ -46,11 +47,6 @@ UNIT_NORM_TOL = 1e-3
 #: (documented in docs/formats.md; a note is printed when they are used).
 DEFAULT_SIGMA_POSITION = 1e-3  # m
 DEFAULT_SIGMA_ANGLE = 1e-2  # rad
-
-
-def pose_size(dim: int) -> int:
-    """Length of a pose vector: 3 in 2-D ([x, y, angle]), 7 in 3-D ([x, y, z, qw, qx, qy, qz])."""
-    return 3 if dim == 2 else 7
 
 
 def velocity_size(dim: int) -> int:
