@@ -4,7 +4,8 @@ simulation from the first sample, loss on the measurements only.
 DESIGN keeps this baseline to show why the implicit loss (tacest.estimation.problem) is
 better conditioned: here the trajectory is not a decision variable but the output of a
 forward simulation, so every residual depends on every earlier parameter and contact
-event, and the loss inherits the simulation's stiffness and its chaotic sensitivity.
+event, and the loss inherits the simulation's stiffness and its chaotic sensitivity
+(a fingertip pressing on a slightly wrong shape can make d(loss)/d(theta) ~1e16).
 
 Decision variables (scaled, as in the implicit estimator)::
 
@@ -13,44 +14,48 @@ Decision variables (scaled, as in the implicit estimator)::
 
 Each run starts at rest (v0 = 0) with its lowest vertex on the ground: the height of the
 start pose follows from the shape and the angle through a soft minimum over the vertices
-(:data:`REST_SOFTMIN`), so that no run starts in the air or inside the ground.
+(:data:`REST_SOFTMIN`).  A box's start angle is held at the start's value (a box at
+rest lies on a face); a polygon's start angle of run 0 is held as the gauge.
 
-The model (per physics substep h = dt / SUBSTEPS, semi-implicit Euler: v += h M⁻¹ f(q, v);
+The model, per physics substep h = dt / SUBSTEPS (semi-implicit Euler v += h M⁻¹ f(q, v),
 q += h v; ``casadi.Function.mapaccum`` over samples, so the graph is built once per run
 length)::
 
-    ground, per vertex k   f_n = max~(k_g softplus(d_g - phi_k) - c_g phi_dot_k gate, 0)   along n_ground
-                           f_t = -mu_g f_n s_k / sqrt(s_k² + eps_k²)                      along t_ground
-    finger f (kinematic    f_n = max~(k_f softplus(-phi_f) + c_f delta_dot gate, 0)        along -n (into the object)
-      sphere at the        f_t =  mu_f f_n s_f / sqrt(s_f² + eps_f²)                       along t = perp(n)
-      measured centre,     (s_f: fingertip velocity relative to the object's surface point, along t)
-      linearly interpolated within the sample)
+    ground, per vertex k    f_n = max~(k_g softplus(o_g - phi_k) + c_g u_k gate, 0)   along n_ground
+                            f_t = -mu_g f_n s_k / sqrt(s_k² + eps²)                  along t_ground
+    fingertip f             f_n = max~(k_f softplus(-phi_f) + c_f u_f gate, 0)        along -n (into the object)
+                            f_t =  mu_f f_n s_f / sqrt(s_f² + eps²)                  along t = perp(n)
 
-- k_g = m g / (2 d_g) per vertex with d_g = :data:`GROUND_SINK`: m·g on one face (two
-  vertices) compresses the springs by d_g; the springs' rest length is d_g, so an object
-  at rest under its own weight sits with its face at phi = 0 (the data's plane), and
-  only extra load (a finger pressing down) sinks it;
-- k_f = m g / d_f with d_f = :data:`FINGER_SINK`;
-- dampers at the given ratios of critical damping (c = 2 zeta sqrt(k m));
-- eps_k, eps_f: the Coulomb law is regularized below a slip speed that grows with the
-  normal force so that the explicit friction step stays stable:
-  eps = SLIP_EPS + h mu f_n (1/m + |r|²/I) / FRICTION_STABILITY.
+(u: closing speed; s_k: vertex slip; s_f: fingertip velocity relative to the object's
+surface point, along t).  The fingertip is a kinematic circle following the measured
+centres, smoothed by a local least-squares line (:func:`finger_track`) and interpolated
+linearly within each sample.
 
-Stiffnesses scale with the (estimated) mass, so the contact frequencies sqrt(g / d) do not
-depend on it and one substep size is stable for every mass (omega h <= ~0.6 at the
-settings below).  Without a force stream every force is proportional to m, the
-trajectory does not depend on it, and the mass is fixed at the prior (not identifiable).
+- k_g = m g / (2 d_g) per vertex, d_g = :data:`GROUND_SINK`; the offset o_g makes an
+  object resting on a face under its own weight sit exactly at phi = 0;
+- k_f = m g / d_f, d_f = :data:`FINGER_SINK`; dampers at the given fractions of
+  critical damping (c = 2 zeta sqrt(k m));
+- normal and friction forces are applied linearly implicitly (:func:`normal_force`,
+  :func:`friction_force`), so stiff contacts and sticking friction (eps = SLIP_EPS) are
+  stable at a 1 ms substep;
+- stiffnesses scale with the (estimated) mass, so the contact frequencies do not depend
+  on it.  Without a force stream every force is proportional to m, the trajectory does not
+  depend on it, and the mass is held at the prior (not identifiable).
 
-Loss (whitened with the config's noise levels, names as in the estimate file)::
+Loss (whitened with the config's noise levels and weighted by its weights; the names are
+the estimate file's residual terms)::
 
-    force     (F_sim - F_meas) / sigma_F          mean simulated finger force over the interval
+    force     (F_sim - F_meas) / sigma_F          mean simulated fingertip force over the interval
     normal    c (n_meas - n_model) / sigma_n      model normal at the end of the interval
     contact   (c phi_f + (1 - c) min~(phi_f, 0)) / sigma_gap
     pose      (q - q_obs) / sigma_pose            where observed
 
-plus the implicit estimator's weak priors on theta.  Solved by IPOPT with a
-limited-memory Hessian; any status other than success is a SolveFailedError
-(Maximum_Iterations_Exceeded included: a baseline that did not converge has no estimate).
+plus the implicit estimator's weak priors on theta.  Start: :meth:`ShootingEstimator.
+initial_guess`.  IPOPT with a Gauss–Newton Hessian (JᵀJ by forward derivatives through
+the simulation: only theta and the start poses are variables) or L-BFGS; any status other
+than success is a SolveFailedError (Maximum_Iterations_Exceeded and
+Search_Direction_Becomes_Too_Small included: a baseline that did not converge has no
+estimate).
 """
 
 from __future__ import annotations
@@ -66,34 +71,42 @@ import numpy as np
 from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_matrix_diag, perp, point_velocity
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_velocity
+from tacest.estimation.data import GRAVITY, Scales, choose_scales
 from tacest.estimation.estimator import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS, check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
 from tacest.estimation.problem import smooth_abs, smooth_neg, smooth_pos
 from tacest.estimation.solver import SUCCESS_STATUSES, _Progress
-from tacest.geometry.shapes import Shape, make_shape, numeric_vertices, polygon_area_centroid_j, \
+from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run
 
 #: physics substeps per sample (h = dt / SUBSTEPS: 1 ms at 100 Hz)
 SUBSTEPS = 10
-#: m, compression of the ground springs under the object's weight on one face (k_g = m g / (2 d))
-GROUND_SINK = 1e-3
-#: m, compression of a fingertip spring under a force of m·g (k_f = m g / d)
-FINGER_SINK = 2e-4
-#: fractions of critical damping of the ground and fingertip springs: critical on the
-#: ground (no bouncing of a resting object); lower at the fingertip, whose damper sees the
-#: fingertip velocity, which comes from noisy positions
+#: m, compression of the ground springs under the object's weight on one face
+#: (k_g = m g / (2 d) per vertex).  Stiff, because the recorded fingertips press objects
+#: into the ground with up to 30 N (10 m·g for a light object): at 1 mm per m·g the
+#: simulated object would sink a centimetre where the real one did not move
+GROUND_SINK = 5e-5
+#: m, compression of a fingertip spring under a force of m·g (k_f = m g / d): softer than
+#: the ground, because the kinematic fingertip's position noise (0.1 mm, smoothed to
+#: ~0.04 mm, see finger_track) becomes force noise k_f · noise
+FINGER_SINK = 1e-4
+#: fractions of critical damping of the ground and fingertip springs (both applied
+#: linearly implicitly, see normal_force)
 GROUND_DAMPING_RATIO = 1.0
-FINGER_DAMPING_RATIO = 0.5
+FINGER_DAMPING_RATIO = 1.0
 #: m, width of the softplus that smooths the springs' max(penetration, 0) and of the
-#: damper gates: far below the 0.5 mm contact-gap noise
-CONTACT_SMOOTH = 2e-4
-#: m/s, slip speed below which Coulomb friction is regularized (plus the stability term)
-SLIP_EPS = 1e-2
-#: the regularized friction's viscous gain times h, over the effective mass, is at most this
-FRICTION_STABILITY = 0.5
+#: damper gates.  It must span several substeps of fingertip travel (0.04 mm at 4 cm/s),
+#: or the sum over substeps makes the loss rugged on that scale; it is far below the
+#: 0.5 mm contact-gap noise (a fingertip then touches at a gap of up to ~2 widths)
+CONTACT_SMOOTH = 1e-4
+#: m, rest offset of the ground springs: softplus(GROUND_OFFSET) = GROUND_SINK, so that an
+#: object resting on a face under its own weight sits exactly at phi = 0
+GROUND_OFFSET = CONTACT_SMOOTH * math.log(math.expm1(GROUND_SINK / CONTACT_SMOOTH))
+#: m/s, slip speed below which Coulomb friction is regularized (linearly implicit, so
+#: it need not grow with the substep: see friction_force)
+SLIP_EPS = 2e-3
 #: m, temperature of the soft minimum over the vertices that puts the start pose on the
 #: ground (the start is at most REST_SOFTMIN · ln K above the exact resting height)
 REST_SOFTMIN = 2e-5
@@ -113,6 +126,8 @@ DEFAULT_HESSIAN = "gauss-newton"
 
 #: measurement terms, in the order the measurement function returns them
 TERMS = ("force", "normal", "contact", "pose")
+#: per-run outputs of ShootingProblem.outputs, in order
+OUTPUT_NAMES = ("Q", "V", "F_sim", "imp_ground_n", "imp_ground_t", *TERMS, "gap", "n_model")
 #: names of the physical parameters in theta after the shape block (as in problem.py)
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
@@ -151,6 +166,18 @@ def phys_function(shape: Shape) -> ca.Function:
                        ["theta", "L", "m0"], ["V", "mass", "inertia", "mu_g", "mu_f"])
 
 
+def friction_force(mu, f_n, s, inv_m_t, h):
+    """Magnitude (along the slip s) of the regularized Coulomb force mu f_n s / sqrt(s² + eps²),
+    eps = SLIP_EPS, applied linearly implicitly: divided by 1 + h inv_m_t d/ds(force), so
+    that one step cannot reverse the slip however small eps is (an explicit step needs
+    eps >~ h mu g (1 + lever terms), several cm/s at 1 ms, and then underestimates
+    friction in slow pushes).  inv_m_t : 1/kg, inverse effective mass along the tangent."""
+    den = smooth_abs(s, SLIP_EPS)
+    f = mu * f_n * s / den
+    slope = mu * f_n * SLIP_EPS ** 2 / den ** 3
+    return f / (1 + h * inv_m_t * slope)
+
+
 def finger_geometry(q, V, c_f, radius, sd_fun):
     """Gap phi_f (m), outward object normal n (2, world) and lever r (2, world, from the
     COM to the closest surface point) of a fingertip centre c_f (2, world)."""
@@ -160,11 +187,35 @@ def finger_geometry(q, V, c_f, radius, sd_fun):
     return sd - radius, n_w, c_f - q[0:2] - sd * n_w
 
 
+def normal_force(k, c, delta, u, inv_m_n, a_close, h, f_eps):
+    """Penalty normal force magnitude (N) of one contact, applied linearly implicitly.
+
+    The explicit law f(delta, u) = max~(k softplus(delta) + c u gate(delta), 0) (delta:
+    penetration, m; u: its rate, m/s) is replaced by its value at the end of the substep,
+    linearized: with u' = u + h a_close - h inv_m_n f_app and delta' = delta + h u',
+
+        f_app = (f + h f_delta (u + h a_close) + h f_u a_close) / (1 + h inv_m_n (h f_delta + f_u)),
+
+    so stiff springs and dampers stay stable at a 1 ms substep, and at rest under
+    gravity (a_close: gravity's acceleration along the closing direction) f_app = f
+    exactly.  inv_m_n : 1/kg, inverse effective mass along the normal."""
+    w = CONTACT_SMOOTH
+    sg = sigmoid(delta, w)
+    x = k * softplus(delta, w) + c * u * sg
+    f = smooth_pos(x, f_eps)
+    dpos = 0.5 * (1 + x / ca.sqrt(x * x + f_eps * f_eps))
+    f_d = dpos * (k * sg + c * u * sg * (1 - sg) / w)
+    f_u = dpos * c * sg
+    num = f + h * f_d * (u + h * a_close) + h * f_u * a_close
+    return smooth_pos(num, f_eps) / (1 + h * inv_m_n * (h * f_d + f_u))
+
+
 def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_g, h, sd_fun):
     """Penalty contact forces of the model (module docstring) at state (q, v).
 
     c_f, v_f : (2, F) fingertip centres (m) and velocities (m/s), world;
-    radius : (F,) m;  n_g : (2,) ground normal;  h_g : ground height, m;  h : substep, s.
+    radius : (F,) m;  n_g : (2,) ground normal (gravity along -n_g);  h_g : ground
+    height, m;  h : substep, s.
     Returns (generalized force (3,), finger forces on the object (2, F) N,
     ground normal forces (K,) N, ground tangential forces (K,) N).
     """
@@ -181,12 +232,10 @@ def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_
     fn_g, ft_g = [], []
     for k in range(K):
         r = levers[k]
-        pen = GROUND_SINK - phi[k]
-        phi_dot = ca.dot(n_g, point_velocity(v, r))
-        fn = smooth_pos(k_g * softplus(pen, CONTACT_SMOOTH) - c_g * phi_dot * sigmoid(pen, CONTACT_SMOOTH), f_eps)
-        inv_m_eff = 1 / mass + ca.sumsqr(r) / inertia
-        eps = SLIP_EPS + h * mu_g * fn * inv_m_eff / FRICTION_STABILITY
-        ft = -mu_g * fn * slip[k] / smooth_abs(slip[k], eps)
+        u = -ca.dot(n_g, point_velocity(v, r))
+        fn = normal_force(k_g, c_g, GROUND_OFFSET - phi[k], u, cross2(r, n_g) ** 2 / inertia + 1 / mass, GRAVITY,
+                          h, f_eps)
+        ft = -friction_force(mu_g, fn, slip[k], cross2(r, t_g) ** 2 / inertia + 1 / mass, h)
         gen += generalized_impulse(r, fn * n_g + ft * t_g)
         fn_g.append(fn)
         ft_g.append(ft)
@@ -195,14 +244,10 @@ def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_
         phi_f, n_w, lever = finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
         t_w = perp(n_w)
         rel = v_f[:, f] - point_velocity(v, lever)  # fingertip relative to the surface point
-        delta = -phi_f
-        delta_dot = -ca.dot(n_w, rel)
-        fn = smooth_pos(k_f * softplus(delta, CONTACT_SMOOTH) + c_fd * delta_dot * sigmoid(delta, CONTACT_SMOOTH),
-                        f_eps)
+        fn = normal_force(k_f, c_fd, -phi_f, -ca.dot(n_w, rel), cross2(lever, n_w) ** 2 / inertia + 1 / mass,
+                          -GRAVITY * ca.dot(n_w, n_g), h, f_eps)
         s = ca.dot(t_w, rel)
-        inv_m_eff = 1 / mass + ca.sumsqr(lever) / inertia
-        eps = SLIP_EPS + h * mu_f * fn * inv_m_eff / FRICTION_STABILITY
-        ft = mu_f * fn * s / smooth_abs(s, eps)
+        ft = friction_force(mu_f, fn, s, cross2(lever, t_w) ** 2 / inertia + 1 / mass, h)
         force = -fn * n_w + ft * t_w
         gen += generalized_impulse(lever, force)
         fingers.append(force)
@@ -261,16 +306,43 @@ def data_rows(F: int) -> int:
     return 11 * F + 4
 
 
+#: half-width (samples) of the local least-squares line through the measured fingertip
+#: positions that drives the kinematic fingertip: 0.1 mm position noise becomes ~0.045 mm
+#: (and k_f times that in force); at a sudden stop the line lags by ~0.6 v·dt (0.25 mm at
+#: 4 cm/s, outward)
+FINGER_SMOOTH_HALF_WIDTH = 2
+
+
+def finger_track(run: Run):
+    """(T, F, 2) smoothed fingertip positions (m) and velocities (m/s): value and slope of a
+    least-squares line through the samples within ±FINGER_SMOOTH_HALF_WIDTH (shorter
+    windows at the ends)."""
+    fp = run.finger_position
+    T = fp.shape[0]
+    hw = FINGER_SMOOTH_HALF_WIDTH
+    pos, vel = fp.copy(), np.zeros_like(fp)
+    for t in range(T):
+        a, b = max(0, t - hw), min(T, t + hw + 1)
+        if b - a < 2:
+            continue
+        tt = np.arange(a, b) - t
+        tm = tt.mean()
+        mean = fp[a:b].mean(0)
+        slope = np.tensordot(tt - tm, fp[a:b] - mean, axes=(0, 0)) / np.sum((tt - tm) ** 2)
+        pos[t] = mean - slope * tm
+        vel[t] = slope / run.dt
+    return pos, vel
+
+
 def data_matrix(run: Run) -> np.ndarray:
-    """(data_rows(F), T) per-sample data of a run (see :func:`data_rows`).  Column t of
-    v_f is the fingertip velocity over the interval (t-1, t]: the mean of the filtered
-    velocities (tacest.estimation.data.finger_velocity) at its ends."""
+    """(data_rows(F), T) per-sample data of a run (see :func:`data_rows`): the smoothed
+    fingertip track (:func:`finger_track`), with column t of v_f the fingertip velocity
+    over the interval (t-1, t] (mean of the slopes at its ends)."""
     T, F = run.n_samples, run.n_fingers
     rows = []
     if F:
-        fp = run.finger_position  # (T, F, 2)
+        fp, vf = finger_track(run)
         valid = np.ones(T) if run.missing is None else 1.0 - run.missing.astype(float)
-        vf = finger_velocity(run)
         vf_int = np.concatenate([vf[:1], 0.5 * (vf[1:] + vf[:-1])], axis=0)
         contact = run.contact.astype(float) * valid[:, None]
         n_meas = np.where(np.isfinite(run.normal), run.normal, 0.0)
@@ -297,7 +369,8 @@ def data_matrix(run: Run) -> np.ndarray:
 def measurement_function(K: int, F: int) -> ca.Function:
     """SX Function of one sample: (q (3), phys, d (data column), f_sim (2F), sig (5)
     [sigma_F, sigma_n, sigma_gap, sigma_pos, sigma_ang], env) -> whitened residuals
-    force (2F), normal (2F), contact (F), pose (3), and the gaps phi_f (F) m."""
+    force (2F), normal (2F), contact (F), pose (3), the gaps phi_f (F) m and the model's
+    contact normals (2F, world)."""
     q = ca.SX.sym("q", 3)
     phys = ca.SX.sym("phys", 2 * K + 4)
     d = ca.SX.sym("d", data_rows(F))
@@ -322,10 +395,11 @@ def measurement_function(K: int, F: int) -> ca.Function:
     w_force, w_tact = take(F), take(F)
     q_obs, w_pose = take(3), take(1)
     sd_fun = polygon_sd_and_normal_function(K)
-    r_force, r_normal, r_contact, gaps = [], [], [], []
+    r_force, r_normal, r_contact, gaps, normals = [], [], [], [], []
     for f in range(F):
         phi_f, n_w, _ = finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
         gaps.append(phi_f)
+        normals.append(n_w)
         r_force.append(w_force[f] * (f_sim[2 * f: 2 * f + 2] - F_meas[:, f]) / sig[0])
         r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / sig[1])
         r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * smooth_neg(phi_f, sig[2])) / sig[2])
@@ -335,8 +409,9 @@ def measurement_function(K: int, F: int) -> ca.Function:
         return ca.vertcat(*parts) if parts else ca.SX.zeros(0)
 
     return ca.Function(f"shoot_meas_K{K}_F{F}", [q, phys, d, f_sim, sig, env],
-                       [cat(r_force), cat(r_normal), cat(r_contact), r_pose, cat(gaps)],
-                       ["q", "phys", "d", "f_sim", "sig", "env"], ["force", "normal", "contact", "pose", "gap"])
+                       [cat(r_force), cat(r_normal), cat(r_contact), r_pose, cat(gaps), cat(normals)],
+                       ["q", "phys", "d", "f_sim", "sig", "env"],
+                       ["force", "normal", "contact", "pose", "gap", "n_model"])
 
 
 def rest_pose(x0, angle0, V, n_g, h_g):
@@ -423,7 +498,8 @@ class ShootingProblem:
             res = meas(Q, phys_vec, D, Fsim, sig, env)
             r_parts += [ca.sqrt(w[k]) * ca.vec(res[k]) for k in range(len(TERMS))]
             outs += [Q, Vel, Fsim, ca.horzcat(ca.MX.zeros(K, 1), IGn), ca.horzcat(ca.MX.zeros(K, 1), IGt),
-                     *res[:4], res[4]]
+                     *res]
+            assert len(outs) == len(OUTPUT_NAMES) * (i + 1)
         self.n_p = n_p
         p = ca.vertcat(*p_parts)
         assert p.shape[0] == n_p
@@ -462,7 +538,24 @@ class ShootingProblem:
         H = H + ca.diagcat(H_theta, ca.MX.zeros(self.n_z - self.n_theta, self.n_z - self.n_theta))
         self.hess_lag_gn = ca.Function("nlp_hess_l", [z, p, lam_f, lam_g], [ca.triu(ca.densify(H))],
                                        ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
-        self.n_outputs_per_run = 10
+
+    def run_outputs(self, z, p, runs):
+        """Per run: dict with pose (T, 3), velocity (T, 3), finger_force (T, F, 2) N,
+        ground_normal and ground_tangent impulses (T, K) N·s, residuals {term: (n, T)}
+        (whitened, weights not applied), gap (T, F) m, n_model (T, F, 2)."""
+        out = self.outputs(z, p)
+        n = len(OUTPUT_NAMES)
+        result = []
+        for i, run in enumerate(runs):
+            o = dict(zip(OUTPUT_NAMES, (np.asarray(a) for a in out[n * i: n * (i + 1)])))
+            T, F = run.n_samples, run.n_fingers
+            result.append({
+                "pose": o["Q"].T, "velocity": o["V"].T, "finger_force": o["F_sim"].T.reshape(T, F, 2),
+                "ground_normal": o["imp_ground_n"].T, "ground_tangent": o["imp_ground_t"].T,
+                "residuals": {t: o[t] for t in TERMS}, "gap": o["gap"].T.reshape(T, F),
+                "n_model": o["n_model"].T.reshape(T, F, 2),
+            })
+        return result
 
     # --------------------------------------------------------------------------------
     def parameters(self, runs, scales: Scales, config: EstimatorConfig, s_ref) -> np.ndarray:
@@ -627,18 +720,7 @@ class ShootingEstimator:
     def run_outputs(self, z):
         """Per run: dict with pose (T, 3), velocity (T, 3), finger forces (T, F, 2) N,
         ground impulses (T, K) x 2 N·s, residual arrays {term: (n, T)}, gaps (T, F) m."""
-        out = self.problem.outputs(z, self.p)
-        n = self.problem.n_outputs_per_run
-        result = []
-        for i, run in enumerate(self.runs):
-            o = [np.asarray(a) for a in out[n * i: n * (i + 1)]]
-            T, F = run.n_samples, run.n_fingers
-            result.append({
-                "pose": o[0].T, "velocity": o[1].T,
-                "finger_force": o[2].T.reshape(T, F, 2), "ground_normal": o[3].T, "ground_tangent": o[4].T,
-                "residuals": dict(zip(TERMS, o[5:9])), "gap": o[9].T.reshape(T, F),
-            })
-        return result
+        return self.problem.run_outputs(z, self.p, self.runs)
 
     def information(self, z):
         """Gauss–Newton information JᵀJ of the parameters (physical units: lengths m,
@@ -739,27 +821,21 @@ def simulate_run(template: Run, shape_spec: str, s, mass: float, friction_ground
 
     shape = make_shape(shape_spec, dim=2)
     T, F = template.n_samples, template.n_fingers
-    pr = ShootingProblem(shape, [Structure(T, F)], substeps)
+    pr = get_problem(shape, [Structure(T, F)], substeps)
     z = np.concatenate([np.asarray(s, float), [math.log(mass / 1.0), log_inertia_ratio, friction_ground,
                                                friction_finger, start[0] / length_scale, start[1]]])
     blank = template.replace(contact=np.zeros((T, F), np.uint8), normal=np.full((T, F, 2), np.nan),
                              force=np.zeros((T, F, 2)), pose_obs=None, truth=None, filename=None)
     cfg = EstimatorConfig()
     p = pr.parameters([blank], Scales(L=length_scale, m0=1.0), cfg, z[: shape.n_params])
-    out = [np.asarray(a) for a in pr.outputs(z, p)]
-    pose, force = out[0].T, out[2].T.reshape(T, F, 2)
+    o = pr.run_outputs(z, p, [blank])[0]
+    pose, force = o["pose"], o["finger_force"]
     V, m, inertia, mu_g, mu_f = (np.array(a) if k == 0 else float(a)
                                  for k, a in enumerate(pr.phys(z[: pr.n_theta], length_scale, 1.0)))
-    sd_fun = polygon_sd_and_normal_function(shape.n_vertices)
     contact = (np.linalg.norm(force, axis=-1) > CONTACT_FORCE_THRESHOLD).astype(np.uint8)
     contact[0] = 0
-    normal = np.full((T, F, 2), np.nan)
-    for t, f in zip(*np.nonzero(contact)):
-        c, sn = math.cos(pose[t, 2]), math.sin(pose[t, 2])
-        R = np.array([[c, -sn], [sn, c]])
-        _, n_body = sd_fun(R.T @ (template.finger_position[t, f] - pose[t, :2]), V)
-        n = R @ np.asarray(n_body).reshape(-1)
-        normal[t, f] = n / np.linalg.norm(n)
+    n = o["n_model"]
+    normal = np.where(contact[:, :, None] == 1, n / np.linalg.norm(n, axis=-1, keepdims=True), np.nan)
     force = force * contact[:, :, None]
     truth = Truth(pose=pose, vertices=V, mass=m, inertia=inertia, friction_ground=mu_g, friction_finger=mu_f)
     return blank.replace(contact=contact, normal=normal, force=force, truth=truth, source="shooting-sim")
