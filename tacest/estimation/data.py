@@ -55,6 +55,20 @@ def finger_velocity(run: Run) -> np.ndarray:
     return v
 
 
+def pose_observation_columns(run: Run):
+    """(obs (T, 3), weight (T, 1)): 2-D pose observations with the angle unwrapped and
+    missing rows zeroed, and 1 where a row was observed (zeros without observations)."""
+    T = run.n_samples
+    if run.pose_obs is None:
+        return np.zeros((T, 3)), np.zeros((T, 1))
+    obs = run.pose_obs.copy()
+    ok = np.all(np.isfinite(obs), axis=1)
+    if ok.any():
+        obs[ok, 2] = np.unwrap(obs[ok, 2])
+    obs[~ok] = 0.0
+    return obs, ok.astype(float)[:, None]
+
+
 def data_matrix(run: Run, F: int) -> np.ndarray:
     """(T, n_data) per-sample data in the layout of :meth:`Problem2D.n_data`."""
     T = run.n_samples
@@ -70,15 +84,7 @@ def data_matrix(run: Run, F: int) -> np.ndarray:
         contact = contact * w_tact
         cols += [fp.reshape(T, -1), finger_velocity(run).reshape(T, -1), contact, n_meas.reshape(T, -1),
                  force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0)]
-    if run.pose_obs is not None:
-        obs = run.pose_obs.copy()
-        ok = np.all(np.isfinite(obs), axis=1)
-        if ok.any():
-            obs[ok, 2] = np.unwrap(obs[ok, 2])
-        obs[~ok] = 0.0
-        cols += [obs, ok.astype(float)[:, None]]
-    else:
-        cols += [np.zeros((T, 3)), np.zeros((T, 1))]
+    cols += list(pose_observation_columns(run))
     D = np.concatenate(cols, axis=1)
     return D
 

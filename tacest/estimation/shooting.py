@@ -71,7 +71,7 @@ import numpy as np
 from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_matrix_diag, perp, point_velocity
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales
+from tacest.estimation.data import GRAVITY, Scales, choose_scales, pose_observation_columns
 from tacest.estimation.estimator import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS, check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
 from tacest.estimation.problem import smooth_abs, smooth_neg, smooth_pos
@@ -352,15 +352,7 @@ def data_matrix(run: Run) -> np.ndarray:
         w_tact = np.repeat(valid[:, None], F, 1)
         rows += [fp.reshape(T, -1), vf_int.reshape(T, -1), contact, n_meas.reshape(T, -1), force.reshape(T, -1),
                  w_force, w_tact]
-    if run.pose_obs is not None:
-        obs = run.pose_obs.copy()
-        ok = np.all(np.isfinite(obs), axis=1)
-        if ok.any():
-            obs[ok, 2] = np.unwrap(obs[ok, 2])
-        obs[~ok] = 0.0
-        rows += [obs, ok.astype(float)[:, None]]
-    else:
-        rows += [np.zeros((T, 3)), np.zeros((T, 1))]
+    rows += list(pose_observation_columns(run))
     D = np.concatenate(rows, axis=1).T
     assert D.shape[0] == data_rows(F)
     return D
