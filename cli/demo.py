@@ -1,6 +1,6 @@
 """``tacest demo``: the main job on a built-in simulated example, through the library.
 
-record (a 2-D box, 3 random pokes, with truth) -> estimate (shape ``box``) -> eval
+record (a 2-D box, 6 random pokes, with truth) -> estimate (shape ``box``) -> eval
 (JSON and a figure) -> a short summary.  Stages this version does not have yet (plan,
 diagnose) are named as such.  A failed solve is reported as a failure (exit status 2),
 never as an estimate.
@@ -18,7 +18,7 @@ import click
 
 #: the built-in example
 DEMO_OBJECT = "box"
-DEMO_POKES = 3
+DEMO_POKES = 6
 DEMO_SHAPE = "box"
 #: later stages, by CLI module; each is run only if its module exists
 LATER_STAGES = (("plan", "tacest.cli.plan"), ("diagnose", "tacest.cli.diagnose"))
@@ -34,11 +34,11 @@ def _available(module: str) -> bool:
 @click.command()
 @click.option("-o", "--output", "out_dir", type=click.Path(file_okay=False), default="demo_out", show_default=True,
               help="Folder for run.h5, estimate.h5, eval.json and eval.png (created if missing).")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+@click.option("--seed", type=click.IntRange(min=0), default=1, show_default=True,
               help="Random seed of the simulated object, pokes and noise.")
 @click.option("--quiet", is_flag=True, help="No progress output (the summary is still printed).")
 def demo(out_dir, seed, quiet):
-    """Record a simulated 2-D box with 3 pokes, estimate it, score the estimate
+    """Record a simulated 2-D box with 6 pokes, estimate it, score the estimate
     against the truth, and print a summary.  Files go to OUTPUT."""
     from tacest.errors import SolveFailedError, TacestError
     from tacest.estimation.config import load_config
@@ -140,5 +140,5 @@ def _param(entry, unit):
     text = f"{_num(entry['estimate'], unit)} (truth {_num(entry['truth'], unit)}"
     text += f", error {100 * entry['rel']:.1f} %)" if _finite(entry.get("rel")) else ")"
     if entry.get("identifiable") is False:
-        text += "  not identifiable from these data: the prior's value"
+        text += "  poorly determined by these data (one sigma above half the value)"
     return text

@@ -150,7 +150,7 @@ def test_demo_writes_every_file_and_an_honest_summary(tmp_path, capsys, monkeypa
         assert (d / name).is_file(), name
     report = json.loads((d / "eval.json").read_text())
     assert report["chamfer"] < 1e-3 and report["solver_status"] == "Solve_Succeeded"
-    assert "seed 1" in out and "3 pokes" in out and "Solve_Succeeded, 7 iterations" in out
+    assert "seed 1" in out and "6 pokes" in out and "Solve_Succeeded, 7 iterations" in out
     assert "Chamfer, placed shapes" in out and " mm" in out
     assert "truth" in out and "not identifiable" in out  # friction_finger flagged as the prior's
     for stage in ("plan", "diagnose"):
