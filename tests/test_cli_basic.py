@@ -152,7 +152,7 @@ def test_demo_writes_every_file_and_an_honest_summary(tmp_path, capsys, monkeypa
     assert report["chamfer"] < 1e-3 and report["solver_status"] == "Solve_Succeeded"
     assert "seed 1" in out and "6 pokes" in out and "Solve_Succeeded, 7 iterations" in out
     assert "Chamfer, placed shapes" in out and " mm" in out
-    assert "truth" in out and "poorly determined" in out  # friction_finger flagged as the prior's
+    assert "truth" in out and "poorly determined" in out  # friction_finger flagged as weakly determined
     for stage in ("plan", "diagnose"):
         line = next(ln for ln in out.splitlines() if ln.startswith(stage + ":"))
         assert "not available in this version yet" in line or "available as" in line
