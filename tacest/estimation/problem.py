@@ -84,6 +84,19 @@ class RunStructure:
     F: int
 
 
+def consecutive_slices(vector):
+    """take(n) -> the next n entries of vector (CasADi or numpy), in order."""
+    i = 0
+
+    def take(n):
+        nonlocal i
+        out = vector[i: i + n]
+        i += n
+        return out
+
+    return take
+
+
 def smooth_pos(x, eps):
     """Smoothed max(x, 0): 0.5 (x + sqrt(x² + eps²)); exact as eps → 0."""
     return 0.5 * (x + ca.sqrt(x * x + eps * eps))
@@ -472,13 +485,7 @@ class Problem2D:
         return V, phys[2 * K] * m0, phys[2 * K + 1] * m0 * L * L, phys[2 * K + 2], phys[2 * K + 3]
 
     def _unpack_data(self, d, F):
-        i = 0
-
-        def take(n):
-            nonlocal i
-            out = d[i: i + n]
-            i += n
-            return out
+        take = consecutive_slices(d)
 
         c_f = ca.reshape(take(2 * F), 2, F)
         v_f = ca.reshape(take(2 * F), 2, F)

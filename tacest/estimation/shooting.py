@@ -74,7 +74,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, pose_observation_columns
 from tacest.estimation.estimator import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS, check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
-from tacest.estimation.problem import smooth_abs, smooth_neg, smooth_pos
+from tacest.estimation.problem import consecutive_slices, smooth_abs, smooth_neg, smooth_pos
 from tacest.estimation.solver import SUCCESS_STATUSES, _Progress
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
@@ -371,13 +371,7 @@ def measurement_function(K: int, F: int) -> ca.Function:
     env = ca.SX.sym("env", 4 + F)
     V = ca.reshape(phys[: 2 * K], K, 2)
     radius = env[4:]
-    i = 0
-
-    def take(n):
-        nonlocal i
-        out = d[i: i + n]
-        i += n
-        return out
+    take = consecutive_slices(d)
 
     c_f = ca.reshape(take(2 * F), 2, F)
     take(2 * F)  # fingertip velocity: the dynamics only
