@@ -55,6 +55,14 @@ def finger_velocity(run: Run) -> np.ndarray:
     return v
 
 
+def touching(run: Run) -> np.ndarray:
+    """(T, F) bool: the tactile flag is 1 and the sample arrived (not in /quality/missing)."""
+    on = run.contact.astype(bool)
+    if run.missing is not None:
+        on &= ~run.missing.astype(bool)[:, None]
+    return on
+
+
 def pose_observation_columns(run: Run):
     """(obs (T, 3), weight (T, 1)): 2-D pose observations with the angle unwrapped and
     missing rows zeroed, and 1 where a row was observed (zeros without observations)."""

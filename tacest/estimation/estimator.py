@@ -14,11 +14,11 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector
+from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector, touching
 from tacest.estimation.initial import choose_start_shape, initial_extents, initial_guess, start_trajectories
-from tacest.estimation.problem import PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, TERMS, RunStructure
+from tacest.estimation.problem import SQUARED_TERMS, TERMS, RunStructure
 from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
-from tacest.geometry.shapes import make_shape, numeric_vertices
+from tacest.geometry.shapes import make_shape
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
 from tacest.io.run import Run
@@ -70,8 +70,10 @@ class ImplicitEstimator:
         self.problem = self.built.problem
 
     # --------------------------------------------------------------------------------
-    def variable_bounds(self, fix_phys: bool):
-        pr, K = self.problem, self.problem.K
+    def variable_bounds(self):
+        """lbx, ubx (scaled) of the decision vector: shape, parameter and impulse bounds,
+        finger impulses fixed at 0 where the fingertip did not touch, and the gauge."""
+        pr = self.problem
         lbx = np.full(pr.n_z, -np.inf)
         ubx = np.full(pr.n_z, np.inf)
         ns = pr.n_shape
@@ -81,10 +83,6 @@ class ImplicitEstimator:
         ubx[ns:ns + 4] = [LOG_MASS_BOUNDS[1], LOG_INERTIA_BOUNDS[1], FRICTION_BOUNDS[1], FRICTION_BOUNDS[1]]
         if not self.has_force:  # DESIGN: without a force stream mass is not identifiable
             lbx[ns] = ubx[ns] = 0.0
-        if fix_phys:
-            z0 = self.z
-            for j in range(ns, ns + 4):
-                lbx[j] = ubx[j] = z0[j]
         for i, (run, st) in enumerate(zip(self.runs, self.structures)):
             off = pr.offsets[i]
             a, n = off["LG"]
@@ -92,9 +90,7 @@ class ImplicitEstimator:
             if st.F:
                 # finger impulses exist only where the tactile flag says the finger touched
                 a, n = off["LF"]
-                on = run.contact[1:].astype(bool)
-                if run.missing is not None:
-                    on &= ~run.missing[1:].astype(bool)[:, None]
+                on = touching(run)[1:]
                 off_rows = np.repeat(~on, 2, axis=1)  # (T-1, 2F): [x, y] per finger
                 lbx[a: a + n] = np.where(off_rows, 0.0, -np.inf).reshape(-1)
                 ubx[a: a + n] = np.where(off_rows, 0.0, np.inf).reshape(-1)
@@ -109,19 +105,6 @@ class ImplicitEstimator:
                                 dyn_mult=dyn_mult)
 
     # --------------------------------------------------------------------------------
-    def finger_active(self):
-        """Per run, (T-1, F) bool: where finger impulses are free (contact, not missing)."""
-        out = []
-        for run, st in zip(self.runs, self.structures):
-            if not st.F:
-                out.append(np.zeros((st.T - 1, 0), bool))
-                continue
-            on = run.contact[1:].astype(bool)
-            if run.missing is not None:
-                on &= ~run.missing[1:].astype(bool)[:, None]
-            out.append(on)
-        return out
-
     def impulse_only_bounds(self, lbx, ubx):
         """Bounds that hold everything but the contact impulses at the current z."""
         pr = self.problem
@@ -154,7 +137,7 @@ class ImplicitEstimator:
         lam_x = lam_g = None
         total_t = 0.0
         for label, eps, w, wd, which in plan:
-            lbx, ubx = self.variable_bounds(fix_phys=False)
+            lbx, ubx = self.variable_bounds()
             lbg, ubg = pr.lbg, pr.ubg
             if which == "impulses":
                 lbx, ubx = self.impulse_only_bounds(lbx, ubx)

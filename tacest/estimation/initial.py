@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacest.estimation.data import GRAVITY, Scales
+from tacest.estimation.data import GRAVITY, Scales, touching
 from tacest.geometry.shapes import numeric_vertices, polygon_sd_and_normal_function
 from tacest.io.run import Run
 
@@ -29,10 +29,7 @@ def contact_points(run: Run):
     """
     if run.contact is None:
         return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2))
-    on = run.contact.astype(bool)
-    if run.missing is not None:
-        on &= ~run.missing.astype(bool)[:, None]
-    it, jf = np.nonzero(on)
+    it, jf = np.nonzero(touching(run))
     n = run.normal[it, jf]
     p = run.finger_position[it, jf] - run.finger_radius[jf][:, None] * n
     return it, jf, p, n
@@ -131,12 +128,10 @@ def touch_inconsistency(run: Run, V_body: np.ndarray, poses: np.ndarray) -> floa
     if not run.n_fingers:
         return 0.0
     gaps = finger_gaps(run, V_body, poses)
-    on = run.contact.astype(bool)
+    on = touching(run)
+    off = ~run.contact.astype(bool)
     if run.missing is not None:
-        valid = ~run.missing.astype(bool)[:, None]
-        on, off = on & valid, ~on & valid
-    else:
-        off = ~on
+        off &= ~run.missing.astype(bool)[:, None]
     return float(np.sum(np.maximum(gaps[on], 0) ** 2) + np.sum(np.minimum(gaps[off], 0) ** 2))
 
 

@@ -49,7 +49,7 @@ are whitened by sigma_comp and sigma_diss, see configs/estimate.toml.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -108,6 +108,12 @@ def smooth_neg(x, delta):
     approaching limit before it is crossed."""
     y = -x / delta
     return -delta * (ca.fmax(y, 0) + ca.log1p(ca.exp(-ca.fabs(y))))
+
+
+def contact_residual(phi_f, contact, weight, sigma_gap):
+    """Whitened contact-flag residual of one fingertip: its gap phi_f (m) where the flag is
+    1, its (smoothed) penetration where the flag is 0."""
+    return weight * (contact * phi_f + (1 - contact) * smooth_neg(phi_f, sigma_gap)) / sigma_gap
 
 
 def smooth_abs(x, eps):
@@ -170,11 +176,8 @@ class Problem2D:
     def _build(self):
         self._layout()
         K = self.K
-        cfg = self.config
         z = ca.MX.sym("z", self.n_z)
         theta = z[: self.n_theta]
-        s = theta[: self.n_shape]
-        lm, lI, mu_g, mu_f = (theta[self.n_shape + i] for i in range(4))
 
         # parameters: per run, a global block and a data matrix; plus L and m0 shared
         p_parts = []
@@ -351,14 +354,6 @@ class Problem2D:
             + 0.5 * ((mu_g - mu0) / mu_sig) ** 2 + 0.5 * ((mu_f - mu0) / mu_sig) ** 2 \
             + 0.5 * ca.sumsqr((s - s_ref) / sh_sig)
 
-    def _stage_lagrangian(self, stage_out, w, lam_f):
-        """sigma · (weighted stage loss) from a stage function's outputs (dict)."""
-        ell = 0
-        for k, t in enumerate(TERMS):
-            val = 0.5 * ca.sumsqr(stage_out[t]) if t in SQUARED_TERMS else stage_out[t]
-            ell = ell + w[k] * val
-        return lam_f * ell
-
     def _stage_hessian_function(self, stage, mode):
         """SX Function: dense Hessian of one sample's Lagrangian contribution with respect
         to its local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, theta]."""
@@ -526,7 +521,7 @@ class Problem2D:
         c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose = self._unpack_data(d, F)
         # unscale: q = [x/L, y/L, angle], v = [vx/L, vy/L, omega] per second
         unscale = ca.vertcat(L, L, 1)
-        q, q_prev = qs * unscale, qp * unscale
+        q = qs * unscale
         v, v_prev = vs * unscale, vp * unscale
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         t_g = perp(n_g)
@@ -550,13 +545,11 @@ class Problem2D:
             comp.append(ln * (g[G["m0"]] / mass) * gap / (1 + gap))
             pen.append(smooth_neg(phi[k], g[G["sig_pen"]]) / g[G["sig_pen"]])
         sd_fun = polygon_sd_and_normal_function(K)
-        gaps = [phi[k] / g[G["sig_gap"]] for k in range(K)]
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
         cone = []
         diss = []
         for f in range(F):
             phi_f, n_w, lever = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
-            gaps.append(phi_f / g[G["sig_gap"]])
             t_w = perp(n_w)
             # finger impulse ON the object: a free world-frame vector, held in the friction
             # cone of the model's contact frame (eq. C2).  Fingertips often stick to the
@@ -574,8 +567,7 @@ class Problem2D:
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (imp / dt - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
-            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * smooth_neg(phi_f, g[G["sig_gap"]]))
-                             / g[G["sig_gap"]])
+            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
         # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
         # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, gravity along -n_g.  (Whitening
         # the impulse form by a fixed scale would let a light object move for free.)
@@ -597,7 +589,6 @@ class Problem2D:
             "dissipation": (ca.vertcat(*diss) if F else ca.SX.zeros(0)) / g[G["sig_diss"]],
             "cone": (ca.vertcat(*cone) if F else ca.SX.zeros(0)) / g[G["sig_comp"]],
             "g_kin": g_kin,
-            "gap": ca.vertcat(*gaps),
             # diagnostics only (not in the loss): tangential ground impulses (scaled) and
             # finger impulses on the object (N·s, world)
             "lam_t_ground": ca.vertcat(*lt_ground),
@@ -630,8 +621,7 @@ class Problem2D:
         r_contact = []
         for f in range(F):
             phi_f, _, _ = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
-            r_contact.append(w_tact[f] * (contact[f] * phi_f + (1 - contact[f]) * smooth_neg(phi_f, g[G["sig_gap"]]))
-                             / g[G["sig_gap"]])
+            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
         return ca.Function("start", [qs, vs, phys, d, g],
                            [rest, pen, r_pose, ca.vertcat(*r_contact) if F else ca.SX.zeros(0)],
                            ["q", "v", "phys", "d", "g"], ["rest", "penetration", "pose", "contact"])

@@ -74,7 +74,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, pose_observation_columns
 from tacest.estimation.estimator import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS, check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
-from tacest.estimation.problem import consecutive_slices, smooth_abs, smooth_neg, smooth_pos
+from tacest.estimation.problem import PHYS_NAMES, consecutive_slices, smooth_abs, smooth_neg, smooth_pos
 from tacest.estimation.solver import SUCCESS_STATUSES, _Progress
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
@@ -129,7 +129,6 @@ TERMS = ("force", "normal", "contact", "pose")
 #: per-run outputs of ShootingProblem.outputs, in order
 OUTPUT_NAMES = ("Q", "V", "F_sim", "imp_ground_n", "imp_ground_t", *TERMS, "gap", "n_model")
 #: names of the physical parameters in theta after the shape block (as in problem.py)
-PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
 _CACHE: dict = {}
 

@@ -70,7 +70,7 @@ def observed_information(est, z, lbx=None, ubx=None):
     qa = pr.offsets[last]["Q"][0] + 3 * (pr.structures[last].T - 1)
     keep = list(range(n_theta)) + [qa, qa + 1, qa + 2]
     if lbx is None:
-        lbx, ubx = est.variable_bounds(fix_phys=False)
+        lbx, ubx = est.variable_bounds()
     fixed = np.asarray(lbx) == np.asarray(ubx)
     n = pr.n_z
     is_keep = np.zeros(n, bool)
