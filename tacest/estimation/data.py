@@ -56,11 +56,9 @@ def finger_velocity(run: Run) -> np.ndarray:
 
 
 def touching(run: Run) -> np.ndarray:
-    """(T, F) bool: the tactile flag is 1 and the sample arrived (not in /quality/missing)."""
-    on = run.contact.astype(bool)
-    if run.missing is not None:
-        on &= ~run.missing.astype(bool)[:, None]
-    return on
+    """(T, F) bool: the tactile flag is 1 and that finger's data of the sample arrived
+    (not in /quality/missing_finger, or /quality/missing for a run without it)."""
+    return run.contact.astype(bool) & ~run.finger_missing_mask
 
 
 def pose_observation_columns(run: Run):
@@ -84,11 +82,11 @@ def data_matrix(run: Run, F: int) -> np.ndarray:
     if F:
         fp = run.finger_position
         contact = run.contact.astype(float)
-        valid = np.ones(T) if run.missing is None else 1.0 - run.missing.astype(float)
+        valid = 1.0 - run.finger_missing_mask.astype(float)  # (T, F): 0 where that finger's data are unknown
         n_meas = np.where(np.isfinite(run.normal), run.normal, 0.0)
         force = run.force if run.force is not None else np.zeros_like(fp)
-        w_force = np.zeros((T, F)) if run.force is None else np.repeat(valid[:, None], F, 1)
-        w_tact = np.repeat(valid[:, None], F, 1)
+        w_force = np.zeros((T, F)) if run.force is None else valid.copy()
+        w_tact = valid.copy()
         contact = contact * w_tact
         cols += [fp.reshape(T, -1), finger_velocity(run).reshape(T, -1), contact, n_meas.reshape(T, -1),
                  force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0)]

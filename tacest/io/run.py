@@ -19,6 +19,12 @@ Array conventions (T samples, F fingers, D = dim, P = pose size = 3 or 7)::
                                arrived (serial gap); robot/tactile values there are
                                placeholders (position interpolated, contact 0, force 0,
                                normal NaN) and estimators give them no weight
+    missing_finger   (T, F)    uint8, optional (``/quality/missing_finger``, tacest
+                               extension): 1 where finger f's robot and tactile values of
+                               sample k are unknown (one finger's serial line lost while
+                               its siblings arrived); when present, ``missing`` must be
+                               its OR over fingers.  :attr:`Run.finger_missing_mask` gives
+                               the (T, F) mask whichever of the two a file has
 """
 
 from __future__ import annotations
@@ -106,6 +112,7 @@ class Run:
     prior: dict = field(default_factory=dict)
     truth: Optional[Truth] = None
     missing: Optional[np.ndarray] = None
+    missing_finger: Optional[np.ndarray] = None
     #: extra root attributes to keep (str -> JSON-able), e.g. recorder settings
     extra_attrs: dict = field(default_factory=dict)
     #: where it was read from (not written)
@@ -131,6 +138,18 @@ class Run:
     @property
     def has_pose_obs(self) -> bool:
         return self.pose_obs is not None
+
+    @property
+    def finger_missing_mask(self) -> np.ndarray:
+        """(T, F) bool: True where finger f's position, contact, force and normal at
+        sample k are unknown placeholders.  From ``/quality/missing_finger`` when the run
+        has it, else ``/quality/missing`` repeated over the fingers, else all False."""
+        T, F = self.n_samples, self.n_fingers
+        if self.missing_finger is not None:
+            return np.asarray(self.missing_finger).astype(bool).reshape(T, F)
+        if self.missing is not None:
+            return np.repeat(np.asarray(self.missing).astype(bool).reshape(T, 1), F, axis=1)
+        return np.zeros((T, F), bool)
 
     @property
     def up(self) -> np.ndarray:
@@ -268,6 +287,20 @@ def _validate(run: Run, filename):
         _check_shape(filename, "/quality/missing", ms, (T,))
         if not np.all(np.isin(ms, (0, 1))):
             _fail(filename, "/quality/missing", "values must be 0 or 1")
+    if run.missing_finger is not None:
+        if not has_robot:
+            _fail(filename, "/quality/missing_finger", "needs /robot (it is per finger)")
+        mf = np.asarray(run.missing_finger)
+        _check_shape(filename, "/quality/missing_finger", mf, (T, F))
+        if not np.all(np.isin(mf, (0, 1))):
+            _fail(filename, "/quality/missing_finger", "values must be 0 or 1")
+        if run.missing is None:
+            _fail(filename, "/quality/missing", "required when /quality/missing_finger is present "
+                  "(1 where any finger of the sample is missing)")
+        bad = np.asarray(run.missing).astype(bool) != mf.astype(bool).any(axis=1)
+        if np.any(bad):
+            _fail(filename, "/quality/missing", f"must be 1 exactly where /quality/missing_finger has a 1 "
+                  f"(sample {int(np.argmax(bad))} disagrees)")
     if run.actions is not None:
         seg = np.asarray(run.actions.segments)
         _check_shape(filename, "/actions/segments", seg, (None, 2))
@@ -360,6 +393,13 @@ def read_run(path) -> Run:
                 setattr(run, name, r.attr_float(holder, name, default, positive=True))
         if r.has("/quality/missing"):
             run.missing = r.dataset("/quality/missing", (T,), dtype=float).astype(np.uint8)
+        if r.has("/quality/missing_finger"):
+            if run.finger_position is None:
+                r.fail("/quality/missing_finger", "needs /robot (it is per finger)")
+            mf = r.dataset("/quality/missing_finger", (T, run.finger_position.shape[1]), dtype=float)
+            if not np.all(np.isin(mf, (0.0, 1.0))):
+                r.fail("/quality/missing_finger", "values must be 0 or 1")
+            run.missing_finger = mf.astype(np.uint8)
         if r.has("/actions"):
             seg = r.dataset("/actions/segments", (None, 2), dtype=float)
             if np.any(seg != np.round(seg)):
@@ -453,8 +493,12 @@ def fill_run_file(f, run: Run, include_truth: bool = True) -> None:
         d = g.create_dataset("pose", data=np.asarray(run.pose_obs, float))
         d.attrs["sigma_position"] = float(run.sigma_position)
         d.attrs["sigma_angle"] = float(run.sigma_angle)
-    if run.missing is not None:
-        f.create_group("quality").create_dataset("missing", data=np.asarray(run.missing, np.uint8))
+    if run.missing is not None or run.missing_finger is not None:
+        g = f.create_group("quality")
+        if run.missing is not None:
+            g.create_dataset("missing", data=np.asarray(run.missing, np.uint8))
+        if run.missing_finger is not None:
+            g.create_dataset("missing_finger", data=np.asarray(run.missing_finger, np.uint8))
     if run.actions is not None:
         g = f.create_group("actions")
         g.create_dataset("segments", data=np.asarray(run.actions.segments, np.int64).reshape(-1, 2))
