@@ -10,7 +10,11 @@ the information of theta (and the final pose of the last run) is the Schur compl
 with δ a tiny ridge for directions the squared residuals do not see (e.g. impulse
 splits among ground vertices that only the complementarity penalties decide).  The
 kinematic equality constraints (eq. D2) enter as residuals with a tight sigma
-(:data:`KINEMATICS_SIGMA`), their Gauss–Newton stand-in.
+(:data:`KINEMATICS_SIGMA`), their Gauss–Newton stand-in.  The lifted physical
+quantities ``phys`` are tied to theta by the equality phys = phys(theta): the residuals
+see theta only through them, so their Jacobian columns are folded into theta's by the
+chain rule, J_θ ← J_θ + J_phys ∂phys/∂θ (:func:`fold_lifted_parameters`), and they are
+not nuisance variables.
 """
 
 from __future__ import annotations
@@ -42,6 +46,27 @@ def residual_jacobian_function(problem):
     return problem._rjac
 
 
+def phys_jacobian_function(problem):
+    """CasADi Function (theta, L, m0) -> ∂phys/∂theta (n_phys, n_theta); cached per problem."""
+    if getattr(problem, "_dphys", None) is None:
+        th = ca.SX.sym("theta", problem.n_theta)
+        L, m0 = ca.SX.sym("L"), ca.SX.sym("m0")
+        problem._dphys = ca.Function("dphys", [th, L, m0], [ca.jacobian(problem.phys_sx(th, L, m0), th)])
+    return problem._dphys
+
+
+def fold_lifted_parameters(problem, J, z, p):
+    """J (m, n_z) sparse with the columns of the lifted ``phys`` block folded into theta's
+    (J_θ + J_phys ∂phys/∂θ at z) and zeroed; L and m0 are the first two entries of p."""
+    J = sp.csc_matrix(J)
+    n_theta, a, n_phys = problem.n_theta, problem.phys_offset, problem.n_phys
+    p = np.asarray(p, float).reshape(-1)
+    D = np.asarray(phys_jacobian_function(problem)(np.asarray(z, float)[:n_theta], p[0], p[1]))
+    J_theta = J[:, :n_theta] + J[:, a: a + n_phys] @ sp.csc_matrix(D)
+    return sp.hstack([J_theta, J[:, n_theta:a], sp.csc_matrix((J.shape[0], n_phys)), J[:, a + n_phys:]],
+                     format="csc")
+
+
 def information_names(est):
     """Row names of the reported information matrix (physical parameters + final pose)."""
     shape = est.shape
@@ -64,7 +89,7 @@ def observed_information(est, z, lbx=None, ubx=None):
     rj = residual_jacobian_function(pr)
     _, J = rj(z, est.p_final)
     J = J.sparse() if hasattr(J, "sparse") else sp.csc_matrix(np.array(J))
-    J = sp.csc_matrix(J)
+    J = fold_lifted_parameters(pr, sp.csc_matrix(J), z, est.p_final)
     n_theta = pr.n_theta
     last = len(pr.structures) - 1
     qa = pr.offsets[last]["Q"][0] + 3 * (pr.structures[last].T - 1)
@@ -75,6 +100,7 @@ def observed_information(est, z, lbx=None, ubx=None):
     n = pr.n_z
     is_keep = np.zeros(n, bool)
     is_keep[keep] = True
+    is_keep[pr.phys_offset: pr.phys_offset + pr.n_phys] = True  # folded into theta, not nuisance
     nuis = np.nonzero(~is_keep & ~fixed)[0]
     A = J[:, keep]
     B = J[:, nuis]
