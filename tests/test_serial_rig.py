@@ -204,18 +204,31 @@ def test_missing_seq_is_a_gap_with_placeholders():
     assert np.all(np.isnan(clock[3:6])) and np.all(np.isfinite(clock[[0, 1, 2, 6, 7]]))
 
 
-def test_incomplete_sample_is_missing_and_keeps_the_position_that_arrived():
+def test_partial_sample_keeps_the_line_that_arrived_and_marks_only_the_missing_finger():
     data = HDR2F + stream(range(3), fingers=2)
-    data += line(3, finger=1, pos=(0.0031, 1.05))  # finger 0 of seq 3 never arrives
+    # finger 0 of seq 3 never arrives; finger 1 touches with a force and a normal
+    data += line(3, finger=1, pos=(0.0031, 1.05), contact=1, force=(0.3, -0.1), normal=(0.6, 0.8))
     data += stream(range(4, 6), fingers=2)
     a = assemble(data)
     s = a.summary()
-    assert (s.kept_samples, s.kept_lines, s.missing_samples) == (5, 10, 1)
-    assert s.dropped["incomplete"] == 1
-    run, _ = a.to_run()
-    assert run.missing[3] == 1
-    np.testing.assert_allclose(run.finger_position[3, 1], [0.0031, 1.05], atol=TOL_POS)  # as measured
-    np.testing.assert_allclose(run.finger_position[3, 0], [0.003, 0.05], atol=TOL_POS)   # interpolated
+    assert (s.kept_samples, s.kept_lines, s.missing_samples, s.gaps) == (5, 11, 1, 1)
+    assert (s.partial_samples, s.partial_lines, s.dropped_lines) == (1, 1, 0)
+    assert s.line().endswith("missing 1 samples in 1 gaps (1 partial: their 1 line kept)")
+    run, clock = a.to_run()
+    run.validate()
+    np.testing.assert_array_equal(run.missing, [0, 0, 0, 1, 0, 0])
+    expect = np.zeros((6, 2), np.uint8)
+    expect[3, 0] = 1
+    np.testing.assert_array_equal(run.missing_finger, expect)
+    # finger 1 keeps everything it sent
+    np.testing.assert_allclose(run.finger_position[3, 1], [0.0031, 1.05], atol=TOL_POS)
+    assert run.contact[3, 1] == 1
+    np.testing.assert_allclose(run.force[3, 1], [0.3, -0.1], atol=TOL_FORCE)
+    np.testing.assert_allclose(run.normal[3, 1], [0.6, 0.8], atol=TOL_NORMAL)
+    # finger 0 holds placeholders: interpolated position, contact 0, force 0, normal NaN
+    np.testing.assert_allclose(run.finger_position[3, 0], [0.003, 0.05], atol=TOL_POS)
+    assert run.contact[3, 0] == 0 and np.all(run.force[3, 0] == 0) and np.all(np.isnan(run.normal[3, 0]))
+    assert np.isfinite(clock[3])  # the line that arrived carried the rig clock
 
 
 def test_duplicate_and_late_lines_are_order_drops():

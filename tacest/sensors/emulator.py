@@ -24,6 +24,8 @@ seed, so a stream is reproducible):
   is inserted before the line;
 * ``drop``: a whole sample (all finger lines of one seq) is never sent (a gap);
 * ``drop_line``: one finger line is never sent (an incomplete sample when F > 1);
+* ``corrupt_lines``: these (seq, finger) lines are corrupted for sure (as ``corrupt``),
+  for tests that need a fault at a known place;
 * ``repeat_header_every``: the header is sent again every N sample lines;
 * ``disconnect_after``: the link closes after N lines (of any kind) were written.
 """
@@ -56,6 +58,8 @@ class Faults:
     repeat_header_every: int = 0
     disconnect_after: Optional[int] = None
     seed: int = 0
+    #: (seq, finger) pairs whose lines are always corrupted
+    corrupt_lines: frozenset = frozenset()
 
 
 @dataclass
@@ -132,8 +136,9 @@ def iter_chunks(run, faults: Faults = Faults(), precision: Precision = Precision
     first chunk; a dropped sample yields b"" to keep the pace).
 
     seq of sample k is ``start_seq + k`` (no wrap: the recorder unwraps uint16/uint32
-    counters, pass e.g. ``start_seq=65530`` to test that).  Samples marked in
-    ``run.missing`` are not sent.  ``log`` (a :class:`FaultLog`) is filled as it goes.
+    counters, pass e.g. ``start_seq=65530`` to test that).  What the run does not know is
+    not sent: a finger line marked in ``run.finger_missing_mask`` (per finger, or every
+    finger of a ``run.missing`` sample).  ``log`` (a :class:`FaultLog`) is filled as it goes.
     """
     log = FaultLog() if log is None else log
     rng = np.random.default_rng(faults.seed)
@@ -142,7 +147,9 @@ def iter_chunks(run, faults: Faults = Faults(), precision: Precision = Precision
     F = run.n_fingers
     lines_since_header = 0
     has_force = run.force is not None
-    missing = run.missing if run.missing is not None else np.zeros(run.n_samples, np.uint8)
+    unknown = run.finger_missing_mask  # (T, F) bool
+    missing = unknown.all(axis=1)
+    corrupt_lines = {(int(q), int(f)) for q, f in faults.corrupt_lines}
 
     def emit(out: list, line: bytes) -> bool:
         if limit is not None and log.lines_written >= limit:
@@ -174,6 +181,8 @@ def iter_chunks(run, faults: Faults = Faults(), precision: Precision = Precision
             if rng.random() < faults.drop_line:
                 log.dropped_lines.append((seq, f))
                 continue
+            if unknown[k, f]:
+                continue
             if rng.random() < faults.garbage:
                 n = int(rng.integers(1, 81))
                 junk = rng.integers(0, 256, n, dtype=np.uint8)
@@ -186,7 +195,7 @@ def iter_chunks(run, faults: Faults = Faults(), precision: Precision = Precision
                                  run.force[k, f] if has_force else None, run.normal[k, f], precision).encode("ascii")
             lines_since_header += 1
             u = rng.random()
-            if u < faults.corrupt:
+            if u < faults.corrupt or (seq, f) in corrupt_lines:
                 star = line.rfind(b"*")
                 i = int(rng.integers(0, star))
                 choices = _PRINTABLE[_PRINTABLE != line[i]]

@@ -16,16 +16,22 @@ Decisions (documented for users in docs/serial_protocol.md):
 
 * time: ``time[k] = k * dt`` with k = seq − (first kept seq); the rig clock ``t`` is kept
   in ``/robot/clock`` (T,) s, NaN where the sample is missing.
-* a sample is kept when all F fingers arrived; a sample with some fingers missing is
-  recorded as missing (``/quality/missing`` = 1), its lines counted as ``incomplete``;
-  the positions those lines carried are used in place of interpolation.
-* gaps (missing seq values) keep uniform time: placeholders are finger position linearly
-  interpolated per finger, contact 0, force 0, normal NaN, and ``/quality/missing`` = 1.
+* every valid line is kept.  A sample is complete when all F fingers arrived; a finger
+  line that is missing or invalid leaves that (sample, finger) unknown:
+  ``/quality/missing_finger`` [k, f] = 1 with placeholders for that finger only (position
+  linearly interpolated from the finger's own known samples, contact 0, force 0,
+  normal NaN), while the sibling fingers' lines of the same sample keep all their values.
+  ``/quality/missing`` [k] = 1 where any finger of sample k is unknown (its OR over
+  fingers, so a reader that only knows the per-sample mask stays on the safe side).
+* gaps (missing seq values) keep uniform time: every finger of the sample is unknown.
+* the run spans the first to the last sample of which a line was kept, and is written
+  once it has 2 samples and at least one complete one (so every finger has a known
+  position to interpolate from).
 * seq wrap-around at 2**16 or 2**32 is unwrapped; any other backward jump of more than
   :data:`ORDER_WINDOW` samples is a device restart and ends the run (what came before
   is saved); a forward jump of more than ``max_gap`` seconds ends it too.
 * a header with different settings after samples were kept ends the run (saved);
-  before any sample was kept, the newer header simply wins.
+  before any complete sample was kept, the newer header simply wins.
 * the output file is rewritten atomically (temp name + rename) every
   ``snapshot_interval`` seconds, or less often when the write itself gets slow (its
   cost grows with the run: the interval is at least ``SNAPSHOT_DUTY`` times the last
@@ -82,10 +88,13 @@ SNAPSHOT_DUTY = 20.0
 class RecordSummary:
     """What a recording kept and lost.
 
-    kept_samples : complete samples in the run; kept_lines = kept_samples * F;
-    dropped : reason -> lines dropped (reasons of serial_protocol.DROP_REASONS);
-    missing_samples / gaps : samples inside the run marked in /quality/missing, and the
-    number of runs of consecutive missing samples; headers : valid header lines seen;
+    kept_samples : complete samples in the run (every finger arrived);
+    kept_lines : valid sample lines in the run (those of complete samples and of
+    partial ones); dropped : reason -> lines dropped (reasons of
+    serial_protocol.DROP_REASONS); missing_samples / gaps : samples inside the run marked
+    in /quality/missing (some finger unknown), and the number of runs of consecutive
+    missing samples; partial_samples : those of the missing samples of which some finger
+    lines did arrive (kept; the rest is in /quality/missing_finger); headers : valid header lines seen;
     stop_reason : why recording ended; output : the file written (None if none).
     """
 
@@ -94,6 +103,7 @@ class RecordSummary:
     dropped: dict = field(default_factory=lambda: {r: 0 for r in DROP_REASONS})
     missing_samples: int = 0
     gaps: int = 0
+    partial_samples: int = 0
     headers: int = 0
     bytes_received: int = 0
     stop_reason: str = ""
@@ -102,23 +112,33 @@ class RecordSummary:
     snapshots: int = 0
     snapshot_time_max: float = 0.0
 
+    #: lines kept from partial samples (set by :meth:`Assembler.summary`)
+    partial_lines: int = 0
+
     @property
     def dropped_lines(self) -> int:
         return int(sum(self.dropped.values()))
 
     def line(self) -> str:
-        """``kept N samples (M lines), dropped D lines (checksum X, ...), missing G samples in H gaps``."""
+        """``kept N samples (M lines), dropped D lines (checksum X, ...), missing G samples in H gaps``,
+        plus ``(P partial: their Q lines kept)`` when some missing samples arrived in part."""
         parts = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in self.dropped.items() if v)
         dropped = f"dropped {self.dropped_lines} lines" + (f" ({parts})" if parts else "")
+        partial = ""
+        if self.partial_samples:
+            partial = (f" ({self.partial_samples} partial: their {self.partial_lines} "
+                       f"line{'s' if self.partial_lines != 1 else ''} kept)")
         return (f"kept {self.kept_samples} samples ({self.kept_lines} lines), {dropped}, "
-                f"missing {self.missing_samples} samples in {self.gaps} gaps")
+                f"missing {self.missing_samples} samples in {self.gaps} gaps{partial}")
 
     __str__ = line
 
     def as_dict(self) -> dict:
         return {"kept_samples": self.kept_samples, "kept_lines": self.kept_lines,
                 "dropped_lines": self.dropped_lines, "dropped": dict(self.dropped),
-                "missing_samples": self.missing_samples, "gaps": self.gaps, "headers": self.headers,
+                "missing_samples": self.missing_samples, "gaps": self.gaps,
+                "partial_samples": self.partial_samples, "partial_lines": self.partial_lines,
+                "headers": self.headers,
                 "bytes_received": self.bytes_received, "stop_reason": self.stop_reason}
 
 
@@ -153,7 +173,6 @@ class Assembler:
         self.messages: list[str] = []  # notable events, for the user
         self._buf = b""
         self._skipping = False  # inside an over-long line
-        self._finished = False
         self._reset_samples()
 
     # -- storage -----------------------------------------------------------------
@@ -162,9 +181,10 @@ class Assembler:
         self._wrap = 0         # offset added to raw seq (multiples of a wrap modulus)
         self._cur = -1         # index of the newest sample seen
         self._cap = 0
-        self._n_complete = 0
-        self._first_complete = -1
-        self._last_complete = -1
+        self._n_complete = 0   # samples of which every finger arrived
+        self._n_lines = 0      # sample lines stored
+        self._first = -1       # index of the first sample with a stored line
+        self._last = -1        # index of the newest sample with a stored line
         self.version = 0       # increments whenever kept data changes (for snapshots)
 
     def _alloc(self, cap):
@@ -271,7 +291,7 @@ class Assembler:
         if self._n_complete == 0:
             # nothing kept yet: the newer settings win, partial data under the old ones is dropped
             self.dropped["incomplete"] += int(self._got[: self._cur + 1].sum()) if self._cap else 0
-            self.messages.append(f"header changed before any sample was kept: now {h.describe()}")
+            self.messages.append(f"header changed before any complete sample was kept: now {h.describe()}")
             self.header, self.header_line = h, line.decode("ascii")
             self._reset_samples()
             return
@@ -309,7 +329,6 @@ class Assembler:
                 cap *= 2
             self._alloc(cap)
         if u > self._cur:
-            self._close_open_sample()
             self._cur = u
         f = s.finger
         if self._got[u, f]:
@@ -322,86 +341,81 @@ class Assembler:
         self._normal[u, f] = s.normal
         if math.isnan(self._clock[u]):
             self._clock[u] = s.t
+        self._n_lines += 1
+        if self._first < 0:
+            self._first = u
+        self._last = u  # lines never go back to an older sample (see above)
         if self._got[u].all():
             self._n_complete += 1
-            if self._first_complete < 0:
-                self._first_complete = u
-            self._last_complete = u
-            self.version += 1
-
-    def _close_open_sample(self):
-        """The current sample will get no more lines: count its lines as incomplete
-        if some finger never arrived."""
-        k = self._cur
-        if k >= 0:
-            n = int(self._got[k].sum())
-            if 0 < n < self.header.fingers:
-                self.dropped["incomplete"] += n
+        self.version += 1
 
     def finish(self) -> None:
-        """End of input: flush the partial line and close the open sample."""
+        """End of input: flush the partial line."""
         self.flush()
-        if self.header is not None and self._cap and not self._finished:
-            self._close_open_sample()
-            self._finished = True
 
     # -- output ----------------------------------------------------------------------
     def summary(self) -> RecordSummary:
         """Counts so far (see :class:`RecordSummary`)."""
         s = RecordSummary(dropped=dict(self.dropped), headers=self.headers, bytes_received=self.bytes_received)
         s.kept_samples = self._n_complete
-        if self.header is not None:
-            s.kept_lines = self._n_complete * self.header.fingers
-        if self._n_complete:
-            i0, i1 = self._first_complete, self._last_complete
-            complete = self._got[i0:i1 + 1].all(axis=1)
-            miss = ~complete
+        if self._n_complete:  # only then is there a run (see to_run)
+            s.kept_lines = self._n_lines
+            got = self._got[self._first:self._last + 1]
+            n_got = got.sum(axis=1)
+            miss = n_got < self.header.fingers
             s.missing_samples = int(miss.sum())
-            s.gaps = int(np.count_nonzero(miss[1:] & ~miss[:-1]))  # runs start after a kept sample
+            s.gaps = int(np.count_nonzero(miss[1:] & ~miss[:-1]) + miss[0])
+            s.partial_samples = int(np.count_nonzero(miss & (n_got > 0)))
+            s.partial_lines = int(n_got[miss].sum())
         return s
 
     def to_run(self, extra_attrs: Optional[dict] = None):
-        """The run so far, or None with fewer than 2 kept samples (a run needs 2).
+        """The run so far, or None before it has 2 samples and a complete one.
 
-        The run spans the first to the last complete sample.  Returns
-        (Run, clock) where clock is (T,) float, s, the rig clock (NaN where missing).
+        The run spans the first to the last sample of which a line was kept.  A
+        (sample, finger) whose line did not arrive is marked in ``missing_finger`` and
+        holds placeholders: position linearly interpolated from that finger's known
+        samples (held constant before the first and after the last), contact 0, force 0,
+        normal NaN.  Returns (Run, clock) where clock is (T,) float, s, the rig clock of
+        the first line of each sample (NaN where no line of the sample arrived).
         """
         from tacest.io.run import Run
 
-        if self._n_complete < 2:
+        if self._n_complete < 1 or self._last - self._first < 1:
             return None
         h = self.header
-        i0, i1 = self._first_complete, self._last_complete
+        i0, i1 = self._first, self._last
         sl = slice(i0, i1 + 1)
         T = i1 - i0 + 1
         got = self._got[sl]
-        complete = got.all(axis=1)
+        unknown = ~got  # (T, F)
         pos = self._pos[sl].copy()
-        if not complete.all():
+        if unknown.any():
             idx = np.arange(T)
             for f in range(h.fingers):
-                known = got[:, f]
+                known = got[:, f]  # not empty: the run has a complete sample
                 if not known.all():
                     for d in range(h.dim):
                         pos[~known, f, d] = np.interp(idx[~known], idx[known], pos[known, f, d])
         contact = self._contact[sl].copy()
-        contact[~complete] = 0
+        contact[unknown] = 0
         normal = self._normal[sl].copy()
-        normal[~complete] = np.nan
+        normal[unknown] = np.nan
         normal[contact == 0] = np.nan
         force = None
         if h.force:
             force = self._force[sl].copy()
-            force[~complete] = 0.0
+            force[unknown] = 0.0
         clock = self._clock[sl].copy()
-        clock[~complete] = np.nan
+        clock[~got.any(axis=1)] = np.nan
         attrs = {"serial_header": self.header_line or "",
                  "serial_summary": json.dumps(self.summary().as_dict(), sort_keys=True)}
         if extra_attrs:
             attrs.update(extra_attrs)
         run = Run(dim=h.dim, dt=h.dt, time=np.arange(T) * h.dt, gravity=h.gravity_array, source="serial",
                   finger_position=pos, finger_radius=h.radius_array, contact=contact, force=force,
-                  normal=normal, missing=(~complete).astype(np.uint8), extra_attrs=attrs)
+                  normal=normal, missing=unknown.any(axis=1).astype(np.uint8),
+                  missing_finger=unknown.astype(np.uint8), extra_attrs=attrs)
         return run, clock
 
 
@@ -420,7 +434,7 @@ def write_snapshot(run, clock, output) -> None:
         fill_run_file(f, run)
         d = f["robot"].create_dataset("clock", data=np.asarray(clock, float))
         d.attrs["units"] = "s"
-        d.attrs["meaning"] = "rig clock t of each sample as sent by the device; NaN where /quality/missing = 1"
+        d.attrs["meaning"] = "rig clock t of each sample as sent by the device; NaN where no line of the sample arrived"
 
 
 # ---------------------------------------------------------------------------------
