@@ -19,20 +19,32 @@ The truth normal of a contact is computed exactly as the recorder is documented 
 fingertip's outward normal n_f (finger frame); the object normal is -R_wf n_f, projected
 onto the world (x, y) plane in 2-D.
 
+Scenes (``SynthConfig.scene``): ``wander`` (default) moves the finger along a slow
+path that has nothing to do with the contacts (enough to test the image analysis);
+``box-press`` (2-D only) is a poking scene the estimator can use: a box of
+``box_size_m`` rests on the ground (y = 0, centred on x = 0) and the finger, its axis
+along world +x, presses the box's left face head-on at a new height for each contact
+(every contact at the dome's apex, so the object normal is (-1, 0)), indenting it by
+``press_depth_m`` × depth and backing off by ``standoff_m`` between contacts.  Its finger
+log is consistent with the images: the fingertip sphere overlaps the face exactly on the
+contact frames.  The box does not move (a light press).
+
 Outputs (:func:`write_sequence`): ``frames/frame_00000.png ...`` with
 ``frames/timestamps.csv`` (``file,t``), or ``frames.avi`` (MJPG) with ``--video``;
 ``calib.json``; ``fingers.csv`` (``t,x,y[,z]`` at ``finger_rate_hz``, starting before and
 ending after the frames, on the same clock); ``truth.csv`` (``t,contact,nx,ny[,nz],u,v``
-per frame; NaN normal and (u, v) without contact).
+per frame; NaN normal and (u, v) without contact); for ``box-press`` also ``scene.json``
+(the box's vertices, world frame, m, and the finger radius).
 
 Command line: ``python -m tacest.sensors.synth_tactile OUT_DIR [--frames N] [--seed N]
-[--dim 2|3] [--size 640x480] [--noise SIGMA] [--video]``.
+[--dim 2|3] [--scene wander|box-press] [--size 640x480] [--noise SIGMA] [--video]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +59,9 @@ from tacest.sensors.dome import DomeCalibration
 #: along world +x in the (x, y) plane, image u = world y (in the plane), image v = world z.
 ROTATION_3D = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 ROTATION_2D = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+#: finger motions the generator can make (see the module docstring)
+SCENES = ("wander", "box-press")
 
 
 @dataclass
@@ -77,7 +92,12 @@ class SynthConfig:
     events : None (random schedule and locations), or a list of explicit contacts
         ``(start_frame, stop_frame, polar_deg, azimuth_deg)``: frames [start, stop), the
         contact point's polar angle on the dome and its azimuth in the image
-        (atan2(v - v_c, u - u_c)); amplitude factor 1, no shear
+        (atan2(v - v_c, u - u_c)); amplitude factor 1, no shear.  In ``box-press`` the
+        scene decides where the dome is touched (the apex): give ``(start, stop)`` pairs
+    scene : ``wander`` or ``box-press`` (2-D; see the module docstring)
+    box_size_m : (width, height) of the box, m (box-press)
+    press_depth_m : fingertip overlap with the face at full depth, m (box-press)
+    standoff_m : gap between fingertip and face between contacts, m (box-press)
     """
 
     width: int = 640
@@ -111,6 +131,10 @@ class SynthConfig:
     finger_rate_hz: float = 200.0
     finger_lead_s: float = 0.5
     events: Optional[list] = None
+    scene: str = "wander"
+    box_size_m: tuple = (0.10, 0.06)
+    press_depth_m: float = 2e-4
+    standoff_m: float = 5e-3
 
 
 @dataclass
@@ -123,6 +147,7 @@ class SynthSequence:
     contact : (N,) uint8; depth : (N,) float in [0, 1], fraction of the contact's amplitude
     normal : (N, D) unit object normal, world frame, NaN without contact
     contact_uv : (N, 2) px, NaN without contact
+    box_vertices : (4, 2) m, world frame, counter-clockwise, for ``box-press``; else None
     """
 
     frames: np.ndarray
@@ -135,6 +160,7 @@ class SynthSequence:
     normal: np.ndarray
     contact_uv: np.ndarray
     config: SynthConfig
+    box_vertices: Optional[np.ndarray] = None
 
     @property
     def dim(self) -> int:
@@ -197,6 +223,11 @@ def generate(cfg: SynthConfig | None = None) -> SynthSequence:
     cfg = cfg or SynthConfig()
     if cfg.dim not in (2, 3):
         raise ValueError("dim must be 2 or 3")
+    if cfg.scene not in SCENES:
+        raise ValueError(f"scene must be one of {', '.join(SCENES)}, got {cfg.scene!r}")
+    press = cfg.scene == "box-press"
+    if press and cfg.dim != 2:
+        raise ValueError("the box-press scene is 2-D (dim=2)")
     rng = np.random.default_rng(cfg.seed)
     calib = make_calibration(cfg)
     W, H, N = cfg.width, cfg.height, cfg.n_frames
@@ -213,7 +244,9 @@ def generate(cfg: SynthConfig | None = None) -> SynthSequence:
     events = [(int(e[0]), int(e[1])) for e in cfg.events] if explicit else _schedule(cfg, rng)
     params = []
     for e, (a, b) in enumerate(events):
-        if explicit:
+        if press:  # a flat face pressed head-on touches the dome at its apex
+            theta, az = 0.0, 0.0
+        elif explicit:
             theta, az = np.deg2rad(cfg.events[e][2]), np.deg2rad(cfg.events[e][3])
         else:
             theta = np.deg2rad(cfg.max_polar_deg) * np.sqrt(rng.uniform(0.0, 1.0))  # ~uniform over the cap
@@ -272,13 +305,55 @@ def generate(cfg: SynthConfig | None = None) -> SynthSequence:
             out = out + rng.normal(0.0, cfg.noise_sigma, (H, W)).astype(np.float32)
         frames[k] = np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
-    # finger log: a slow wandering path (m), on the frames' clock, longer than the frames
+    # finger log, on the frames' clock, longer than the frames
     M = int(np.ceil((N / cfg.fps + 2 * cfg.finger_lead_s) * cfg.finger_rate_hz)) + 1
     ft = cfg.t0 - cfg.finger_lead_s + np.arange(M) / cfg.finger_rate_hz
-    tt = ft - cfg.t0
-    fp = np.stack([0.02 * np.sin(0.5 * tt), 0.05 + 0.01 * np.cos(0.7 * tt), 0.10 + 0.005 * np.sin(0.3 * tt)], 1)
-    return SynthSequence(frames=frames, times=times, calib=calib, finger_time=ft, finger_position=fp[:, :cfg.dim],
-                         contact=contact, depth=depth, normal=normal, contact_uv=contact_uv, config=cfg)
+    box = None
+    if press:
+        fp, box = _box_press_path(cfg, calib.finger_radius, times, depth, event_of, len(events), ft, rng)
+    else:  # a slow wandering path (m)
+        tt = ft - cfg.t0
+        fp = np.stack([0.02 * np.sin(0.5 * tt), 0.05 + 0.01 * np.cos(0.7 * tt), 0.10 + 0.005 * np.sin(0.3 * tt)],
+                      1)[:, :cfg.dim]
+    return SynthSequence(frames=frames, times=times, calib=calib, finger_time=ft, finger_position=fp,
+                         contact=contact, depth=depth, normal=normal, contact_uv=contact_uv, config=cfg,
+                         box_vertices=box)
+
+
+def _box_press_path(cfg: SynthConfig, radius: float, times, depth, event_of, n_events: int, ft, rng):
+    """Fingertip centre (M, 2) m at the finger log times ``ft`` for the box-press scene,
+    and the box's vertices (4, 2) m, world frame.
+
+    Key positions at the frame times: on a contact frame the sphere overlaps the left face
+    (x = -w/2) by press_depth_m × depth, off contact it stands off by standoff_m; the
+    height is drawn per contact in [0.25 h, 0.75 h] and changes half-way through the gap
+    before the contact (while backed off).  Between frames the path is a monotone cubic
+    (PCHIP: smooth, no overshoot into the face); before the first and after the last frame
+    it holds.
+    """
+    from scipy.interpolate import PchipInterpolator
+
+    w, h = cfg.box_size_m
+    heights = rng.uniform(0.25 * h, 0.75 * h, max(n_events, 1))
+    x_touch = -0.5 * w - radius  # centre of a sphere just touching the face
+    x_key = np.where(depth > 0, x_touch + cfg.press_depth_m * depth, x_touch - cfg.standoff_m)
+    # height: the current contact's; in a gap, the previous one's until half-way, then the next one's
+    N = len(times)
+    y_key = np.empty(N)
+    on = np.flatnonzero(event_of >= 0)
+    for k in range(N):
+        if event_of[k] >= 0:
+            y_key[k] = heights[event_of[k]]
+            continue
+        before, after = on[on < k], on[on > k]
+        if after.size and (not before.size or (k - before[-1]) > (after[0] - k)):
+            y_key[k] = heights[event_of[after[0]]]
+        else:
+            y_key[k] = heights[event_of[before[-1]]] if before.size else heights[0]
+    tc = np.clip(ft, times[0], times[-1])
+    fp = np.stack([PchipInterpolator(times, x_key)(tc), PchipInterpolator(times, y_key)(tc)], 1)
+    box = np.array([[-0.5 * w, 0.0], [0.5 * w, 0.0], [0.5 * w, h], [-0.5 * w, h]])
+    return fp, box
 
 
 def write_sequence(seq: SynthSequence, out_dir, video: bool = False) -> dict:
@@ -323,7 +398,14 @@ def write_sequence(seq: SynthSequence, out_dir, video: bool = False) -> dict:
         for k in range(len(seq.times)):
             w.writerow([repr(float(seq.times[k])), int(seq.contact[k]),
                         *(f"{x:.9g}" for x in seq.normal[k]), *(f"{x:.6g}" for x in seq.contact_uv[k])])
-    return {"frames": frames_path, "calib": calib_path, "finger_log": log_path, "truth": truth_path}
+    paths = {"frames": frames_path, "calib": calib_path, "finger_log": log_path, "truth": truth_path}
+    if seq.box_vertices is not None:
+        scene_path = out / "scene.json"
+        scene_path.write_text(json.dumps({"scene": seq.config.scene,
+                                          "box_vertices_m": np.asarray(seq.box_vertices).tolist(),
+                                          "finger_radius_m": seq.calib.finger_radius}) + "\n")
+        paths["scene"] = scene_path
+    return paths
 
 
 def read_truth(path):
@@ -341,7 +423,10 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=240, help="number of frames (default 240)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--dim", type=int, choices=(2, 3), default=3)
+    p.add_argument("--dim", type=int, choices=(2, 3), default=None,
+                   help="world dimension (default 3; 2 with --scene box-press)")
+    p.add_argument("--scene", choices=SCENES, default="wander",
+                   help="finger motion: wander (default) or box-press (2-D: a finger pressing a box's side)")
     p.add_argument("--size", default="640x480", help="WIDTHxHEIGHT (default 640x480)")
     p.add_argument("--noise", type=float, default=3.0, help="pixel noise sigma, grey levels (default 3)")
     p.add_argument("--video", action="store_true", help="write frames.avi (MJPG) instead of PNG frames")
@@ -350,7 +435,11 @@ def main(argv=None) -> int:
         w, h = (int(x) for x in a.size.lower().split("x"))
     except ValueError:
         p.error(f"--size must be WIDTHxHEIGHT, got {a.size!r}")
-    cfg = SynthConfig(width=w, height=h, n_frames=a.frames, fps=a.fps, seed=a.seed, dim=a.dim, noise_sigma=a.noise)
+    dim = a.dim if a.dim is not None else (2 if a.scene == "box-press" else 3)
+    if a.scene == "box-press" and dim != 2:
+        p.error("--scene box-press is 2-D: use --dim 2 (or leave --dim out)")
+    cfg = SynthConfig(width=w, height=h, n_frames=a.frames, fps=a.fps, seed=a.seed, dim=dim, noise_sigma=a.noise,
+                      scene=a.scene)
     seq = generate(cfg)
     paths = write_sequence(seq, a.out_dir, video=a.video)
     print(f"wrote {a.out_dir}: {a.frames} frames {w}x{h}, {int(seq.contact.sum())} in contact; "

@@ -14,7 +14,12 @@ Inputs (all documented in docs/tactile_video.md):
   overrides the calibration's fixed rotation.
 
 Output: a SPEC run, ``source = "video"``, one finger, contact and normal only (no force
-stream: the flow gives no calibrated force).  The time grid is uniform with dt = the
+stream: the flow gives no calibrated force).  Its dim is the finger log's: with ``x,y``
+columns a 2-D run (what ``tacest estimate`` takes today), with ``x,y,z`` a 3-D run.  In
+2-D the world is the (x, y) plane of the 3-D world frame: the dome normal, computed in
+3-D, is projected onto it and renormalised; its out-of-plane (z) component is discarded
+(reported as a tilt angle in ``video_settings``) and a contact whose normal is nearly
+perpendicular to the plane is dropped (:data:`MIN_INPLANE_NORM`).  The time grid is uniform with dt = the
 median frame interval, from the first frame inside the finger log's time span to the last
 one; each sample takes the frames within +-dt/2 of its time (exactly one when the camera
 is regular), finger positions are linearly interpolated onto the sample times and
@@ -467,6 +472,7 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     normal = np.full((T, D), np.nan)
     on = contact.astype(bool)
     dropped = 0
+    tilt = None  # 2-D: out-of-plane tilt of the kept normals before projection, deg
     if on.any():
         n, inplane = cal.object_normal(uv_s[on], R[on], dim=D)
         good = inplane >= MIN_INPLANE_NORM
@@ -474,13 +480,20 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
         normal[idx[good]] = n[good]
         contact[idx[~good]] = 0
         dropped = int((~good).sum())
+        if D == 2 and good.any():
+            tilt = np.degrees(np.arccos(np.clip(inplane[good], 0.0, 1.0)))
     if dropped:
         echo(f"warning: {dropped} contact sample(s) dropped: their normal is nearly perpendicular to the 2-D world plane")
+    if tilt is not None:
+        echo(f"2-D run: contact normals projected onto the x-y plane; their out-of-plane tilt (discarded) "
+             f"median {np.median(tilt):.2f} deg, max {np.max(tilt):.2f} deg")
 
     settings = {"flow": tracker.settings_dict(), "detect": asdict(opts.detect), "fps": opts.fps, "t0": opts.t0,
                 "reference": opts.reference or "first frame", "noise_level": dec.noise,
                 "threshold_on": dec.threshold_on, "threshold_off": dec.threshold_off,
                 "frames": str(frames), "n_frames": int(len(ft)), "frame_jitter_s": jitter}
+    if tilt is not None:
+        settings["normal_out_of_plane_deg"] = {"median": float(np.median(tilt)), "max": float(np.max(tilt))}
     run = Run(dim=D, dt=dt, time=time, gravity=np.r_[np.zeros(D - 1), -GRAVITY], source="video",
               finger_position=pos[:, None, :], finger_radius=np.array([cal.finger_radius]),
               contact=contact[:, None], normal=normal[:, None, :],
