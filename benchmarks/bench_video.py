@@ -11,12 +11,14 @@ Prints, per seed and overall:
 With --compare, the same for other flow settings (why the default is what it is).
 
     .venv/bin/python benchmarks/bench_video.py [--seeds 0 1 2] [--frames 300] [--dim 3]
-                                               [--png] [--compare]
+                                               [--scene wander|box-press] [--png] [--compare]
 
 Sequences: tacest.sensors.synth_tactile defaults (pixel noise sigma 3 grey levels, gain
 drift 6 %, offset drift 6 levels, moving illumination gradient, contact shading 8 %,
 shear 20 % of the indentation, 2-frame depth ramps at each contact's start and end,
-contacts up to 60 deg from the apex).
+contacts up to 60 deg from the apex).  ``--scene box-press``: the 2-D poking scene
+(every contact at the dome's apex, a finger log consistent with a pressed box; with
+``--png`` its runs are 2-D, the kind ``tacest estimate`` takes).
 """
 
 from __future__ import annotations
@@ -69,14 +71,16 @@ def end_to_end_png(seq) -> dict:
         run, _ = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=out,
                               echo=lambda *a: None, options=VideoOptions())
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-    return {"fps": len(seq.frames) / wall, "cpu_ms": 1e3 * cpu / len(seq.frames), "samples": run.n_samples}
+    return {"fps": len(seq.frames) / wall, "cpu_ms": 1e3 * cpu / len(seq.frames), "samples": run.n_samples,
+            "dim": run.dim}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--frames", type=int, default=300)
-    p.add_argument("--dim", type=int, choices=(2, 3), default=3)
+    p.add_argument("--dim", type=int, choices=(2, 3), default=None, help="default 3 (2 with --scene box-press)")
+    p.add_argument("--scene", choices=("wander", "box-press"), default="wander")
     p.add_argument("--noise", type=float, default=3.0, help="pixel noise sigma, grey levels (default 3)")
     p.add_argument("--amplitude", type=float, default=1.0,
                    help="indentation amplitude relative to the generator's default (default 1)")
@@ -84,6 +88,10 @@ def main(argv=None) -> int:
     p.add_argument("--png", action="store_true", help="also time the end-to-end recorder on a PNG folder")
     p.add_argument("--compare", action="store_true", help="also run other flow settings")
     a = p.parse_args(argv)
+    if a.dim is None:
+        a.dim = 2 if a.scene == "box-press" else 3
+    if a.scene == "box-press" and a.dim != 2:
+        p.error("--scene box-press is 2-D")
 
     configs = {"default (DIS tactile, scale 0.5, grid 8 px)": FlowSettings()}
     if a.compare:
@@ -97,11 +105,12 @@ def main(argv=None) -> int:
         })
     print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (other work slows the wall clock)")
     print(f"sequences: noise sigma {a.noise} grey levels, amplitude x{a.amplitude}, contacts up to {a.max_polar} deg, "
-          f"dim {a.dim}")
+          f"dim {a.dim}, scene {a.scene}")
     seqs = []
     for seed in a.seeds:
         t0 = time.perf_counter()
-        cfg = SynthConfig(n_frames=a.frames, seed=seed, dim=a.dim, noise_sigma=a.noise, max_polar_deg=a.max_polar)
+        cfg = SynthConfig(n_frames=a.frames, seed=seed, dim=a.dim, noise_sigma=a.noise, max_polar_deg=a.max_polar,
+                          scene=a.scene)
         cfg.indent_amplitude_px = a.amplitude * 0.02 * 0.46 * min(cfg.width, cfg.height)
         seqs.append(generate(cfg))
         print(f"seed {seed}: generated {a.frames} frames 640x480, {int(seqs[-1].contact.sum())} in contact "
@@ -136,7 +145,8 @@ def main(argv=None) -> int:
         print("\n== end to end: record_video on a PNG folder (decoding in a second thread)")
         for seed, seq in zip(a.seeds, seqs):
             r = end_to_end_png(seq)
-            print(f"  seed {seed}: {r['fps']:.0f} frames/s wall, {r['cpu_ms']:.1f} ms CPU/frame, {r['samples']} samples")
+            print(f"  seed {seed}: {r['fps']:.0f} frames/s wall, {r['cpu_ms']:.1f} ms CPU/frame, {r['samples']} samples, "
+                  f"run dim {r['dim']}")
     return 0 if ok else 1
 
 

@@ -2,10 +2,13 @@
 finger) unknown (``/quality/missing_finger``); its sibling lines keep their values, and
 the estimator's data weights are zero exactly at the unknown pairs."""
 
+import casadi as ca
 import numpy as np
 import pytest
 
-from tacest.estimation.data import data_matrix, touching
+from tacest.estimation.data import data_matrix, parameter_vector, touching
+from tacest.estimation.estimator import ImplicitEstimator
+from tacest.estimation.initial import initial_guess
 from tacest.estimation.problem import Problem2D
 from tacest.io.run import read_run
 from tacest.sensors.emulator import Faults, builtin_run, emulate_bytes
@@ -166,3 +169,41 @@ def test_emulator_plays_a_per_finger_mask_and_the_recorder_gets_it_back(tmp_path
     np.testing.assert_array_equal(run.missing, src.missing)
     s = a.summary()
     assert (s.missing_samples, s.gaps, s.partial_samples) == (3, 2, 2)
+
+
+def test_an_unknown_finger_constrains_nothing_on_its_sample():
+    """The estimator's objective and constraints do not depend on the placeholder
+    position of an unknown (sample, finger): its weights are 0 and its impulse is held
+    at 0 (variable bounds), so moving the placeholder anywhere changes nothing, while
+    moving a known finger does."""
+    src = builtin_run(2, 2, 30, dt=0.01)
+    k = 12
+    data, _ = emulate_bytes(src, Faults(corrupt_lines=frozenset({(k, 1)})))
+    run, _ = assemble(data).to_run()
+    assert run.missing_finger[k, 1] == 1 and run.missing_finger.sum() == 1
+    est = ImplicitEstimator([run], "box")
+    pr = est.problem
+    lbx, ubx = est.variable_bounds()
+    rng = np.random.default_rng(0)
+    z = initial_guess(pr, [run], est.scales, est.s0) + rng.normal(size=pr.n_z) * 0.02
+    z = np.clip(z, lbx, ubx)  # impulses of fingers that do not touch (or are unknown) at 0
+    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0)
+    fg = ca.Function("fg", [pr.z_sym, pr.p_sym], [pr.f, pr.g])
+    start, n_g, _ = pr.p_offsets[0]
+    n_data = pr.n_data(2)
+    c_f = data_columns(2)["c_f"]
+
+    def moved(sample, finger, shift):
+        q = p.copy()
+        at = start + n_g + sample * n_data + c_f.start + 2 * finger
+        q[at:at + 2] += shift
+        f, g = fg(z, q)
+        return float(f), np.asarray(g).ravel()
+
+    f0, g0 = moved(k, 1, 0.0)
+    for shift in ([0.05, 0.0], [-0.03, 0.04]):  # m: centimetres, into and around the object
+        f1, g1 = moved(k, 1, np.array(shift))
+        assert f1 == f0 and np.array_equal(g1, g0)
+    # a known finger on the same sample does count (the test can fail)
+    f2, _ = moved(k, 0, np.array([0.05, 0.0]))
+    assert f2 != f0
