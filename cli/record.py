@@ -14,10 +14,12 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
               help="Where the data comes from.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Run file to write (HDF5).")
 # --- sim -------------------------------------------------------------------------
-@click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True, help="[sim] 2-D or 3-D world.")
+@click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True,
+              help="[sim] 2-D (pymunk) or 3-D (MuJoCo) world.")
 @click.option("--object", "object_spec", default="box", show_default=True,
               help="[sim] box, box:W,H (m), polygon, polygon:K, or a file of x y vertex rows "
-                   "(m; docs/simulation.md).")
+                   "(m); with --dim 3: box, box:W,H,D, polytope (or polygon), polytope:K, or a file of "
+                   "x y z rows (docs/simulation.md).")
 @click.option("--seed", type=int, default=0, show_default=True, help="[sim] random seed.")
 @click.option("--pokes", type=click.IntRange(0, 1000), default=6, show_default=True, help="[sim] number of pokes.")
 @click.option("--fingers", type=click.IntRange(1, 3), default=1, show_default=True, help="[sim] fingertips.")

@@ -210,9 +210,10 @@ def test_bad_object_specs(spec):
         record_sim(SimOptions(object_spec=spec, pokes=1))
 
 
-def test_dim3_is_a_clear_error():
-    with pytest.raises(TacestError, match="not available yet"):
-        record_sim(SimOptions(dim=3))
+def test_dim_other_than_2_or_3_is_a_clear_error():
+    # (3-D recording: tests/test_sim3d.py)
+    with pytest.raises(TacestError, match="--dim must be 2 or 3"):
+        record_sim(SimOptions(dim=4))
 
 
 def test_streams_options_no_force_and_noise():

@@ -44,7 +44,7 @@ def test_cli_runner_no_truth_no_force_quiet(tmp_path):
 @pytest.mark.parametrize("args,msg", [
     (["--effect", "wobble"], "unknown effect 'wobble'; valid effects: none, restitution"),
     (["--effect", "latency:delay=2"], "has no parameter 'delay'; valid: samples"),
-    (["--dim", "3"], "not available yet"),
+    (["--dim", "3", "--object", "box:0.1,0.1"], "a 3-D box takes three extents"),
     (["--object", "sphere"], "--object sphere"),
     (["--seed", "-1"], "--seed must be >= 0"),
 ])

@@ -34,9 +34,11 @@ NONE = "none"
 class EffectContext:
     """What a random parameter draw may depend on: the object it acts on.
 
-    mass : kg; inertia : kg·m² about the COM; inradius : m, radius of the largest
-    circle about the centroid inside the shape; n_faces : number of polygon faces;
-    friction_ground : nominal ground friction coefficient.
+    mass : kg; inertia : kg·m² about the COM (3-D: the mean principal moment); inradius :
+    m, radius of the largest circle (sphere) about the centroid inside the shape;
+    n_faces : number of polygon (polytope) faces; friction_ground : nominal ground
+    friction coefficient; dim : 2 or 3, the world the effect acts in (parameters of
+    the other dimension are not drawn, see EffectParam.dims).
     """
 
     mass: float = 0.5
@@ -44,6 +46,7 @@ class EffectContext:
     inradius: float = 0.03
     n_faces: int = 4
     friction_ground: float = 0.5
+    dim: int = 2
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,9 @@ class EffectParam:
         holds the effect's parameters resolved so far (in declaration order).
     kind : ``"float"``, ``"int"`` or ``"list"`` (a list of floats, one per face,
         written ``a;b;c`` on the command line).
+    dims : the world dimensions the parameter exists in (``(3,)``: 3-D only, e.g. a
+        z component); declared after the parameters of both, so adding one never
+        changes the draws of a 2-D effect.
     """
 
     name: str
@@ -66,6 +72,7 @@ class EffectParam:
     doc: str
     draw: Callable[[np.random.Generator, EffectContext, dict], object]
     kind: str = "float"
+    dims: tuple = (2, 3)
 
 
 @dataclass(frozen=True)
@@ -152,7 +159,9 @@ _REGISTRY = [
         "A constant offset (fx, fy) added to every sample of the measured force stream, "
         "with or without contact (an uncalibrated sensor zero).",
         (EffectParam("fx", "N", (-100.0, 100.0), "±U(0.1, 0.4)", "x offset, world frame", _signed(0.1, 0.4)),
-         EffectParam("fy", "N", (-100.0, 100.0), "±U(0.1, 0.4)", "y offset, world frame", _signed(0.1, 0.4))),
+         EffectParam("fy", "N", (-100.0, 100.0), "±U(0.1, 0.4)", "y offset, world frame", _signed(0.1, 0.4)),
+         EffectParam("fz", "N", (-100.0, 100.0), "±U(0.1, 0.4)", "z offset, world frame (3-D only)",
+                     _signed(0.1, 0.4), dims=(3,))),
     ),
     EffectSpec(
         "force_scale", "sensor",
@@ -184,7 +193,11 @@ _REGISTRY = [
                      lambda rng, ctx, params: float(rng.choice([-1.0, 1.0]) * rng.uniform(0.25, 0.45) * ctx.inradius)),
          EffectParam("dy", "m", (-0.5, 0.5), "±U(0, 0.3)·inradius",
                      "y of the COM in the centroid frame (object axes)",
-                     lambda rng, ctx, params: float(rng.choice([-1.0, 1.0]) * rng.uniform(0.0, 0.3) * ctx.inradius))),
+                     lambda rng, ctx, params: float(rng.choice([-1.0, 1.0]) * rng.uniform(0.0, 0.3) * ctx.inradius)),
+         EffectParam("dz", "m", (-0.5, 0.5), "±U(0, 0.3)·inradius",
+                     "z of the COM in the centroid frame (object axes; 3-D only)",
+                     lambda rng, ctx, params: float(rng.choice([-1.0, 1.0]) * rng.uniform(0.0, 0.3) * ctx.inradius),
+                     dims=(3,))),
     ),
     EffectSpec(
         "time_scale", "clock",
@@ -210,7 +223,12 @@ class Effect:
 
     @property
     def spec(self) -> EffectSpec:
-        return EFFECTS[self.name]
+        """Its registry entry, restricted to the parameters it has (those of its
+        world's dimension: a 2-D force_bias has no fz)."""
+        spec = EFFECTS[self.name]
+        if all(p.name in self.params for p in spec.params):
+            return spec
+        return EffectSpec(spec.name, spec.where, spec.doc, tuple(p for p in spec.params if p.name in self.params))
 
     def to_json_obj(self) -> dict:
         """``{"name": ..., param: value, ...}`` (the SPEC /truth form of one effect)."""
@@ -287,18 +305,24 @@ def parse_effect(text: str) -> tuple:
 def resolve_effect(name: str, given: dict, rng: np.random.Generator, ctx: EffectContext) -> Effect:
     """Fill the parameters of effect ``name`` that ``given`` lacks with seeded random draws.
 
-    ``ctx`` describes the object (typical draws scale with its mass, inertia and size).
-    Checks that face_friction has one value per face.
+    ``ctx`` describes the object (typical draws scale with its mass, inertia and size)
+    and the world's dimension (parameters of the other dimension are an error when
+    given and are not drawn).  Checks that face_friction has one value per face.
     """
     spec = EFFECTS[name]
-    params = {p.name: given[p.name] for p in spec.params if p.name in given}
-    for p in spec.params:  # declaration order: later draws may depend on earlier values
+    used = [p for p in spec.params if int(ctx.dim) in p.dims]
+    for key in given:
+        if key not in {p.name for p in used}:
+            raise TacestError(f"effect {name}: parameter {key!r} is not used in {int(ctx.dim)}-D; "
+                              f"valid: {', '.join(p.name for p in used)}")
+    params = {p.name: given[p.name] for p in used if p.name in given}
+    for p in used:  # declaration order: later draws may depend on earlier values
         if p.name not in params:
             params[p.name] = p.draw(rng, ctx, params)
     if name == "face_friction" and len(params["values"]) != ctx.n_faces:
         raise TacestError(f"effect face_friction: values has {len(params['values'])} entries, "
                           f"the object has {ctx.n_faces} faces")
-    ordered = {p.name: params[p.name] for p in spec.params}
+    ordered = {p.name: params[p.name] for p in used}
     return Effect(name, ordered)
 
 
@@ -348,8 +372,8 @@ def effects_from_json(value) -> list:
     """Effects from the /truth form: a JSON string, a dict or a list of dicts.
 
     Every name and parameter is checked against the registry (missing parameters
-    are an error here: stored effects are always fully resolved).  ``none`` entries
-    are dropped.
+    are an error here: stored effects are always fully resolved; only a parameter of
+    one dimension, e.g. force_bias fz, may be absent).  ``none`` entries are dropped.
     """
     if isinstance(value, (str, bytes)):
         try:
@@ -373,6 +397,8 @@ def effects_from_json(value) -> list:
         params = {}
         for p in spec.params:
             if p.name not in obj:
+                if tuple(p.dims) != (2, 3):  # a parameter of the other world's dimension
+                    continue
                 raise TacestError(f"effect {name}: parameter {p.name!r} is missing")
             v = obj[p.name]
             v = [float(x) for x in v] if p.kind == "list" else (int(v) if p.kind == "int" else float(v))
@@ -392,5 +418,6 @@ def describe() -> str:
     for spec in EFFECTS.values():
         lines.append(f"{spec.name} [{spec.where}]: {spec.doc}")
         for p in spec.params:
-            lines.append(f"    {p.name} ({p.unit}, bounds {p.bounds}): {p.doc}; random: {p.typical}")
+            only = "" if tuple(p.dims) == (2, 3) else f" [{'/'.join(map(str, p.dims))}-D only]"
+            lines.append(f"    {p.name} ({p.unit}, bounds {p.bounds}){only}: {p.doc}; random: {p.typical}")
     return "\n".join(lines)

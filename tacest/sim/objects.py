@@ -145,9 +145,14 @@ def random_polygon(rng: np.random.Generator, k: int) -> np.ndarray:
     return pts - polygon_centroid(pts)
 
 
-def read_polygon_file(path) -> np.ndarray:
-    """(K, 2) vertices from a text or JSON file (module docstring), m, as stored."""
+def read_polygon_file(path, dim: int = 2) -> np.ndarray:
+    """(K, dim) vertices from a text or JSON file (module docstring), m, as stored.
+
+    dim : 2 (rows ``x y``) or 3 (rows ``x y z``, for tacest.sim3d).
+    """
     path = Path(path)
+    xyz = " ".join("xyz"[:dim])
+    count = {2: "two", 3: "three"}[dim]
     try:
         text = path.read_text()
     except OSError as exc:
@@ -167,7 +172,7 @@ def read_polygon_file(path) -> np.ndarray:
         try:
             pts = np.asarray(data, float)
         except (TypeError, ValueError):
-            raise TacestError(f"{path}: vertices must be a list of [x, y] numbers") from None
+            raise TacestError(f"{path}: vertices must be a list of [{xyz.replace(' ', ', ')}] numbers") from None
     else:
         rows = []
         for lineno, line in enumerate(text.splitlines(), 1):
@@ -178,13 +183,13 @@ def read_polygon_file(path) -> np.ndarray:
             try:
                 row = [float(s) for s in fields]
             except ValueError:
-                raise TacestError(f"{path}: line {lineno}: expected two numbers 'x y', got {line!r}") from None
-            if len(row) != 2:
-                raise TacestError(f"{path}: line {lineno}: expected two numbers 'x y', got {len(row)}")
+                raise TacestError(f"{path}: line {lineno}: expected {count} numbers '{xyz}', got {line!r}") from None
+            if len(row) != dim:
+                raise TacestError(f"{path}: line {lineno}: expected {count} numbers '{xyz}', got {len(row)}")
             rows.append(row)
-        pts = np.asarray(rows, float).reshape(-1, 2)
-    if pts.ndim != 2 or pts.shape[1] != 2:
-        raise TacestError(f"{path}: vertices must be rows of two numbers (x y), got shape {pts.shape}")
+        pts = np.asarray(rows, float).reshape(-1, dim)
+    if pts.ndim != 2 or pts.shape[1] != dim:
+        raise TacestError(f"{path}: vertices must be rows of {count} numbers ({xyz}), got shape {pts.shape}")
     return pts
 
 

@@ -145,12 +145,13 @@ class Path:
         return float(self.times[-1])
 
     def at(self, t) -> np.ndarray:
-        """(len(t), F, 2) positions at times t (s, clipped to the path's ends)."""
+        """(len(t), F, D) positions at times t (s, clipped to the path's ends); D = 2,
+        or 3 for the 3-D paths of tacest.sim3d.pokes."""
         t = np.asarray(t, float)
-        N, F, _ = self.p_ctl__world.shape
-        out = np.empty((t.shape[0], F, 2))
+        N, F, D = self.p_ctl__world.shape
+        out = np.empty((t.shape[0], F, D))
         for f in range(F):
-            for c in range(2):
+            for c in range(D):
                 out[:, f, c] = np.interp(t, self.times, self.p_ctl__world[:, f, c])
         return out
 

@@ -83,8 +83,9 @@ def _no_echo(*args, **kwargs):
 class SimOptions:
     """Settings of a simulated recording (one field per ``tacest record`` option).
 
-    dim : 2 (3 is not available yet); object_spec : ``box``, ``box:W,H``, ``polygon``,
-    ``polygon:K`` or a vertex file (tacest.sim.objects); seed : int >= 0; pokes : number
+    dim : 2, or 3 for the MuJoCo world of tacest.sim3d (record_sim dispatches);
+    object_spec : ``box``, ``box:W,H``, ``polygon``, ``polygon:K`` or a vertex file
+    (tacest.sim.objects; 3-D: tacest.sim3d.objects); seed : int >= 0; pokes : number
     of random pokes; fingers : number of fingertips; effects : list of
     ``NAME[:key=value,...]`` strings or Effect objects; noise_force : N, noise_position :
     m, noise_normal : rad (one sigma); force_stream : write /tactile/force;
@@ -111,9 +112,7 @@ class SimOptions:
 
     def validate(self) -> "SimOptions":
         """Raise TacestError for any value the simulator cannot use."""
-        if int(self.dim) == 3:
-            raise TacestError("3-D simulation (--dim 3) is not available yet; use --dim 2")
-        if int(self.dim) != 2:
+        if int(self.dim) not in (2, 3):
             raise TacestError(f"--dim must be 2 or 3, got {self.dim}")
         if int(self.seed) < 0:
             raise TacestError(f"--seed must be >= 0, got {self.seed}")
@@ -352,38 +351,53 @@ def _rotate(v, angle):
     return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
 
 
-def sensor_streams(traj_contact, traj_impulse, traj_normal, dt_true, effects, noise_force, noise_normal, rng):
-    """The measured tactile streams from the true ones.
+def _tilt(n, w):
+    """Unit vectors ``n`` (..., 3) rotated by the part of the rotation vectors ``w``
+    (..., 3) (rad) perpendicular to them: a tilt by |w_perp| rad, exact for any size."""
+    w_perp = w - np.sum(w * n, axis=-1, keepdims=True) * n
+    theta = np.linalg.norm(w_perp, axis=-1, keepdims=True)
+    return np.cos(theta) * n + np.sinc(theta / np.pi) * np.cross(w_perp, n)
 
-    traj_contact : (T, F) bool; traj_impulse : (T, F, 2) N·s on the object per
-    interval; traj_normal : (T, F, 2) unit or NaN; dt_true : s.
-    Returns ``(contact (T, F) uint8, force (T, F, 2) N, normal (T, F, 2))``:
-    force = gain·impulse/dt + noise (contact samples) + bias (every sample); the normal
-    rotated by N(0, noise_normal) rad; then everything delayed by ``latency`` samples
-    (the first samples read no contact, force = bias, normal NaN).
+
+def sensor_streams(traj_contact, traj_impulse, traj_normal, dt_true, effects, noise_force, noise_normal, rng):
+    """The measured tactile streams from the true ones, in 2-D or 3-D (D = 2 or 3).
+
+    traj_contact : (T, F) bool; traj_impulse : (T, F, D) N·s on the object per
+    interval; traj_normal : (T, F, D) unit or NaN; dt_true : s.
+    Returns ``(contact (T, F) uint8, force (T, F, D) N, normal (T, F, D))``:
+    force = gain·impulse/dt + noise (contact samples) + bias (every sample; force_bias
+    fx, fy and in 3-D fz); the normal rotated by N(0, noise_normal) rad (3-D: tilted
+    by a rotation whose two components perpendicular to it are N(0, noise_normal)
+    rad each); then everything delayed by ``latency`` samples (the first samples read
+    no contact, force = bias, normal NaN).
     """
     T, F = traj_contact.shape
+    D = traj_impulse.shape[-1]
     on = traj_contact.astype(bool)
     force = traj_impulse / dt_true
     scale = fx.find(effects, "force_scale")
     if scale is not None:
         force = force * scale["gain"]
     # draw every noise value whatever the contact pattern: same seed, same draws
-    f_noise = rng.normal(0.0, 1.0, size=(T, F, 2)) * noise_force
-    n_noise = rng.normal(0.0, 1.0, size=(T, F)) * noise_normal
+    f_noise = rng.normal(0.0, 1.0, size=(T, F, D)) * noise_force
     force = np.where(on[..., None], force + f_noise, 0.0)
-    normal = np.where(on[..., None], _rotate(traj_normal, n_noise), np.nan)
+    if D == 2:
+        n_noise = rng.normal(0.0, 1.0, size=(T, F)) * noise_normal
+        normal = np.where(on[..., None], _rotate(traj_normal, n_noise), np.nan)
+    else:
+        n_noise = rng.normal(0.0, 1.0, size=(T, F, 3)) * noise_normal
+        normal = np.where(on[..., None], _tilt(traj_normal, n_noise), np.nan)
     normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
     bias = fx.find(effects, "force_bias")
-    b = np.zeros(2) if bias is None else np.array([bias["fx"], bias["fy"]])
+    b = np.zeros(D) if bias is None else np.array([bias[k] for k in ("fx", "fy", "fz")[:D]])
     force = force + b
     contact = on.astype(np.uint8)
     lat = fx.find(effects, "latency")
     if lat is not None:
         k = min(int(lat["samples"]), T)
         contact = np.concatenate([np.zeros((k, F), np.uint8), contact[:T - k]])
-        force = np.concatenate([np.broadcast_to(b, (k, F, 2)), force[:T - k]])
-        normal = np.concatenate([np.full((k, F, 2), np.nan), normal[:T - k]])
+        force = np.concatenate([np.broadcast_to(b, (k, F, D)), force[:T - k]])
+        normal = np.concatenate([np.full((k, F, D), np.nan), normal[:T - k]])
     return contact, force, normal
 
 
@@ -463,7 +477,7 @@ def state_from_run(run: Run) -> WorldState:
     """
     where = run.filename or "run"
     if run.dim != 2:
-        raise TacestError(f"{where}: continuing a {run.dim}-D run is not available yet")
+        raise TacestError(f"{where}: is a {run.dim}-D run; continue it with --dim {run.dim}")
     if run.truth is None:
         raise TacestError(f"{where}: has no /truth, so the simulation cannot continue it "
                           "(record it without --no-truth)")
@@ -494,9 +508,10 @@ def state_from_run(run: Run) -> WorldState:
                       time=float(run.time[-1]) / scale, ground_state=_static_ground(obj, effects))
 
 
-def append_run(old: Run, new: Run) -> Run:
+def append_run(old: Run, new: Run, names=POKE_NAMES) -> Run:
     """``old`` followed by ``new``, a continuation whose sample 0 is ``old``'s last sample
-    (that duplicate is dropped; actions are re-indexed)."""
+    (that duplicate is dropped; actions are re-indexed).  names : the poke parameter
+    names both runs' actions must have (tacest.sim3d passes its 3-D names)."""
     off = old.n_samples - 1
 
     def cat(a, b):
@@ -505,9 +520,9 @@ def append_run(old: Run, new: Run) -> Run:
         return np.concatenate([np.asarray(a), np.asarray(b)[1:]])
 
     segs, params = [], []
-    names, kind = list(POKE_NAMES), POKE_KIND
+    names, kind = list(names), POKE_KIND
     if old.actions is not None and len(old.actions.segments):
-        if [str(n) for n in old.actions.names] not in ([], list(POKE_NAMES)) or old.actions.kind != POKE_KIND:
+        if [str(n) for n in old.actions.names] not in ([], names) or old.actions.kind != POKE_KIND:
             raise TacestError(f"{old.filename or 'run'}: its actions are not pokes ({old.actions.kind}: "
                               f"{', '.join(map(str, old.actions.names))}); cannot append pokes")
         segs.append(np.asarray(old.actions.segments))
@@ -528,7 +543,8 @@ def append_run(old: Run, new: Run) -> Run:
         contact=cat(old.contact, new.contact), force=cat(old.force, new.force), normal=cat(old.normal, new.normal),
         pose_obs=cat(old.pose_obs, new.pose_obs),
         actions=Actions(segments=np.concatenate(segs).astype(np.int64) if segs else np.zeros((0, 2), np.int64),
-                        params=np.concatenate(params) if params else np.zeros((0, 6)), kind=kind, names=names),
+                        params=np.concatenate(params) if params else np.zeros((0, len(names))), kind=kind,
+                        names=names),
         truth=truth, missing=missing, filename=None)
 
 
@@ -554,8 +570,13 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable 
     (object, effects, last truth state, fingers, dt, streams) and return the whole run,
     old samples first; otherwise a new object from ``opts``.
     echo : callable for progress lines (stderr in the CLI).
+    ``opts.dim`` = 3 records in the 3-D MuJoCo world instead (tacest.sim3d.record).
     """
     opts.validate()
+    if int(opts.dim) == 3:
+        from tacest.sim3d.record import record_sim as record_sim3
+
+        return record_sim3(opts, plan_path=plan_path, append_to=append_to, echo=echo)
     echo = echo or _no_echo
     plan = _plan_pokes(plan_path) if plan_path is not None else None
     if append_to is None:
