@@ -250,6 +250,21 @@ def test_random_recording_is_spec_shaped_and_round_trips(tmp_path, random_run):
     assert json.loads(json.dumps(back.truth.effects)) == [{"name": "none"}]
 
 
+def test_finger_forces_lie_in_the_friction_cone_and_every_poke_touches():
+    run = record_sim(SimOptions(object_spec="polytope", seed=4, pokes=2, fingers=2, **CLEAN))
+    on = run.contact == 1
+    f, n = run.force[on], run.normal[on]
+    loaded = np.linalg.norm(f, axis=1) > 0.1  # N; a touching sample may carry almost no force
+    fn = -np.sum(f * n, axis=1)  # pressing: the force on the object points into it
+    ft = np.linalg.norm(f + fn[:, None] * n, axis=1)
+    assert loaded.sum() > 30 and np.all(fn[loaded] > 0)
+    # Coulomb: |f_t| <= mu_finger·f_n; 1e-5 relative: the elliptic cone holds per substep
+    # and the interval mean of forces inside a cone stays inside it (up to the spread of
+    # the averaged normal, ~1e-6 rad on a face)
+    assert np.all(ft[loaded] <= run.truth.friction_finger * fn[loaded] * (1 + 1e-5))
+    assert all(run.contact[a:b].any() for a, b in run.actions.segments), "every poke touches the object"
+
+
 def test_finger_never_passes_through_the_object(random_run):
     from tacest.geometry.polytope import PolytopeSurface
 

@@ -29,14 +29,15 @@ from typing import Callable
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.geometry.transforms import quat_conjugate, quat_from_axis_angle, quat_multiply, quat_normalize
+from tacest.geometry.transforms import (quat_conjugate, quat_from_axis_angle, quat_multiply, quat_normalize,
+                                        quat_to_matrix)
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE_LEVER, PRE_ROLL, REST_OMEGA,
                                REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, SimOptions, _no_echo, _rng,
                                _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run, sensor_streams)
-from tacest.sim3d.objects import SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation
-from tacest.sim3d.objects import uniform_object
+from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
+                                  uniform_object)
 from tacest.sim3d.pokes import POKE3_NAMES, POKE_KIND, Poke3, poke_path, random_poke
 from tacest.sim3d.world import GRAVITY, MAX_FINGER_FORCE, World3
 
@@ -147,8 +148,6 @@ def state_at_rest(obj: SimObject3, xy=(0.0, 0.0), quat=None, fingers=1, finger_r
         quat = rest_orientation(obj.vertices, None)
     effects = list(effects)
     pose = resting_pose(obj.vertices, quat, xy=xy)
-    from tacest.geometry.transforms import quat_to_matrix
-
     top = float(np.max((obj.vertices @ quat_to_matrix(pose[3:]).T)[:, 2])) + pose[2]
     F = int(fingers)
     park = np.stack([xy[0] + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING, np.full(F, float(xy[1])),

@@ -15,15 +15,16 @@ conaffinity = 0): object–ground, object–finger f and finger f–ground; fing
 touch each other.  A pair's friction is exactly the coefficient it names (MuJoCo
 would otherwise take the larger of two geoms' coefficients): friction_ground,
 friction_finger, FINGER_GROUND_FRICTION.  Elliptic friction cones (condim 3: sliding
-friction, no torsional or rolling friction), solref (CONTACT_TIMECONST, 1) and solimp
-CONTACT_SOLIMP: a 0.5 kg object at rest sinks ~1e-5 m, one pressed by a finger with
-30 N ~1e-4 m (tests/test_sim3d.py checks < 1 mm).
+friction, no torsional or rolling friction) with a high IMPRATIO (hard static friction),
+solref (CONTACT_TIMECONST, 1) and solimp CONTACT_SOLIMP: a resting object sinks a few
+µm, one pressed onto a corner by a finger with 30 N up to ~0.3 mm (tests/test_sim3d.py
+checks < 1 mm).  MuJoCo's timestep is the recorder's substep (0.5 ms at 100 Hz).
 
 Fingers.  Each fingertip is a sphere (mass FINGER_MASS, weight compensated by MuJoCo's
 ``gravcomp``) on three slide joints (it translates, never rotates).  A drive like a
 force-limited position-controlled robot pulls it towards the commanded path: the force
 ``kp·(p_cmd − p) + kd·(v_cmd − v)`` (DRIVE_STIFFNESS, DRIVE_DAMPING: critically damped,
-~2 ms time constant) is clipped to ``max_finger_force`` in norm (30 N, as the 2-D
+~3 ms time constant) is clipped to ``max_finger_force`` in norm (30 N, as the 2-D
 pivot joint's max_force), so a finger follows its path in free space but gives way when
 it is blocked.  The measured fingertip position is the sphere's position.
 
@@ -52,10 +53,12 @@ __all__ = ["World3", "SampleMeasurement", "GRAVITY", "MAX_FINGER_FORCE", "FINGER
 DRIVE_STIFFNESS = 5000.0
 #: N·s/m, damping of the finger drive (critical: 2·sqrt(k·m))
 DRIVE_DAMPING = 2.0 * math.sqrt(DRIVE_STIFFNESS * FINGER_MASS)
-#: s, MuJoCo contact solref time constant (stiff; MuJoCo wants >= 2 substeps)
+#: s, MuJoCo contact solref time constant (stiff: 4 substeps of 0.5 ms; MuJoCo's default
+#: 0.02 s lets a polytope pressed onto a corner by 30 N sink several mm)
 CONTACT_TIMECONST = 0.002
-#: MuJoCo contact solimp (dmin, dmax, width m): impedance 0.95 at touch rising to 0.99 at
-#: 1 mm penetration (MuJoCo's default 0.9/0.95 lets a pushed object sink ~0.5 mm)
+#: MuJoCo contact solimp (dmin, dmax, width m): impedance 0.95 at touch rising to 0.995 at
+#: 1 mm penetration.  Measured: a resting object sinks 2-5 µm, a polytope pressed onto
+#: a corner by the finger at 30 N up to ~0.3 mm, the finger into the object ~0.2 mm
 CONTACT_SOLIMP = (0.95, 0.995, 0.001)
 #: friction coefficient between a fingertip and the table (the 2-D value for a
 #: fingertip of friction 0.5 on a ground of 1 is not meaningful either; nothing is
@@ -67,10 +70,14 @@ RESTITUTION_TIMECONST = 0.01
 #: m, half extents of the soft_contact plate (a box: MuJoCo planes cannot move)
 PLATE_HALF_SIZE = (2.0, 2.0, 0.05)
 #: MuJoCo solver settings: Newton solver, enough iterations to converge stacked contacts
+#: (it typically needs 1-3)
 SOLVER_ITERATIONS = 100
 SOLVER_TOLERANCE = 1e-10
+#: MuJoCo's ratio of frictional to normal constraint impedance.  At 1 (its default) static
+#: friction is soft: a finger pressing at 30° from the normal with mu = 0.9 creeps along
+#: the face at ~8 mm/s; at 100 it creeps ~0.25 mm/s and steady sliding still follows
+#: Coulomb's law to ~0.5 % (tests/test_sim3d.py)
 IMPRATIO = 100
-NOSLIP_ITERATIONS = 0
 
 
 def restitution_dampratio(e: float) -> float:
@@ -132,7 +139,8 @@ class World3:
             raise TacestError(f"MuJoCo could not build the object: {str(exc).splitlines()[0]}") from None
         self.data = data = mujoco.MjData(model)
         name = lambda kind, n: mujoco.mj_name2id(model, kind, n)  # noqa: E731
-        J, G, B, P = mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_GEOM, mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_PAIR
+        obj_type = mujoco.mjtObj
+        J, G, B, P = obj_type.mjOBJ_JOINT, obj_type.mjOBJ_GEOM, obj_type.mjOBJ_BODY, obj_type.mjOBJ_PAIR
         self._body = name(B, "object")
         self._geom = name(G, "object")
         self._ground_geom = name(G, "ground")
@@ -219,7 +227,8 @@ class World3:
                          f'solref="{plain_solref}" solimp="{solimp}"/>')
         return f"""<mujoco model="tacest">
   <compiler angle="radian" inertiafromgeom="false"/>
-  <option timestep="{float(timestep)!r}" gravity="0 0 {-GRAVITY}" cone="elliptic" impratio="{IMPRATIO}" noslip_iterations="{NOSLIP_ITERATIONS}" integrator="implicitfast"
+  <option timestep="{float(timestep)!r}" gravity="0 0 {-GRAVITY}" cone="elliptic" impratio="{IMPRATIO}"
+          integrator="implicitfast"
           solver="Newton" iterations="{SOLVER_ITERATIONS}" tolerance="{SOLVER_TOLERANCE}">
     <flag multiccd="enable"/>
   </option>
