@@ -1,0 +1,55 @@
+"""``tacest plan``: choose the next poke by expected information gain."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.argument("estimate", type=click.Path(dir_okay=False))
+@click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Plan file to write (HDF5).")
+@click.option("--method", type=click.Choice(["eig", "random", "identity"]), default="eig", show_default=True,
+              help="eig: cross-entropy search of the expected information gain; random: random approach "
+                   "direction; identity: the quasi-static identity-Jacobian approximation.")
+@click.option("--score", type=click.Choice(["logdet", "A", "D", "E"]), default="logdet", show_default=True,
+              help="Scalarization of the information (docs/planning.md).")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed of the search.")
+@click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
+              help="Also choose the poke's depth and/or speed (repeatable); default: 2 cm, a 1 s approach.")
+@click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
+              help="Cross-entropy iterations per finger.")
+@click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
+              help="Candidates per cross-entropy iteration.")
+@click.option("--quiet", is_flag=True, help="No progress output.")
+def plan(estimate, runs, output, method, score, seed, vary, iterations, population, quiet):
+    """Plan the next poke of the object in ESTIMATE (an estimate file) from the RUNS it
+    was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
+    centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
+    import math
+
+    from tacest.errors import TacestError
+    from tacest.io.estimate import read_estimate
+    from tacest.io.plan import write_plan
+    from tacest.io.run import read_run
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    folder = Path(output).parent
+    if str(folder) and not folder.is_dir():
+        raise TacestError(f"{output}: folder {folder} does not exist")
+    settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
+                            population=population).validate()
+    est = read_estimate(estimate)
+    loaded = [read_run(p) for p in runs]
+    result = plan_next(est, loaded, settings, echo=echo)
+    write_plan(result, Path(output))
+    if not quiet:
+        a = result.chosen_dict()
+        click.echo(f"wrote {output}: {method} ({score} {result.scores.max() if method != 'random' else result.scores[0]:.4g}, "
+                   f"{len(result.scores)} candidates, {float(result.extra_attrs['wall_time']):.1f} s): finger "
+                   f"{int(a['finger'])}, approach {math.degrees(a['approach_angle']):.1f} deg toward "
+                   f"({a['target_x']:.4f}, {a['target_y']:.4f}) m, depth {1e3 * a['depth']:.0f} mm, "
+                   f"speed {1e3 * a['speed']:.0f} mm/s", err=True)

@@ -1,0 +1,635 @@
+"""Expected (Fisher) information of a candidate poke, predicted from an estimate.
+
+A candidate action is simulated from the current estimate with tacest's own model: the
+estimated object (vertices, mass, inertia, frictions) placed at the estimated final pose
+of the last run in the pymunk world (tacest.sim.world), noiseless
+(:func:`predict_poke`).  The prediction is turned into a run of T samples and the
+estimator's own per-sample residuals (tacest.estimation.problem: the same stage and
+start functions, noise levels, weights and homotopy end point as the estimate) are
+linearized there.  With r the stacked whitened residuals and J = [J_θ, J_s, J_x] their
+Jacobian with respect to the parameters θ, the start pose s of the poke (the estimate's
+final pose: the poke starts where the past data left the object) and the nuisance
+variables x (every later pose, velocity and contact impulse), the expected information is
+the Schur complement
+
+    F = J_aᵀJ_a − J_aᵀJ_x (J_xᵀJ_x + δI)⁻¹ J_xᵀJ_a,     a = (θ, s),
+
+exactly as :mod:`tacest.information.observed` computes I_obs from the recorded data, so
+F and I_obs are comparable entry by entry (same names, same physical units).  For
+Gaussian noise on the whitened residuals JᵀJ is the Fisher information; it is evaluated
+at the noiseless prediction (the closed form).  Where the Jacobian itself depends on the
+noisy data (the contact flags, the filtered fingertip velocity), :func:`expected_information`
+can average F over ``noise_samples`` noisy sensor draws of the prediction instead.
+
+The prediction (cheap, see :data:`PREDICT_SUBSTEPS`): the poking finger starts at the
+approach start point (the transit before it touches nothing and teaches nothing), moves
+in a straight line for the approach, and holds still for :data:`HOLD_TIME`; the retreat
+is left out (the finger leaves the surface).  Ground impulses are not reported by the
+physics engine per vertex: they are the non-negative least-squares fit of the model's
+residuals at the predicted states (the estimator's first "impulses" stage, per sample;
+exact because the residuals are linear in them); finger impulses are the simulated ones.
+
+The quasi-static identity-Jacobian approximation (:meth:`ExpectedInformation.identity`)
+skips the dynamics: the object is assumed not to respond to the poke in a way that
+depends on θ (∂x_t/∂θ = 0) and to move rigidly with the start pose (∂x_t/∂s = I), so each
+sample's measurement residuals (normal, contact flag, pose observation) contribute
+J_tᵀJ_t with J_t = [∂r_t/∂θ, ∂r_t/∂q_t] along the predicted contact sequence; forces
+(which only the dynamics connect to θ) add nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
+from tacest.geometry.polygon import polygon_inertia, signed_area
+from tacest.geometry.shapes import Shape, make_shape
+from tacest.information.observed import KINEMATICS_SIGMA, RIDGE
+from tacest.io.run import Run
+from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
+
+#: physics substeps per sample of a prediction: 1 ms at 100 Hz.  The recorder uses at
+#: least 20 (0.5 ms) for accurate force streams; the information depends on the
+#: contact sequence and the trajectory to first order only, and halving the substeps
+#: changes the logdet score of a poke by a few per cent (docs/planning.md), far less
+#: than the differences between candidate pokes
+PREDICT_SUBSTEPS = 10
+#: s, the fingers hold still this long after the approach (the object comes to rest)
+HOLD_TIME = 0.2
+
+#: measurement terms used by the identity-Jacobian approximation
+MEASUREMENT_TERMS = ("force", "normal", "contact", "pose")
+
+
+# ---------------------------------------------------------------------------------
+# the estimate as a model
+
+
+@dataclass
+class ModelState:
+    """What an estimate says about the object now.
+
+    shape : Shape parameterization (box, polygon:K) of the estimate; vertices : (K, 2) m,
+    body frame, in the parameterization's vertex order; mass : kg; inertia : kg·m²;
+    friction_ground, friction_finger; pose : (3,) [x m, y m, angle rad] at the end of
+    the last run; p_finger__world : (F, 2) m, fingertips at the end of the last run;
+    finger_radius : (F,) m; dt : s; has_force : the runs have a force stream;
+    pose_sigma : (sigma_position m, sigma_angle rad) if the runs have pose observations,
+    else None; up : (2,) ground normal; ground_height : m.
+    """
+
+    shape: Shape
+    vertices: np.ndarray
+    mass: float
+    inertia: float
+    friction_ground: float
+    friction_finger: float
+    pose: np.ndarray
+    p_finger__world: np.ndarray
+    finger_radius: np.ndarray
+    dt: float
+    has_force: bool = True
+    pose_sigma: tuple | None = None
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0]))
+    ground_height: float = 0.0
+
+    @property
+    def n_fingers(self) -> int:
+        return int(len(self.finger_radius))
+
+    @property
+    def centroid__world(self) -> np.ndarray:
+        """(2,) m: the estimated centre of mass (the shape's centroid) now."""
+        return np.asarray(self.pose[:2], float).copy()
+
+    @classmethod
+    def from_estimate(cls, est, runs: list[Run]) -> "ModelState":
+        """The object of an Estimate (tacest.io.estimate) at the end of its last run.
+
+        runs : the run files it was estimated from (same number and order), for the
+        fingers, dt and streams.  TacestError when they do not fit together.
+        """
+        if est.dim != 2:
+            raise TacestError(f"{est.filename or 'estimate'}: planning is available for 2-D estimates only")
+        if len(runs) != len(est.runs):
+            raise TacestError(f"{est.filename or 'estimate'} holds {len(est.runs)} run(s) but "
+                              f"{len(runs)} run file(s) were given; give the runs it was estimated from")
+        for i, (re_, run) in enumerate(zip(est.runs, runs)):
+            if re_.pose.shape[0] != run.n_samples:
+                raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of "
+                                  f"{est.filename or 'the estimate'} has {re_.pose.shape[0]}; it is not the run "
+                                  "the estimate was made from (re-estimate after appending)")
+        run = runs[-1]
+        if run.n_fingers == 0:
+            raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
+        shape = make_shape(est.shape)
+        V = np.asarray(est.vertices, float)
+        if V.shape != (shape.n_vertices, 2):
+            raise TacestError(f"{est.filename or 'estimate'}: /params/vertices has shape {V.shape}, "
+                              f"expected ({shape.n_vertices}, 2) for shape {est.shape}")
+        p = est.params
+        for k in ("mass", "inertia", "friction_ground", "friction_finger"):
+            v = float(p[k])
+            if not (math.isfinite(v) and v > 0):
+                raise TacestError(f"{est.filename or 'estimate'}: /params attrs {k} = {v} is not > 0")
+        pose = np.asarray(est.runs[-1].pose[-1], float)
+        if not np.all(np.isfinite(pose)):
+            raise TacestError(f"{est.filename or 'estimate'}: the last pose of the last run is not finite")
+        fp = np.asarray(run.finger_position[-1], float)
+        pose_sigma = (float(run.sigma_position), float(run.sigma_angle)) if run.has_pose_obs else None
+        return cls(shape=shape, vertices=V, mass=float(p["mass"]), inertia=float(p["inertia"]),
+                   friction_ground=float(p["friction_ground"]), friction_finger=float(p["friction_finger"]),
+                   pose=pose, p_finger__world=fp, finger_radius=np.asarray(run.finger_radius, float).copy(),
+                   dt=float(run.dt), has_force=run.has_force, pose_sigma=pose_sigma,
+                   up=np.asarray(run.up, float), ground_height=float(run.ground_height))
+
+    def sim_object(self):
+        """The estimate as a tacest.sim SimObject (counter-clockwise vertices)."""
+        from tacest.sim.objects import SimObject
+
+        V = self.vertices if signed_area(self.vertices) > 0 else self.vertices[::-1].copy()
+        return SimObject(vertices=V.copy(), mass=self.mass, inertia=self.inertia,
+                         friction_ground=self.friction_ground, friction_finger=self.friction_finger,
+                         shape=self.shape.name)
+
+
+# ---------------------------------------------------------------------------------
+# prediction
+
+
+@dataclass
+class PredictedPoke:
+    """A noiseless simulated poke (T samples, F fingers); sample 0 is the start state.
+
+    pose : (T, 3) COM pose; p_finger__world : (T, F, 2) m; contact : (T, F) bool;
+    impulse__world : (T, F, 2) N·s of each finger ON the object per interval;
+    normal__world : (T, F, 2) unit, NaN where no contact; dt : s;
+    action : (6,) poke vector (tacest.sim.pokes.POKE_NAMES).
+    """
+
+    pose: np.ndarray
+    p_finger__world: np.ndarray
+    contact: np.ndarray
+    impulse__world: np.ndarray
+    normal__world: np.ndarray
+    dt: float
+    action: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.pose.shape[0])
+
+    def to_run(self, model: ModelState, noise=None, rng=None) -> Run:
+        """The prediction as a Run with the model's streams.  noise : optional
+        (force N, normal rad, position m) sigmas of a noisy sensor draw (rng)."""
+        T, F, _ = self.p_finger__world.shape
+        on = self.contact.astype(bool)
+        force = self.impulse__world / self.dt
+        normal = self.normal__world.copy()
+        fp = self.p_finger__world.copy()
+        if noise is not None:
+            sf, sn, sp_ = noise
+            force = np.where(on[..., None], force + rng.normal(size=force.shape) * sf, 0.0)
+            a = rng.normal(size=(T, F)) * sn
+            c, s = np.cos(a), np.sin(a)
+            normal = np.stack([c * normal[..., 0] - s * normal[..., 1], s * normal[..., 0] + c * normal[..., 1]], -1)
+            fp = fp + rng.normal(size=fp.shape) * sp_
+        normal = np.where(on[..., None], normal, np.nan)
+        run = Run(dim=2, dt=self.dt, time=self.dt * np.arange(T), gravity=-9.81 * model.up, source="prediction",
+                  finger_position=fp, finger_radius=model.finger_radius.copy(),
+                  contact=on.astype(np.uint8), force=force if model.has_force else None, normal=normal,
+                  ground_height=model.ground_height, ground_normal=model.up.copy())
+        if model.pose_sigma is not None:
+            run.pose_obs = self.pose.copy()
+            run.sigma_position, run.sigma_angle = model.pose_sigma
+        return run
+
+
+def predict_poke(model: ModelState, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
+                 settle_time: float = 0.05) -> PredictedPoke:
+    """Simulate one poke (a (6,) POKE_NAMES vector) on the estimated object, noiseless.
+
+    The object starts at rest at the model's pose, lowered (or raised) so that its
+    lowest vertex touches the ground, and settles for ``settle_time`` s (unrecorded;
+    the estimate's pose is consistent with the ground only to the contact tolerance).
+    The poking finger starts at ``target + d·(s_touch + CLEARANCE)``, idle fingers
+    are parked above the object; the approach is a straight line to
+    ``target + d·(s_touch − depth)`` at ``speed``, then the fingers hold for ``hold_time``.
+    """
+    from tacest.geometry.transforms import rot2
+    from tacest.sim.pokes import Poke
+    from tacest.sim.world import World
+
+    poke = Poke.from_vector(action, model.n_fingers)
+    obj = model.sim_object()
+    pose = np.asarray(model.pose, float).copy()
+    up = model.up
+    low = float(np.min((obj.vertices @ rot2(pose[2]).T + pose[:2]) @ up)) - model.ground_height
+    pose[:2] -= low * up
+    radius = model.finger_radius
+    top = float(np.max((obj.vertices @ rot2(pose[2]).T + pose[:2])[:, 1]))
+    # every finger away from the object while the world settles
+    parked = np.asarray(model.p_finger__world, float).copy()
+    parked[:, 1] = np.maximum(parked[:, 1], top + radius + 0.02)
+    world = World(obj, pose, np.zeros(3), parked, radius)
+    d = poke.direction__world
+    reach = 0.3 + float(np.max(radius))
+    s = world.touch_distance(poke.target__world - reach * d, d, radius[poke.finger], reach=2 * reach)
+    s_touch = 0.0 if s is None else s - reach
+    start = poke.target__world + d * (s_touch + CLEARANCE)
+    end = poke.target__world + d * (s_touch - poke.depth)
+    dt = model.dt
+    h = dt / int(substeps)
+    hold = world.p_control__world
+    for _ in range(int(round(settle_time / h))):
+        world.step(hold, h)
+    # put the poking finger at the approach start (teleport both bodies)
+    f = poke.finger
+    world.fingers[f].position = tuple(map(float, start))
+    world.fingers[f].velocity = (0.0, 0.0)
+    world.controls[f].position = tuple(map(float, start))
+    world.take_measurement()
+    duration = float(np.linalg.norm(end - start)) / poke.speed
+    n_samples = int(math.ceil((duration + hold_time) / dt - 1e-9))
+    T = n_samples + 1
+    F = model.n_fingers
+    poses = np.empty((T, 3))
+    fps = np.empty((T, F, 2))
+    contact = np.zeros((T, F), bool)
+    imp = np.zeros((T, F, 2))
+    nrm = np.full((T, F, 2), np.nan)
+    poses[0] = world.pose
+    fps[0] = world.p_finger__world
+    ctl = world.p_control__world.copy()
+    for k in range(1, T):
+        for j in range(int(substeps)):
+            t = ((k - 1) * int(substeps) + j + 1) * h
+            ctl[f] = start + (end - start) * min(t / duration, 1.0)
+            world.step(ctl, h)
+        m = world.take_measurement()
+        poses[k] = world.pose
+        fps[k] = world.p_finger__world
+        contact[k], imp[k], nrm[k] = m.contact, m.impulse__world, m.normal__world
+    # angles continue the model's (pymunk's angle is continuous within the rollout)
+    return PredictedPoke(pose=poses, p_finger__world=fps, contact=contact, impulse__world=imp,
+                         normal__world=nrm, dt=dt, action=poke.to_vector())
+
+
+# ---------------------------------------------------------------------------------
+# the linearized residuals of one predicted poke
+
+
+def theta_of_model(model: ModelState, L: float, m0: float) -> np.ndarray:
+    """Scaled parameters θ (as the estimator's decision vector) of the model's object:
+    [shape s (n_s), log(m/m0), log(I / I_uniform), mu_ground, mu_finger]."""
+    shape = model.shape
+    V = np.asarray(model.vertices, float)
+    if shape.name == "box":
+        s = np.array([np.ptp(V[:, 0]), np.ptp(V[:, 1])]) / L
+    else:
+        s = V.reshape(-1) / L  # raw vertices (x0, y0, x1, y1, ...); the centroid is already 0
+    I_uniform = polygon_inertia(V if signed_area(V) > 0 else V[::-1], model.mass)
+    return np.concatenate([s, [math.log(model.mass / m0), math.log(model.inertia / I_uniform),
+                               model.friction_ground, model.friction_finger]])
+
+
+def information_names_for(shape: Shape) -> list:
+    """Row names of I_obs and F (as tacest.information.observed.information_names)."""
+    if shape.name == "box":
+        shape_names = ["width", "height"]
+    else:
+        shape_names = [f"vertex{k}_{c}" for k in range(shape.n_vertices) for c in "xy"]
+    return shape_names + ["mass", "inertia_log_ratio", "friction_ground", "friction_finger",
+                          "final_x", "final_y", "final_angle"]
+
+
+@dataclass
+class Linearization:
+    """The linearized residuals of one predicted poke (scaled units, as the estimator's).
+
+    Ja : (R, n_theta + 3) dense Jacobian columns of θ and of the start pose s = Q[:, 0];
+    Jx : (R, n_x) sparse Jacobian of the nuisance variables, in the order V[:, 0..T-1],
+    Q[:, 1..T-1], ground impulses (K per interval), finger impulses (2F per interval,
+    only where the predicted tactile flag is 1); r : (R,) residuals; the point:
+    theta (n_theta,), Q, V (3, T), LG (K, T-1), LF (2F, T-1); run : the predicted Run.
+    """
+
+    Ja: np.ndarray
+    Jx: object
+    r: np.ndarray
+    theta: np.ndarray
+    Q: np.ndarray
+    V: np.ndarray
+    LG: np.ndarray
+    LF: np.ndarray
+    run: Run
+
+
+class ExpectedInformation:
+    """Expected information of predicted pokes for one model structure.
+
+    Built once per (shape, fingers, config): the per-sample residual Jacobian functions
+    (CasADi SX, from the estimator's own stage and start functions) are reused for every
+    candidate; only their mapped versions are cached per prediction length.
+
+    Parameters
+    ----------
+    shape_spec : estimate shape string (``box``, ``polygon:K``); n_fingers : F;
+    config : EstimatorConfig of the estimate (noise levels, weights, homotopy);
+    L, m0 : the estimator's length (m) and mass (kg) scales.
+    """
+
+    def __init__(self, shape_spec: str, n_fingers: int, config: EstimatorConfig, L: float, m0: float):
+        self.shape = make_shape(shape_spec)
+        self.F = int(n_fingers)
+        self.config = config
+        self.L, self.m0 = float(L), float(m0)
+        self.problem = Problem2D(self.shape, [RunStructure(T=2, F=self.F)], config)
+        pr = self.problem
+        self.K = pr.K
+        self.n_theta = pr.n_theta
+        self.n_shape = pr.n_shape
+        self.names = information_names_for(self.shape)
+        self._build()
+        self._mapped = {}
+
+    # -- CasADi functions, once -----------------------------------------------------
+    def _build(self):
+        pr = self.problem
+        stage, start = pr.stage_funs[0], pr.start_funs[0]
+        qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
+        w = ca.SX.sym("w", len(TERMS))
+        out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+        rows = {t: ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS}
+        r = ca.vertcat(*[rows[t] for t in SQUARED_TERMS], out["g_kin"] / KINEMATICS_SIGMA)
+        y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
+        self.n_y = y.shape[0]
+        self.stage_rj = ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w], [r, ca.jacobian(r, y)])
+        # the measurement rows only, for the identity-Jacobian approximation (w.r.t. q, phys)
+        rm = ca.vertcat(*[rows[t] for t in MEASUREMENT_TERMS])
+        self.stage_meas = ca.Function("stage_meas", [qp, vp, q, v, lg, lf, phys, d, g, w],
+                                      [ca.jacobian(rm, ca.vertcat(q, phys))])
+        q0, v0, phys0, d0, g0 = start.sx_in()
+        o0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
+        r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(o0[n]) for t, n in
+                          (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
+                           ("contact", "contact"))])
+        self.start_rj = ca.Function("start_rj", [q0, v0, phys0, d0, g0, w], [r0, ca.jacobian(r0, ca.vertcat(q0, v0, phys0))])
+        th = ca.SX.sym("theta", self.n_theta)
+        self.phys_of_theta = ca.Function("phys_jac", [th], [pr.phys_sx(th, self.L, self.m0),
+                                                            ca.jacobian(pr.phys_sx(th, self.L, self.m0), th)])
+
+    def _map(self, fun, N):
+        key = (fun.name(), N)
+        if key not in self._mapped:
+            self._mapped[key] = fun.map(N)
+        return self._mapped[key]
+
+    # -- data of a prediction -------------------------------------------------------
+    def _data(self, run: Run):
+        from tacest.estimation.data import Scales, data_matrix, global_vector
+
+        eps, comp_mult, dyn_mult = self.config.solver.homotopy[-1]
+        g = global_vector(run, Scales(L=self.L, m0=self.m0), self.config, eps, comp_mult, dyn_mult)
+        D = data_matrix(run, self.F).T  # (n_data, T)
+        w = np.array([getattr(self.config.weights, t) for t in TERMS], float)
+        return g, D, w
+
+    def _states(self, pred: PredictedPoke):
+        """Scaled Q (3, T), V (3, T) (backward differences, eq. D2), LF (2F, T-1)."""
+        scale = np.array([self.L, self.L, 1.0])
+        Q = (pred.pose / scale).T
+        Vv = np.zeros_like(Q)
+        Vv[:, 1:] = np.diff(Q, axis=1) / pred.dt
+        Lam = self.m0 * 9.81 * pred.dt
+        LF = (pred.impulse__world[1:] / Lam).reshape(pred.n_samples - 1, -1).T
+        return Q, Vv, LF
+
+    def linearize(self, model: ModelState, pred: PredictedPoke, run: Run | None = None) -> "Linearization":
+        """Whitened residuals of a predicted poke and their Jacobian at the prediction
+        (ground impulses fitted): a :class:`Linearization`."""
+        run = run or pred.to_run(model)
+        T = pred.n_samples
+        K, F = self.K, self.F
+        g, D, w = self._data(run)
+        theta = theta_of_model(model, self.L, self.m0)
+        phys, dphys = (np.asarray(a) for a in self.phys_of_theta(theta))
+        phys = phys.reshape(-1)
+        Q, Vv, LF = self._states(pred)
+        N = T - 1
+        f = self._map(self.stage_rj, N)
+        args = [Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], None, LF, np.repeat(phys[:, None], N, 1), D[:, 1:],
+                np.repeat(g[:, None], N, 1), np.repeat(w[:, None], N, 1)]
+        # ground impulses: non-negative least squares per sample (exact: residuals are linear in them)
+        args[4] = np.zeros((K, N))
+        r, J = (np.asarray(a) for a in f(*args))  # (n_r, N), (n_r, N·n_y): blocks side by side
+        n_r = r.shape[0]
+        J = J.reshape(n_r, N, self.n_y)
+        lg_cols = slice(12, 12 + K)
+        LG = np.zeros((K, N))
+        from scipy.optimize import nnls
+
+        for t in range(N):
+            A = J[:, t, lg_cols]
+            if np.any(A):
+                LG[:, t] = nnls(A, -r[:, t], maxiter=50 * K)[0]
+        args[4] = LG
+        r, J = (np.asarray(a) for a in f(*args))
+        J = J.reshape(n_r, N, self.n_y)
+        r0, J0 = (np.asarray(a) for a in self.start_rj(Q[:, 0], Vv[:, 0], phys, D[:, 0], g, w))
+        Ja, Jx, r_all = self._assemble(J, r, J0, r0.reshape(-1), dphys, T, run)
+        return Linearization(Ja=Ja, Jx=Jx, r=r_all, theta=theta, Q=Q, V=Vv, LG=LG, LF=LF, run=run)
+
+    def _assemble(self, J, r, J0, r0, dphys, T, run):
+        K, F = self.K, self.F
+        N = T - 1
+        n_r = J.shape[0]
+        n_phys = dphys.shape[0]
+        # nuisance layout: V (3T), Q[1:] (3(T-1)), LG (K N), LF (2F N) ; kept: theta, Q[0]
+        iV = lambda t: 3 * t  # noqa: E731
+        iQ = lambda t: 3 * T + 3 * (t - 1)  # noqa: E731
+        iLG = 6 * T - 3
+        iLF = iLG + K * N
+        n_x = iLF + 2 * F * N
+        rows, cols, vals = [], [], []
+        Ja = np.zeros((n_r * N + len(r0), self.n_theta + 3))
+        # per-sample local variable y = [qp 3, vp 3, q 3, v 3, lg K, lf 2F, phys n_phys]
+        for t in range(1, T):
+            Jt = J[:, t - 1, :]
+            base = (t - 1) * n_r
+            blocks = []
+            if t - 1 == 0:
+                Ja[base:base + n_r, self.n_theta:] += Jt[:, 0:3]
+            else:
+                blocks.append((slice(0, 3), iQ(t - 1)))
+            blocks += [(slice(3, 6), iV(t - 1)), (slice(6, 9), iQ(t)), (slice(9, 12), iV(t)),
+                       (slice(12, 12 + K), iLG + K * (t - 1)), (slice(12 + K, 12 + K + 2 * F), iLF + 2 * F * (t - 1))]
+            for sl, c0 in blocks:
+                sub = Jt[:, sl]
+                ii, jj = np.nonzero(sub)
+                rows.append(base + ii)
+                cols.append(c0 + jj)
+                vals.append(sub[ii, jj])
+            Ja[base:base + n_r, :self.n_theta] += Jt[:, 12 + K + 2 * F:] @ dphys
+        base = n_r * N
+        J0 = np.asarray(J0)
+        Ja[base:, self.n_theta:] += J0[:, 0:3]
+        ii, jj = np.nonzero(J0[:, 3:6])
+        rows.append(base + ii)
+        cols.append(iV(0) + jj)
+        vals.append(J0[:, 3:6][ii, jj])
+        Ja[base:, :self.n_theta] += J0[:, 6:6 + n_phys] @ dphys
+        Jx = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(Ja.shape[0], n_x))
+        # finger impulses are fixed at 0 where the predicted tactile flag is 0 (as the
+        # estimator's bounds do): they are no variables there
+        from tacest.estimation.data import touching
+
+        on = touching(run)[1:]  # (N, F)
+        free = np.ones(n_x, bool)
+        free[iLF:] = np.repeat(on, 2, axis=1).reshape(-1)
+        Jx = Jx[:, np.nonzero(free)[0]]
+        return Ja, Jx, np.concatenate([r.T.reshape(-1), r0])
+
+    # -- information ------------------------------------------------------------------
+    def to_physical(self, I_scaled: np.ndarray, model: ModelState) -> np.ndarray:
+        """Scaled (θ, s) information -> physical units (observed.py's convention):
+        lengths m, mass kg, inertia log ratio, friction, pose m / rad."""
+        d = np.ones(self.n_theta + 3)
+        d[: self.n_shape] = 1.0 / self.L
+        d[self.n_shape] = 1.0 / model.mass  # d log m / d m
+        d[self.n_theta: self.n_theta + 2] = 1.0 / self.L
+        I_phys = I_scaled * np.outer(d, d)
+        if not model.has_force:  # the estimator fixes the mass without a force stream
+            k = self.n_shape
+            I_phys[k, :] = 0.0
+            I_phys[:, k] = 0.0
+        return 0.5 * (I_phys + I_phys.T)
+
+    def fisher(self, model: ModelState, pred: PredictedPoke, run: Run | None = None) -> np.ndarray:
+        """F (n, n), physical units, rows :attr:`names`: Schur complement of JᵀJ onto (θ, s)."""
+        lin = self.linearize(model, pred, run)
+        return self.to_physical(schur_information(lin.Ja, lin.Jx), model)
+
+    def identity(self, model: ModelState, pred: PredictedPoke, run: Run | None = None) -> np.ndarray:
+        """F_id (n, n), physical units: the quasi-static identity-Jacobian approximation
+        (module docstring): Σ_t J_tᵀJ_t of the measurement rows, ∂q_t/∂s = I."""
+        run = run or pred.to_run(model)
+        T = pred.n_samples
+        N = T - 1
+        K = self.K
+        g, D, w = self._data(run)
+        theta = theta_of_model(model, self.L, self.m0)
+        phys, dphys = (np.asarray(a) for a in self.phys_of_theta(theta))
+        phys = phys.reshape(-1)
+        Q, Vv, LF = self._states(pred)
+        f = self._map(self.stage_meas, N)
+        J = np.asarray(f(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((K, N)), LF,
+                         np.repeat(phys[:, None], N, 1), D[:, 1:], np.repeat(g[:, None], N, 1),
+                         np.repeat(w[:, None], N, 1)))
+        n_r = J.shape[0]
+        J = J.reshape(n_r, N, 3 + len(phys))  # per sample: [q (3), phys]
+        Ja = np.concatenate([np.einsum("rnp,pk->nrk", J[:, :, 3:], dphys).reshape(-1, self.n_theta),
+                             np.transpose(J[:, :, :3], (1, 0, 2)).reshape(-1, 3)], axis=1)
+        return self.to_physical(Ja.T @ Ja, model)
+
+
+def schur_information(Ja: np.ndarray, Jx) -> np.ndarray:
+    """JaᵀJa − JaᵀJx (JxᵀJx + δI)⁻¹ JxᵀJa with observed.py's relative ridge δ."""
+    Jx = sp.csc_matrix(Jx)
+    I_aa = Ja.T @ Ja
+    if Jx.shape[1] == 0:
+        return 0.5 * (I_aa + I_aa.T)
+    I_ax = (Jx.T @ Ja).T  # (n_a, n_x)
+    I_xx = (Jx.T @ Jx).tocsc()
+    ridge = RIDGE * max(float(I_xx.diagonal().max()), 1.0)
+    lu = spla.splu((I_xx + ridge * sp.identity(I_xx.shape[0], format="csc")).tocsc())
+    X = lu.solve(np.ascontiguousarray(I_ax.T))
+    I_s = I_aa - I_ax @ X
+    return 0.5 * (I_s + I_s.T)
+
+
+# ---------------------------------------------------------------------------------
+# past information
+
+
+def prior_information(names: list, model: ModelState, config: EstimatorConfig, L: float,
+                      size_bound: float = 0.3) -> np.ndarray:
+    """(n, n) diagonal information of the estimator's own prior (config.prior), in the
+    physical units of :func:`information_names_for`: shape entries 1/(shape_sigma·L)²
+    (m⁻²), mass 1/(m·mass_log_sigma)² (a log-normal prior seen at m), inertia log ratio
+    1/inertia_log_sigma², frictions 1/friction_sigma²; the pose has no prior in the
+    estimator: a weak one, position 1/size_bound² and angle 1/π², keeps the matrix
+    invertible (a direction no data touch stays as uncertain as it can be)."""
+    pr = config.prior
+    diag = []
+    for n in names:
+        if n in ("width", "height") or n.startswith("vertex"):
+            diag.append(1.0 / (pr.shape_sigma * L) ** 2)
+        elif n == "mass":
+            diag.append(1.0 / (model.mass * pr.mass_log_sigma) ** 2)
+        elif n == "inertia_log_ratio":
+            diag.append(1.0 / pr.inertia_log_sigma ** 2)
+        elif n in ("friction_ground", "friction_finger"):
+            diag.append(1.0 / pr.friction_sigma ** 2)
+        elif n in ("final_x", "final_y"):
+            diag.append(1.0 / size_bound ** 2)
+        elif n == "final_angle":
+            diag.append(1.0 / math.pi ** 2)
+        else:
+            raise TacestError(f"information row {n!r} is not one tacest knows")
+    return np.diag(diag)
+
+
+def past_information(est, model: ModelState, config: EstimatorConfig, L: float, names: list) -> np.ndarray:
+    """I_past = I_obs (the estimate's /information/observed) + the estimator's prior
+    information (:func:`prior_information`), in the row order ``names``.
+
+    An estimate without /information (another program's) counts as the prior alone.
+    """
+    prior = prior_information(names, model, config, L)
+    if est.information is None:
+        return prior
+    got = [str(n) for n in est.info_names]
+    if sorted(got) != sorted(names):
+        raise TacestError(f"{est.filename or 'estimate'}: /information/names {got} do not match the "
+                          f"parameters of shape {model.shape.name} ({names})")
+    idx = [got.index(n) for n in names]
+    I_obs = np.asarray(est.information, float)[np.ix_(idx, idx)]
+    if not np.all(np.isfinite(I_obs)):
+        raise TacestError(f"{est.filename or 'estimate'}: /information/observed has NaN or inf entries")
+    I_obs = 0.5 * (I_obs + I_obs.T)
+    return I_obs + prior
+
+
+def config_of_estimate(est) -> EstimatorConfig:
+    """The estimator settings an estimate was made with (its ``config`` attr), else defaults."""
+    from tacest.estimation.config import load_config
+
+    if not est.config:
+        return EstimatorConfig()
+    try:
+        return load_config(None, overrides=json.loads(json.dumps(est.config)))
+    except TacestError as exc:
+        raise TacestError(f"{est.filename or 'estimate'}: attrs config: {exc}") from None
+
+
+def expected_information(info: ExpectedInformation, model: ModelState, pred: PredictedPoke,
+                         method: str = "fisher", noise_samples: int = 0, noise=None, seed: int = 0) -> np.ndarray:
+    """F of one predicted poke: ``method`` ``fisher`` (Schur complement) or ``identity``;
+    with ``noise_samples`` > 0, the mean over that many noisy sensor draws (noise =
+    (force N, normal rad, position m) sigmas) instead of the noiseless closed form."""
+    fun = info.fisher if method == "fisher" else info.identity
+    if noise_samples <= 0:
+        return fun(model, pred)
+    rng = np.random.default_rng(seed)
+    return np.mean([fun(model, pred, pred.to_run(model, noise=noise, rng=rng)) for _ in range(noise_samples)], axis=0)

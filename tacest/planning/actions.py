@@ -1,0 +1,89 @@
+"""The action space of ``tacest plan``: a 1 s poke toward the estimated centroid.
+
+An action is a poke (tacest.sim.pokes, :data:`POKE_NAMES`) with its target at the
+estimated centroid of the object now (the estimate's final pose of the last run).  The
+planner chooses, per finger:
+
+- ``approach_angle`` in :data:`ANGLE_RANGE` (10° .. 170°: from the right, from above, from
+  the left; flatter approaches would drag the finger along the table).  Unlike the
+  random pokes of the simulator (10°..65° and 115°..170°), steep pokes from above are
+  allowed: they press on the top face, which is how the height of a box is felt;
+- optionally (``vary``) ``depth`` in :data:`DEPTH_RANGE` and ``speed`` in
+  :data:`SPEED_RANGE`.  Otherwise depth is :data:`DEFAULT_DEPTH` (the middle of the
+  random pokes' range) and the speed makes the approach last :data:`APPROACH_TIME`
+  (1 s), as the random pokes do.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacest.errors import TacestError
+from tacest.sim.pokes import APPROACH_TIME, CLEARANCE, POKE_NAMES, RANDOM_ANGLE_RANGE, RANDOM_DEPTH_RANGE
+
+#: rad, approach angles the planner may choose (from the direction d = (cos a, sin a))
+ANGLE_RANGE = (math.radians(10.0), math.radians(170.0))
+#: m, depth past the first touch when it is not varied
+DEFAULT_DEPTH = 0.5 * (RANDOM_DEPTH_RANGE[0] + RANDOM_DEPTH_RANGE[1])
+#: m, depths the planner may choose with ``vary=("depth",)``
+DEPTH_RANGE = (0.005, 0.04)
+#: m/s, approach speeds the planner may choose with ``vary=("speed",)`` (0.6 .. 3 s
+#: approaches at the default depth)
+SPEED_RANGE = (0.02, 0.1)
+VARIABLES = ("depth", "speed")
+
+
+@dataclass
+class ActionSpace:
+    """What the planner chooses (module docstring).  vary : subset of ("depth", "speed")."""
+
+    n_fingers: int = 1
+    vary: tuple = field(default_factory=tuple)
+    angle_range: tuple = ANGLE_RANGE
+    depth: float = DEFAULT_DEPTH
+
+    def __post_init__(self):
+        bad = [v for v in self.vary if v not in VARIABLES]
+        if bad:
+            raise TacestError(f"cannot vary {', '.join(bad)}: choose from {', '.join(VARIABLES)}")
+        self.vary = tuple(v for v in VARIABLES if v in self.vary)
+
+    @property
+    def names(self) -> list:
+        """Names of the searched coordinates (angle first)."""
+        return ["approach_angle", *self.vary]
+
+    def bounds(self):
+        lo, hi = [self.angle_range[0]], [self.angle_range[1]]
+        for v in self.vary:
+            r = DEPTH_RANGE if v == "depth" else SPEED_RANGE
+            lo.append(r[0])
+            hi.append(r[1])
+        return np.array(lo), np.array(hi)
+
+    def action(self, finger: int, u, target__world) -> np.ndarray:
+        """(6,) poke vector (POKE_NAMES) of searched coordinates u aimed at target (2,) m."""
+        u = np.asarray(u, float).reshape(-1)
+        vals = dict(zip(self.names, u))
+        depth = float(vals.get("depth", self.depth))
+        speed = float(vals.get("speed", (CLEARANCE + depth) / APPROACH_TIME))
+        t = np.asarray(target__world, float)
+        named = {"finger": finger, "approach_angle": vals["approach_angle"], "target_x": t[0], "target_y": t[1],
+                 "depth": depth, "speed": speed}
+        return np.array([named[n] for n in POKE_NAMES], float)
+
+    def random_action(self, rng: np.random.Generator, target__world) -> np.ndarray:
+        """The random baseline: a random finger and approach angle, as the simulator's
+        random pokes draw it (U(10°, 65°) from the right or its mirror from the left);
+        depth and speed as :meth:`action` (random within their ranges if varied)."""
+        finger = int(rng.integers(self.n_fingers))
+        angle = float(rng.uniform(*RANDOM_ANGLE_RANGE))
+        if rng.random() < 0.5:
+            angle = math.pi - angle
+        u = [angle]
+        for v in self.vary:
+            u.append(float(rng.uniform(*(DEPTH_RANGE if v == "depth" else SPEED_RANGE))))
+        return self.action(finger, u, target__world)

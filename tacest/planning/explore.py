@@ -1,0 +1,260 @@
+"""``tacest explore``: the closed loop in the pymunk world — poke, estimate, plan, repeat.
+
+Step 1 records the first poke of a new simulated object (tacest.sim.record.record_sim
+with one poke: the simulator's random poke of the seed, aimed at the object's centroid
+where it was placed; no estimate exists yet, so it is the same for every policy).  Then,
+for n = 1 .. N:
+
+1. estimate the run so far (tacest.estimation.estimator.estimate_runs) -> ``estimate_<n>.h5``;
+   score it against the truth (tacest.evaluation.metrics.evaluate);
+2. if n < N: plan the next poke with the policy (tacest.planning.planner.plan_next,
+   aimed at the estimated centroid) -> ``plan_<n>.h5``, execute it in the simulator
+   (record_sim(plan_path=..., append_to=run.h5): the world continues from its last true
+   state) -> ``run.h5``.
+
+A failed estimate is a recorded failure (its step has ``estimate_status`` and no
+metrics); the next poke then falls back to the simulator's random poke (aimed at the
+true centroid, since there is no estimate to aim with) and the step says so
+(``fallback``).  At the end: ``summary.json`` and ``learning_curve.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tacest.errors import SolveFailedError, TacestError
+
+POLICIES = ("eig", "random", "identity")
+#: metrics copied from tacest eval into every step of the summary
+STEP_METRICS = ("chamfer", "chamfer_body", "pose_position_rmse", "pose_angle_rmse", "mass_rel", "inertia_rel",
+                "friction_ground_rel", "friction_finger_rel")
+
+
+@dataclass
+class ExploreOptions:
+    """Settings of one closed loop.
+
+    object_spec : ``box``, ``box:W,H``, ``polygon``, ``polygon:K`` or a vertex file;
+    seed : the simulator's seed (object, first poke, noise); policy : eig | random |
+    identity; pokes : N >= 1; shape : estimator shape (default ``box`` for boxes,
+    ``polygon:8`` otherwise); score : logdet | A | D | E; config_path : estimator TOML;
+    vary : planner variables besides the angle; noise_* : sensor noise of the simulator
+    (tacest record's defaults); iterations, population : CEM settings.
+    """
+
+    object_spec: str = "box"
+    seed: int = 0
+    policy: str = "eig"
+    pokes: int = 8
+    shape: str | None = None
+    score: str = "logdet"
+    config_path: str | None = None
+    vary: tuple = field(default_factory=tuple)
+    noise_force: float = 0.02
+    noise_position: float = 1e-4
+    noise_normal: float = 0.02
+    iterations: int = 4
+    population: int = 12
+
+    def validate(self) -> "ExploreOptions":
+        if self.policy not in POLICIES:
+            raise TacestError(f"unknown policy {self.policy!r}: use {', '.join(POLICIES)}")
+        if int(self.pokes) < 1:
+            raise TacestError(f"--pokes must be >= 1, got {self.pokes}")
+        if int(self.seed) < 0:
+            raise TacestError(f"--seed must be >= 0, got {self.seed}")
+        return self
+
+    @property
+    def estimator_shape(self) -> str:
+        if self.shape:
+            return self.shape
+        return "box" if str(self.object_spec).strip().startswith("box") else "polygon:8"
+
+
+def _no_echo(*a, **k):
+    pass
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+
+
+def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
+    """Run the closed loop (module docstring); returns the summary dict.
+
+    echo : callable for progress lines; progress : callable(n_done, n_total) after
+    each poke (the CLI's progress bar).  Raises TacestError for bad options or an
+    output folder that is a file.
+    """
+    from tacest.estimation.config import load_config
+    from tacest.estimation.estimator import estimate_runs
+    from tacest.evaluation.metrics import evaluate, to_jsonable
+    from tacest.io.estimate import read_estimate, write_estimate
+    from tacest.io.plan import write_plan
+    from tacest.io.run import read_run, write_run
+    from tacest.planning.planner import PlanSettings, plan_next
+    from tacest.sim.record import SimOptions, record_sim
+
+    from tacest.sim.objects import make_shape as sim_shape
+
+    opts.validate()
+    echo = echo or _no_echo
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise TacestError(f"{out}: exists and is not a folder")
+    sim_shape(opts.object_spec, np.random.default_rng(0))  # a bad --object is an error before any file is touched
+    out.mkdir(parents=True, exist_ok=True)
+    config = load_config(opts.config_path)
+    shape = opts.estimator_shape
+    sim = SimOptions(dim=2, object_spec=opts.object_spec, seed=int(opts.seed), pokes=1,
+                     noise_force=opts.noise_force, noise_position=opts.noise_position,
+                     noise_normal=opts.noise_normal).validate()
+    run_path = out / "run.h5"
+    for stale in [run_path, out / "summary.json", out / "learning_curve.png", *out.glob("estimate_*.h5"),
+                  *out.glob("plan_*.h5")]:
+        stale.unlink(missing_ok=True)  # never mistake an earlier loop's files for this one's
+    t_all = time.perf_counter()
+    N = int(opts.pokes)
+    steps = []
+    summary = {"object": opts.object_spec, "seed": int(opts.seed), "policy": opts.policy, "pokes": N,
+               "shape": shape, "score": opts.score, "options": {**asdict(opts), "vary": list(opts.vary)},
+               "steps": steps}
+
+    t0 = time.perf_counter()
+    write_run(record_sim(sim), run_path)
+    t_record = time.perf_counter() - t0
+    for n in range(1, N + 1):
+        run = read_run(run_path)
+        step = {"pokes": n, "samples": run.n_samples, "record_time": t_record}
+        # -- estimate ----------------------------------------------------------------
+        t0 = time.perf_counter()
+        est = None
+        try:
+            est_obj = estimate_runs([run], shape, config=config)
+            est_path = out / f"estimate_{n}.h5"
+            write_estimate(est_obj, est_path)
+            est = read_estimate(est_path)
+            step["estimate_status"] = est.solver_status
+        except SolveFailedError as exc:
+            step["estimate_status"] = "failed"
+            step["estimate_error"] = str(exc)
+        step["estimate_time"] = time.perf_counter() - t0
+        if est is not None:
+            report = evaluate(est, run, run_index=0)
+            step.update({k: report[k] for k in STEP_METRICS})
+            step["params"] = report["params"]
+        else:
+            step.update({k: None for k in STEP_METRICS})
+        msg = f"[{n}/{N}] {run.n_samples} samples; estimate {step['estimate_status']} ({step['estimate_time']:.1f} s)"
+        if est is not None:
+            msg += f": chamfer {1e3 * step['chamfer']:.2f} mm, mass error {_pct(step['mass_rel'])}, " \
+                   f"ground friction error {_pct(step['friction_ground_rel'])}"
+        # -- plan and execute the next poke ------------------------------------------
+        if n < N:
+            t0 = time.perf_counter()
+            plan_path = out / f"plan_{n}.h5"
+            if est is not None:
+                settings = PlanSettings(method=opts.policy, score=opts.score, seed=_plan_seed(opts.seed, n),
+                                        vary=tuple(opts.vary), iterations=opts.iterations,
+                                        population=opts.population)
+                plan = plan_next(est, [run], settings)
+                write_plan(plan, plan_path)
+                step["plan_time"] = float(plan.extra_attrs["wall_time"])
+                step["plan_score"] = float(plan.scores[np.argmax(np.all(plan.candidates == plan.chosen, 1))])
+                step["next_action"] = plan.chosen_dict()
+                msg += f"; plan {opts.policy} ({step['plan_time']:.1f} s): angle " \
+                       f"{math.degrees(plan.chosen_dict()['approach_angle']):.0f} deg"
+                t1 = time.perf_counter()
+                new = record_sim(sim, plan_path=plan_path, append_to=run_path)
+            else:
+                step["fallback"] = "estimate failed: the simulator's random poke (aimed at the true centroid)"
+                msg += "; next poke: random fallback"
+                t1 = time.perf_counter()
+                new = record_sim(sim, append_to=run_path)
+            write_run(new, run_path)
+            t_record = time.perf_counter() - t1
+        steps.append(to_jsonable(step))
+        echo(msg)
+        if progress is not None:
+            progress(n, N)
+        summary["wall_time"] = time.perf_counter() - t_all
+        _write_json(out / "summary.json", to_jsonable(summary))  # after every step: a partial loop is readable
+    summary["wall_time"] = time.perf_counter() - t_all
+    summary["learning_curve"] = "learning_curve.png"
+    plot_learning_curve(out / "learning_curve.png", [summary])
+    _write_json(out / "summary.json", to_jsonable(summary))
+    return summary
+
+
+def _plan_seed(seed: int, n: int) -> int:
+    """A planner seed per (loop seed, step), independent of the simulator's streams."""
+    return int(np.random.SeedSequence([int(seed), 7, int(n)]).generate_state(1)[0])
+
+
+def _pct(v):
+    return "n/a" if v is None or not math.isfinite(v) else f"{100 * v:.1f} %"
+
+
+def plot_learning_curve(path, summaries: list, labels=None) -> None:
+    """Chamfer (mm) and relative parameter errors (%) against the number of pokes.
+
+    summaries : explore summaries (one line each; with several per label, e.g. from a
+    benchmark, the median over them with the 25–75 % band); labels : one per summary
+    (default: its policy).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    labels = labels or [s["policy"] for s in summaries]
+    groups = {}
+    for s, lab in zip(summaries, labels):
+        groups.setdefault(lab, []).append(s)
+    keys = [("chamfer", "Chamfer (mm)", 1e3), ("mass_rel", "mass error (%)", 100.0),
+            ("friction_ground_rel", "ground friction error (%)", 100.0),
+            ("friction_finger_rel", "finger friction error (%)", 100.0)]
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6))
+    for ax, (key, title, scale) in zip(axes, keys):
+        for lab, group in groups.items():
+            n_max = max(len(s["steps"]) for s in group)
+            x = np.arange(1, n_max + 1)
+            vals = np.full((len(group), n_max), np.nan)
+            for i, s in enumerate(group):
+                for st in s["steps"]:
+                    v = st.get(key)
+                    if v is not None and 1 <= st["pokes"] <= n_max:
+                        vals[i, st["pokes"] - 1] = scale * v
+            with warnings.catch_warnings():  # an all-NaN column (every estimate failed) stays NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(vals, 0)
+                lo, hi = np.nanpercentile(vals, 25, 0), np.nanpercentile(vals, 75, 0)
+            line, = ax.plot(x, med, marker="o", ms=3, label=f"{lab} (n={len(group)})" if len(group) > 1 else lab)
+            if len(group) > 1:
+                ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, lw=0)
+        ax.set_xlabel("pokes")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        if key == "chamfer":
+            ax.set_yscale("log")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".").lower() or "png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)

@@ -1,0 +1,387 @@
+"""Expected information, scores, the planner, `tacest plan` and `tacest explore`.
+
+Every case uses short synthetic predictions or estimates made from a simulated run's
+truth (no IPOPT solve), so the file stays quick.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from tacest.errors import SolveFailedError, TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import Scales, parameter_vector, touching
+from tacest.estimation.problem import Problem2D, RunStructure
+from tacest.geometry.polygon import box_vertices, polygon_centroid, polygon_inertia
+from tacest.geometry.shapes import make_shape
+from tacest.information.expected import (MEASUREMENT_TERMS, ExpectedInformation, ModelState, information_names_for,
+                                         past_information, predict_poke, prior_information, schur_information)
+from tacest.information.observed import fold_lifted_parameters, residual_jacobian_function
+from tacest.information.scores import score
+from tacest.io.estimate import Estimate, RunEstimate, read_estimate, write_estimate
+from tacest.io.plan import read_plan
+from tacest.io.run import read_run, write_run
+
+TACEST = str(Path(sys.executable).parent / "tacest")
+L, M0 = 0.1, 0.5  # the estimator's default scales (config prior size and mass)
+CONFIG = EstimatorConfig()
+
+
+def _box_model(x=0.0):
+    V = box_vertices(0.1, 0.06)
+    m = 0.4
+    return ModelState(shape=make_shape("box"), vertices=V, mass=m, inertia=polygon_inertia(V, m),
+                      friction_ground=0.5, friction_finger=0.3, pose=np.array([x, 0.03, 0.0]),
+                      p_finger__world=np.array([[x, 0.15]]), finger_radius=np.array([0.01]), dt=0.01)
+
+
+def _polygon_model():
+    from tacest.sim.objects import rest_angle, resting_pose
+
+    ang = np.linspace(0, 2 * np.pi, 6)[:-1] + 0.3
+    V = np.stack([0.05 * np.cos(ang), 0.04 * np.sin(ang)], 1)
+    V = V - polygon_centroid(V)
+    m = 0.4
+    pose = resting_pose(V, rest_angle(V, None, preferred=0.0), x=0.01)
+    return ModelState(shape=make_shape("polygon:5"), vertices=V, mass=m, inertia=1.1 * polygon_inertia(V, m),
+                      friction_ground=0.5, friction_finger=0.3, pose=pose, p_finger__world=np.array([[0.0, 0.15]]),
+                      finger_radius=np.array([0.01]), dt=0.01)
+
+
+def _poke(model, angle_deg, depth=0.02):
+    x, y = model.centroid__world
+    return np.array([0, math.radians(angle_deg), x, y, depth, (0.02 + depth) / 1.0])
+
+
+_INFO = {}
+
+
+def _info(spec):
+    if spec not in _INFO:
+        _INFO[spec] = ExpectedInformation(spec, 1, CONFIG, L, M0)
+    return _INFO[spec]
+
+
+def _observed_route(model, lin):
+    """The prediction as observed.py sees a recording: a Problem2D of its length, the
+    decision vector at the linearization point, the residual Jacobian with the lifted
+    parameters folded into theta."""
+    spec = model.shape.name
+    T = lin.Q.shape[1]
+    pr = Problem2D(make_shape(spec), [RunStructure(T, 1)], CONFIG)
+    z = np.zeros(pr.n_z)
+    z[: pr.n_theta] = lin.theta
+    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(lin.theta, L, M0)).ravel()
+    pr.set_run_blocks(z, 0, Q=lin.Q, V=lin.V, LG=lin.LG, LF=lin.LF)
+    eps, cm, dm = CONFIG.solver.homotopy[-1]
+    p = parameter_vector(pr, [lin.run], Scales(L, M0), CONFIG, eps, cm, lin.theta[: pr.n_shape], dyn_mult=dm)
+    return pr, z, p
+
+
+# ---------------------------------------------------------------------------------
+# information matrices
+
+
+@pytest.mark.parametrize("make", [_box_model, _polygon_model], ids=["box", "polygon5"])
+def test_information_matches_finite_differences_and_observed_construction(make):
+    """The Jacobian of the whitened residuals with respect to theta (through the lifted
+    physical parameters) and the start pose matches central differences of the
+    residuals; F equals the Schur complement built the way observed.py builds I_obs."""
+    model = make()
+    info = _info(model.shape.name)
+    lin = info.linearize(model, predict_poke(model, _poke(model, 35)))
+    pr, z, p = _observed_route(model, lin)
+    rj = residual_jacobian_function(pr)
+    r, J = rj(z, p)
+    # the same residuals, whichever route built them (order differs: compare norms)
+    assert np.linalg.norm(np.asarray(r)) == pytest.approx(np.linalg.norm(lin.r), rel=1e-12)
+    Jf = fold_lifted_parameters(pr, J.sparse(), z, p)
+    qa = pr.offsets[0]["Q"][0]
+    keep = list(range(pr.n_theta)) + [qa, qa + 1, qa + 2]
+
+    def r_of(delta):
+        zz = z.copy()
+        th = lin.theta + delta[: pr.n_theta]
+        zz[: pr.n_theta] = th
+        zz[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(th, L, M0)).ravel()
+        zz[qa: qa + 3] += delta[pr.n_theta:]
+        return np.asarray(rj(zz, p)[0]).ravel()
+
+    # central differences, h = 1e-6 in scaled units (O(1) values): truncation ~h²·r''' and
+    # rounding ~1e-16·|r|/h are both below 1e-8 of a column's norm at this smooth point;
+    # 1e-6 leaves a wide margin
+    h = 1e-6
+    Jd = Jf[:, keep].toarray()
+    for k in range(len(keep)):
+        e = np.zeros(len(keep))
+        e[k] = h
+        fd = (r_of(e) - r_of(-e)) / (2 * h)
+        assert np.linalg.norm(fd - Jd[:, k]) <= 1e-6 * max(np.linalg.norm(Jd[:, k]), 1e-9), k
+    # F by observed.py's construction (finger impulses fixed where the flag is 0)
+    fixed = np.zeros(pr.n_z, bool)
+    a, n = pr.offsets[0]["LF"]
+    fixed[a: a + n] = ~np.repeat(touching(lin.run)[1:], 2, axis=1).reshape(-1)
+    is_keep = np.zeros(pr.n_z, bool)
+    is_keep[keep] = True
+    is_keep[pr.phys_offset: pr.phys_offset + pr.n_phys] = True
+    ref = schur_information(Jd, Jf[:, np.nonzero(~is_keep & ~fixed)[0]])
+    mine = schur_information(lin.Ja, lin.Jx)
+    # identical sums in a different order: rounding of entries up to ~1e12 (the tight
+    # kinematics sigma) through one sparse factorization; 1e-6 relative is far above it
+    np.testing.assert_allclose(mine, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    F = info.fisher(model, predict_poke(model, _poke(model, 35)))
+    assert F.shape == (len(info.names), len(info.names))
+    assert np.allclose(F, F.T) and np.linalg.eigvalsh(F).min() >= -1e-9 * np.abs(F).max()
+
+
+def test_identity_information_matches_finite_differences():
+    """Quasi-static identity-Jacobian F: the measurement residuals differentiated with
+    every pose moved rigidly with the start pose (∂q_t/∂s = I) and theta (∂q_t/∂θ = 0)."""
+    model = _box_model()
+    info = _info("box")
+    pred = predict_poke(model, _poke(model, 60))
+    lin = info.linearize(model, pred)
+    pr, z, p = _observed_route(model, lin)
+    w = pr.weight_sym
+    from tacest.estimation.problem import TERMS
+
+    r_meas = ca.Function("rm", [pr.z_sym, pr.p_sym],
+                         [ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * pr.residual_stack[t] for t in MEASUREMENT_TERMS])])
+    off = pr.offsets[0]["Q"][0]
+    T = lin.Q.shape[1]
+
+    def r_of(delta):
+        zz = z.copy()
+        th = lin.theta + delta[: pr.n_theta]
+        zz[: pr.n_theta] = th
+        zz[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(th, L, M0)).ravel()
+        zz[off: off + 3 * T] += np.tile(delta[pr.n_theta:], T)
+        return np.asarray(r_meas(zz, p)).ravel()
+
+    h = 1e-6  # as in the test above
+    n = pr.n_theta + 3
+    Jfd = np.stack([(r_of(h * e) - r_of(-h * e)) / (2 * h) for e in np.eye(n)], 1)
+    ref = info.to_physical(Jfd.T @ Jfd, model)
+    mine = info.identity(model, pred)
+    np.testing.assert_allclose(mine, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    names = info.names
+    for k in ("mass", "inertia_log_ratio", "friction_ground", "friction_finger"):
+        assert mine[names.index(k), names.index(k)] == 0.0  # only dynamics connects these to data
+
+
+# ---------------------------------------------------------------------------------
+# scores and the discount by past information
+
+
+def test_scores_properties():
+    rng = np.random.default_rng(0)
+    n = 6
+    X = rng.normal(size=(n, n))
+    I_past = X @ X.T + n * np.eye(n)
+    Y = rng.normal(size=(n, 2))
+    F = Y @ Y.T  # rank 2, positive semi-definite
+    for kind in ("logdet", "A", "E"):
+        assert score(np.zeros((n, n)), I_past, kind) == pytest.approx(0.0, abs=1e-12)
+        assert score(F, I_past, kind) > 0
+    # logdet = log det(F I⁻¹ + I) (definition) and invariant to the rows' units
+    assert score(F, I_past) == pytest.approx(np.linalg.slogdet(F @ np.linalg.inv(I_past) + np.eye(n))[1], rel=1e-10)
+    S = np.diag(10.0 ** rng.uniform(-3, 3, n))
+    assert score(S @ F @ S, S @ I_past @ S) == pytest.approx(score(F, I_past), rel=1e-8)
+    assert score(S @ F @ S, S @ I_past @ S, "A") == pytest.approx(score(F, I_past, "A"), rel=1e-8)
+    # D ranks as logdet: the difference does not depend on F
+    G = F + np.outer(Y[:, 0], Y[:, 0])
+    assert score(F, I_past, "D") - score(F, I_past) == pytest.approx(score(G, I_past, "D") - score(G, I_past),
+                                                                       rel=1e-9)
+    assert 0 < score(F, I_past, "A") <= n
+    with pytest.raises(TacestError, match="unknown score"):
+        score(F, I_past, "Z")
+
+
+def test_a_poke_at_an_already_known_face_scores_lower():
+    """A box whose left face has been poked again and again: poking the left face once
+    more scores below poking the right face or the top.  With the prior alone, left and
+    right pokes (mirror images) score the same: the discount comes from I_past."""
+    model = _box_model()
+    info = _info("box")
+    F = {a: info.fisher(model, predict_poke(model, _poke(model, a))) for a in (20, 90, 160)}  # right, top, left
+    prior = prior_information(info.names, model, CONFIG, L)
+    # mirror symmetry, up to the physics engine's asymmetric contact solver: 1 %
+    assert score(F[160], prior) == pytest.approx(score(F[20], prior), rel=0.01)
+    past = prior + 5 * F[160]  # five left-face pokes already in the data
+    for kind in ("logdet", "A", "D"):
+        left = score(F[160], past, kind)
+        assert left < score(F[20], past, kind), kind
+        assert left < score(F[90], past, kind), kind
+    # and the planner, asked twice (before and after), moves away from the known face
+    from tacest.planning.actions import ActionSpace
+    from tacest.planning.cem import cem_maximize
+    from tacest.planning.planner import Scorer
+
+    space = ActionSpace()
+    lo, hi = space.bounds()
+    sc = Scorer(info=info, model=model, I_past=past, kind="logdet")
+    res = cem_maximize(lambda u: sc(space.action(0, u, model.centroid__world)), lo, hi,
+                       np.random.default_rng(1), iterations=2, population=8)
+    best = math.degrees(float(res.samples[res.best][0]))
+    assert abs(best - 160) > 20, best
+
+
+def test_past_information_adds_the_prior_and_follows_names():
+    model = _box_model()
+    names = information_names_for(make_shape("box"))
+    I_obs = np.diag(np.arange(1.0, len(names) + 1))
+    shuffled = names[::-1]
+    est = Estimate(dim=2, shape="box", vertices=model.vertices, params={}, runs=[],
+                   information=I_obs[::-1, ::-1], info_names=shuffled)
+    got = past_information(est, model, CONFIG, L, names)
+    np.testing.assert_allclose(got, I_obs + prior_information(names, model, CONFIG, L))
+    est.info_names = ["width", "height"]
+    est.information = np.eye(2)
+    with pytest.raises(TacestError, match="do not match"):
+        past_information(est, model, CONFIG, L, names)
+
+
+# ---------------------------------------------------------------------------------
+# plan files and the CLI
+
+
+def _sim_run(path, pokes=1, seed=3):
+    from tacest.sim.record import SimOptions, record_sim
+
+    run = record_sim(SimOptions(object_spec="box", seed=seed, pokes=pokes))
+    write_run(run, path)
+    return read_run(path)
+
+
+def estimate_from_truth(run, scale=1.05, fail=False):
+    """A stand-in estimate (no solve): the truth's box, 5 % too large, at the true poses,
+    with a modest observed information."""
+    if fail:
+        raise SolveFailedError("IPOPT failed in stage 'homotopy 2/2': Maximum_Iterations_Exceeded")
+    tr = run.truth
+    w, h = np.ptp(tr.vertices[:, 0]), np.ptp(tr.vertices[:, 1])
+    names = information_names_for(make_shape("box"))
+    info = np.diag([1e6, 1e6, 1e2, 1.0, 1e2, 1e2, 1e6, 1e6, 1e3])
+    pose = np.asarray(tr.pose, float)
+    return Estimate(dim=2, shape="box", vertices=box_vertices(scale * w, scale * h),
+                    params={"mass": tr.mass, "inertia": tr.inertia, "friction_ground": tr.friction_ground,
+                            "friction_finger": tr.friction_finger},
+                    runs=[RunEstimate(pose=pose, velocity=np.zeros_like(pose), source_file=str(run.filename or ""))],
+                    solver_status="Solve_Succeeded", success=True, information=info, info_names=names,
+                    config=CONFIG.to_dict())
+
+
+def _tacest(*args, cwd=None):
+    return subprocess.run([TACEST, *map(str, args)], capture_output=True, text=True, cwd=cwd)
+
+
+def _one_error_line(res):
+    assert res.returncode == 2, res.stderr
+    assert "Traceback" not in res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("tacest: error:"), res.stderr
+    return lines[0]
+
+
+def test_plan_cli_writes_a_plan_that_record_executes(tmp_path):
+    run = _sim_run(tmp_path / "run.h5")
+    write_estimate(estimate_from_truth(run), tmp_path / "est.h5")
+    res = _tacest("plan", "est.h5", "run.h5", "--iterations", "2", "--population", "4", "--seed", "5",
+                  "-o", "plan.h5", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    plan = read_plan(tmp_path / "plan.h5")
+    assert (plan.method, plan.score, plan.kind) == ("eig", "logdet", "poke")
+    assert plan.candidates.shape == (8, 6) and np.all(np.isfinite(plan.scores))
+    assert plan.scores[np.all(plan.candidates == plan.chosen, 1)][0] == plan.scores.max()
+    a = plan.chosen_dict()
+    assert math.radians(10) <= a["approach_angle"] <= math.radians(170)
+    np.testing.assert_allclose([a["target_x"], a["target_y"]], run.truth.pose[-1, :2])  # the estimate's centroid
+    assert len(plan.estimate_sha256) == 64
+    # the simulator executes it, appending to the run
+    res = _tacest("record", "--source", "sim", "--plan", "plan.h5", "-o", "run.h5", "--quiet", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    longer = read_run(tmp_path / "run.h5")
+    assert longer.n_samples > run.n_samples and len(longer.actions.segments) == 2
+    np.testing.assert_allclose(longer.actions.params[-1], plan.chosen)
+    # the other methods and scores, from a (stand-in) estimate of the longer run
+    write_estimate(estimate_from_truth(longer), tmp_path / "est.h5")
+    for extra in (["--method", "random"], ["--method", "identity", "--score", "E"], ["--score", "A", "--vary", "depth"]):
+        res = _tacest("plan", "est.h5", "run.h5", "--iterations", "1", "--population", "3", "-o", "p2.h5", "--quiet",
+                      *extra, cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        p2 = read_plan(tmp_path / "p2.h5")
+        assert p2.method == extra[1] if extra[0] == "--method" else p2.score == extra[1]
+    assert read_plan(tmp_path / "p2.h5").chosen_dict()["depth"] != pytest.approx(0.02)
+
+
+def test_plan_cli_failures_exit_2_and_leave_no_plan(tmp_path):
+    run = _sim_run(tmp_path / "run.h5")
+    write_estimate(estimate_from_truth(run), tmp_path / "est.h5")
+    (tmp_path / "old.h5").write_bytes(b"an earlier plan")
+    other = _sim_run(tmp_path / "other.h5", pokes=2)
+    assert other.n_samples != run.n_samples
+    cases = [
+        (["plan", "missing.h5", "run.h5", "-o", "old.h5"], "no such file"),
+        (["plan", "est.h5", "other.h5", "-o", "old.h5"], "not the run the estimate was made from"),
+        (["plan", "est.h5", "run.h5", "run.h5", "-o", "old.h5"], "holds 1 run"),
+        (["plan", "est.h5", "run.h5", "--method", "oracle", "-o", "old.h5"], "oracle"),
+        (["plan", "run.h5", "run.h5", "-o", "old.h5"], "attrs format"),
+    ]
+    for args, msg in cases:
+        line = _one_error_line(_tacest(*args, cwd=tmp_path))
+        assert msg in line, (args, line)
+        assert (tmp_path / "old.h5").read_bytes() == b"an earlier plan"  # untouched
+    line = _one_error_line(_tacest("plan", "est.h5", "run.h5", "--iterations", "1", "--population", "2",
+                                   "-o", "nofolder/plan.h5", cwd=tmp_path))
+    assert "does not exist" in line and not (tmp_path / "nofolder").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["est.h5", "old.h5", "other.h5", "run.h5"]
+
+
+def test_explore_cli_failures_exit_2(tmp_path):
+    (tmp_path / "taken").write_text("")
+    for args, msg in [(["-o", "taken"], "is a file"), (["-o", "d", "--shape", "blob"], "unknown shape"),
+                      (["-o", "d", "--policy", "oracle"], "oracle"), (["-o", "d", "--pokes", "0"], "pokes"),
+                      (["-o", "d", "--object", "nothing.txt"], "nothing.txt")]:
+        assert msg in _one_error_line(_tacest("explore", *args, cwd=tmp_path)), args
+
+
+def test_explore_loop_files_and_summary(tmp_path, monkeypatch):
+    """The loop's mechanics with a stand-in estimator (no solve): per-step files, the
+    fallback after a failed estimate, summary.json and the learning curve."""
+    import tacest.estimation.estimator as estimator
+    from tacest.planning.explore import ExploreOptions, explore
+
+    calls = []
+
+    def fake(runs, shape, config=None, **kw):
+        calls.append(runs[0].n_samples)
+        return estimate_from_truth(runs[0], fail=len(calls) == 2)
+
+    monkeypatch.setattr(estimator, "estimate_runs", fake)
+    lines = []
+    out = tmp_path / "loop"
+    summary = explore(ExploreOptions(object_spec="box", seed=2, policy="eig", pokes=3, iterations=1, population=3),
+                      out, echo=lines.append)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["estimate_1.h5", "estimate_3.h5", "learning_curve.png", "plan_1.h5", "run.h5", "summary.json"]
+    assert len(calls) == 3 and calls[0] < calls[1] < calls[2]  # the run grows by one poke per step
+    run = read_run(out / "run.h5")
+    assert run.truth is not None and len(run.actions.segments) == 3
+    np.testing.assert_allclose(run.actions.params[1], read_plan(out / "plan_1.h5").chosen)
+    back = json.loads((out / "summary.json").read_text())
+    assert back == json.loads(json.dumps(summary))
+    steps = back["steps"]
+    assert [s["pokes"] for s in steps] == [1, 2, 3]
+    assert steps[0]["chamfer"] > 0 and steps[0]["mass_rel"] == pytest.approx(0.0, abs=1e-9)
+    assert steps[1]["estimate_status"] == "failed" and steps[1]["chamfer"] is None and "fallback" in steps[1]
+    assert steps[0]["plan_time"] > 0 and "friction_ground_rel" in steps[2]
+    assert len(lines) == 3 and lines[1].startswith("[2/3]")
+    assert read_estimate(out / "estimate_3.h5").success
