@@ -355,7 +355,8 @@ def test_explore_cli_failures_exit_2(tmp_path):
 
 def test_explore_loop_files_and_summary(tmp_path, monkeypatch):
     """The loop's mechanics with a stand-in estimator (no solve): per-step files, the
-    fallback after a failed estimate, summary.json and the learning curve."""
+    plan from the estimator's start guess after a failed estimate, summary.json and the
+    learning curve."""
     import tacest.estimation.estimator as estimator
     from tacest.planning.explore import ExploreOptions, explore
 
@@ -371,17 +372,21 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch):
     summary = explore(ExploreOptions(object_spec="box", seed=2, policy="eig", pokes=3, iterations=1, population=3),
                       out, echo=lines.append)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["estimate_1.h5", "estimate_3.h5", "learning_curve.png", "plan_1.h5", "run.h5", "summary.json"]
+    assert names == ["estimate_1.h5", "estimate_3.h5", "learning_curve.png", "plan_1.h5", "plan_2.h5", "run.h5",
+                     "summary.json"]
     assert len(calls) == 3 and calls[0] < calls[1] < calls[2]  # the run grows by one poke per step
     run = read_run(out / "run.h5")
     assert run.truth is not None and len(run.actions.segments) == 3
     np.testing.assert_allclose(run.actions.params[1], read_plan(out / "plan_1.h5").chosen)
+    np.testing.assert_allclose(run.actions.params[2], read_plan(out / "plan_2.h5").chosen)
     back = json.loads((out / "summary.json").read_text())
     assert back == json.loads(json.dumps(summary))
     steps = back["steps"]
     assert [s["pokes"] for s in steps] == [1, 2, 3]
     assert steps[0]["chamfer"] > 0 and steps[0]["mass_rel"] == pytest.approx(0.0, abs=1e-9)
-    assert steps[1]["estimate_status"] == "failed" and steps[1]["chamfer"] is None and "fallback" in steps[1]
+    assert steps[1]["estimate_status"] == "failed" and steps[1]["chamfer"] is None
+    assert "Maximum_Iterations_Exceeded" in steps[1]["estimate_error"]
+    assert [s.get("planned_from") for s in steps] == ["estimate", "start guess", None]
     assert steps[0]["plan_time"] > 0 and "friction_ground_rel" in steps[2]
     assert len(lines) == 3 and lines[1].startswith("[2/3]")
     assert read_estimate(out / "estimate_3.h5").success

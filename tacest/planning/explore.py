@@ -12,10 +12,13 @@ for n = 1 .. N:
    (record_sim(plan_path=..., append_to=run.h5): the world continues from its last true
    state) -> ``run.h5``.
 
-A failed estimate is a recorded failure (its step has ``estimate_status`` and no
-metrics); the next poke then falls back to the simulator's random poke (aimed at the
-true centroid, since there is no estimate to aim with) and the step says so
-(``fallback``).  At the end: ``summary.json`` and ``learning_curve.png``.
+A failed estimate is a recorded failure (its step has ``estimate_status`` "failed",
+the solver's message and no metrics).  The next poke is then planned, with the same
+policy, from the estimator's own starting point instead (:func:`start_guess_estimate`:
+the shape and push-tracked trajectory the estimator would start from, the prior's mass
+and frictions, no observed information), and the step says so (``planned_from``
+``"start guess"``); the truth is never used to choose a poke.  At the end:
+``summary.json`` and ``learning_curve.png``.
 """
 
 from __future__ import annotations
@@ -162,27 +165,23 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
                    f"ground friction error {_pct(step['friction_ground_rel'])}"
         # -- plan and execute the next poke ------------------------------------------
         if n < N:
-            t0 = time.perf_counter()
             plan_path = out / f"plan_{n}.h5"
-            if est is not None:
-                settings = PlanSettings(method=opts.policy, score=opts.score, seed=_plan_seed(opts.seed, n),
-                                        vary=tuple(opts.vary), iterations=opts.iterations,
-                                        population=opts.population)
-                plan = plan_next(est, [run], settings)
-                write_plan(plan, plan_path)
-                step["plan_time"] = float(plan.extra_attrs["wall_time"])
-                step["plan_score"] = float(plan.scores[np.argmax(np.all(plan.candidates == plan.chosen, 1))])
-                step["next_action"] = plan.chosen_dict()
-                msg += f"; plan {opts.policy} ({step['plan_time']:.1f} s): angle " \
-                       f"{math.degrees(plan.chosen_dict()['approach_angle']):.0f} deg"
-                t1 = time.perf_counter()
-                new = record_sim(sim, plan_path=plan_path, append_to=run_path)
-            else:
-                step["fallback"] = "estimate failed: the simulator's random poke (aimed at the true centroid)"
-                msg += "; next poke: random fallback"
-                t1 = time.perf_counter()
-                new = record_sim(sim, append_to=run_path)
-            write_run(new, run_path)
+            source = est
+            step["planned_from"] = "estimate"
+            if est is None:
+                source = start_guess_estimate([run], shape, config)
+                step["planned_from"] = "start guess"
+            settings = PlanSettings(method=opts.policy, score=opts.score, seed=_plan_seed(opts.seed, n),
+                                    vary=tuple(opts.vary), iterations=opts.iterations, population=opts.population)
+            plan = plan_next(source, [run], settings)
+            write_plan(plan, plan_path)
+            step["plan_time"] = float(plan.extra_attrs["wall_time"])
+            step["plan_score"] = float(plan.scores[np.argmax(np.all(plan.candidates == plan.chosen, 1))])
+            step["next_action"] = plan.chosen_dict()
+            msg += f"; plan {opts.policy} from the {step['planned_from']} ({step['plan_time']:.1f} s): " \
+                   f"approach {math.degrees(plan.chosen_dict()['approach_angle']):.0f} deg"
+            t1 = time.perf_counter()
+            write_run(record_sim(sim, plan_path=plan_path, append_to=run_path), run_path)
             t_record = time.perf_counter() - t1
         steps.append(to_jsonable(step))
         echo(msg)
@@ -195,6 +194,36 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
     plot_learning_curve(out / "learning_curve.png", [summary])
     _write_json(out / "summary.json", to_jsonable(summary))
     return summary
+
+
+def start_guess_estimate(runs, shape: str, config):
+    """An Estimate (not a result: ``success`` False, status ``"start guess"``, no
+    information) holding the estimator's starting point for ``runs``: the start shape
+    (tacest.estimation.initial.choose_start_shape), its push-tracked trajectories, the
+    prior's mass, uniform-density inertia and frictions.  What a planner can still aim
+    with when the estimate failed."""
+    from tacest.estimation.data import choose_scales
+    from tacest.estimation.initial import choose_start_shape, initial_extents, start_trajectories
+    from tacest.geometry.polygon import polygon_inertia, signed_area
+    from tacest.geometry.shapes import make_shape, numeric_vertices
+    from tacest.io.estimate import Estimate, RunEstimate
+
+    from tacest.estimation.problem import Problem2D, RunStructure
+
+    sh = make_shape(shape)
+    scales = choose_scales(runs, config)
+    w, h = initial_extents(runs, scales.L)
+    problem = Problem2D(sh, [RunStructure(T=r.n_samples, F=r.n_fingers) for r in runs], config)
+    s0 = choose_start_shape(problem, runs, scales, sh.initial(w / scales.L, h / scales.L))
+    trajs = start_trajectories(problem, runs, scales, s0)
+    V = numeric_vertices(sh, s0, scales.L)
+    m = float(scales.m0)
+    inertia = polygon_inertia(V if signed_area(V) > 0 else V[::-1], m)
+    mu = float(config.prior.friction)
+    return Estimate(dim=2, shape=sh.name, vertices=V,
+                    params={"mass": m, "inertia": inertia, "friction_ground": mu, "friction_finger": mu},
+                    runs=[RunEstimate(pose=np.asarray(t, float), velocity=np.zeros_like(t)) for t in trajs],
+                    solver_status="start guess", success=False, information=None, config=config.to_dict())
 
 
 def _plan_seed(seed: int, n: int) -> int:
