@@ -197,12 +197,12 @@ class PredictedPoke:
         normal = self.normal__world.copy()
         fp = self.p_finger__world.copy()
         if noise is not None:
-            sf, sn, sp_ = noise
+            sf, sn, s_pos = noise
             force = np.where(on[..., None], force + rng.normal(size=force.shape) * sf, 0.0)
             a = rng.normal(size=(T, F)) * sn
             c, s = np.cos(a), np.sin(a)
             normal = np.stack([c * normal[..., 0] - s * normal[..., 1], s * normal[..., 0] + c * normal[..., 1]], -1)
-            fp = fp + rng.normal(size=fp.shape) * sp_
+            fp = fp + rng.normal(size=fp.shape) * s_pos
         normal = np.where(on[..., None], normal, np.nan)
         run = Run(dim=2, dt=self.dt, time=self.dt * np.arange(T), gravity=-9.81 * model.up, source="prediction",
                   finger_position=fp, finger_radius=model.finger_radius.copy(),
@@ -419,7 +419,7 @@ class ExpectedInformation:
         (ground impulses fitted): a :class:`Linearization`."""
         run = run or pred.to_run(model)
         T = pred.n_samples
-        K, F = self.K, self.F
+        K = self.K
         g, D, w = self._data(run)
         theta = theta_of_model(model, self.L, self.m0)
         phys, dphys = (np.asarray(a) for a in self.phys_of_theta(theta))
