@@ -47,7 +47,7 @@ DROP_REASONS = (
     "normal",         # contact = 1 with an empty, NaN or non-unit normal
     "finger",         # finger index outside [0, fingers)
     "order",          # seq older than the current sample, or the same finger twice in one sample
-    "incomplete",     # a line of a sample whose other fingers never arrived (sample kept as missing)
+    "incomplete",     # a line of a sample not yet complete when new settings replaced the header (none kept yet)
     "before_header",  # sample line before the first valid header
     "header",         # a header line that could not be used (syntax, unsupported version, bad value)
 )
