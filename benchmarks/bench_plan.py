@@ -41,6 +41,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -193,9 +194,9 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
             n_done[pol] = len(ok)
             cv[pol] = curves(ok, pokes)
             plan_times[pol] = [st["plan_time"] for r in ok for st in r["summary"]["steps"] if "plan_time" in st]
-        head = "pokes " + "".join(f"| {pol + f' (n={n_done[pol]})':>22} " for pol in policies)
+        head = "pokes " + "".join(f"| {pol + f' (n={n_done[pol]})':>29} " for pol in policies)
         lines.append(head)
-        lines.append("      " + "".join(f"| {'chamfer mm [fail] mass% mu_g%':>22} " for _ in policies))
+        lines.append("      " + "".join(f"| {'chamfer mm [fail] mass% mu_g%':>29} " for _ in policies))
         med = {pol: [] for pol in policies}
         for n in range(1, pokes + 1):
             row = f"{n:5d} "
@@ -206,7 +207,7 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
                 nf = int(c["failed"][:, n - 1].sum())
                 mr = _nanmedian(c["mass_rel"][:, n - 1]) if n_done[pol] else math.nan
                 fr = _nanmedian(c["friction_ground_rel"][:, n - 1]) if n_done[pol] else math.nan
-                row += f"| {1e3 * ch:8.2f} [{nf}] {100 * mr:5.0f} {100 * fr:5.0f} "
+                row += f"| {1e3 * ch:14.2f} [{nf}] {100 * mr:5.0f} {100 * fr:5.0f} "
             lines.append(row)
         for pol in policies:
             pt = plan_times[pol]
@@ -268,6 +269,8 @@ def main(argv=None):
         ap.error(f"cases from {CASES}, policies from {POLICIES}, seeds and pokes >= 1")
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
+    # a terminated benchmark kills its running worker and frees the job's lock
+    signal.signal(signal.SIGTERM, lambda *a: sys.exit(143))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     print(f"load average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}; "
           f"cache {cache}", file=sys.stderr)

@@ -312,6 +312,34 @@ def information_names_for(shape: Shape) -> list:
                           "final_x", "final_y", "final_angle"]
 
 
+class _Buffered:
+    """A CasADi Function evaluated on bound numpy buffers (Function.buffer): no DM
+    conversion, which costs ~20x the evaluation itself for the mapped Jacobians here.
+    Every input and output must be dense; outputs come back as (rows, cols) arrays."""
+
+    def __init__(self, fun):
+        self.fun = fun
+        for i in range(fun.n_in()):
+            assert fun.sparsity_in(i).is_dense(), fun.name_in(i)
+        for i in range(fun.n_out()):
+            assert fun.sparsity_out(i).is_dense(), fun.name_out(i)
+        self.buf, self._run = fun.buffer()
+        self.ins = [np.zeros(fun.nnz_in(i)) for i in range(fun.n_in())]
+        self.outs = [np.zeros(fun.nnz_out(i)) for i in range(fun.n_out())]
+        for i, a in enumerate(self.ins):
+            self.buf.set_arg(i, memoryview(a))
+        for i, a in enumerate(self.outs):
+            self.buf.set_res(i, memoryview(a))
+
+    def __call__(self, *args):
+        for a, x in zip(self.ins, args):
+            a[:] = np.asarray(x, float).reshape(-1, order="F")  # column-major nonzeros
+        self._run()
+        if self.buf.ret() != 0:
+            raise TacestError(f"internal: evaluating {self.fun.name()} failed")
+        return [o.reshape(self.fun.size_out(i), order="F").copy() for i, o in enumerate(self.outs)]
+
+
 @dataclass
 class Linearization:
     """The linearized residuals of one predicted poke (scaled units, as the estimator's).
@@ -373,26 +401,33 @@ class ExpectedInformation:
         r = ca.vertcat(*[rows[t] for t in SQUARED_TERMS], out["g_kin"] / KINEMATICS_SIGMA)
         y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
         self.n_y = y.shape[0]
-        self.stage_rj = ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w], [r, ca.jacobian(r, y)])
+        self.stage_rj = ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w],
+                                    [ca.densify(r), ca.densify(ca.jacobian(r, y))])
+        self.stage_r_lg = ca.Function("stage_r_lg", [qp, vp, q, v, lg, lf, phys, d, g, w],
+                                      [ca.densify(r), ca.densify(ca.jacobian(r, lg))])
         # the measurement rows only, for the identity-Jacobian approximation (w.r.t. q, phys)
         rm = ca.vertcat(*[rows[t] for t in MEASUREMENT_TERMS])
         self.stage_meas = ca.Function("stage_meas", [qp, vp, q, v, lg, lf, phys, d, g, w],
-                                      [ca.jacobian(rm, ca.vertcat(q, phys))])
+                                      [ca.densify(ca.jacobian(rm, ca.vertcat(q, phys)))])
         q0, v0, phys0, d0, g0 = start.sx_in()
         o0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
         r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(o0[n]) for t, n in
                           (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
                            ("contact", "contact"))])
-        self.start_rj = ca.Function("start_rj", [q0, v0, phys0, d0, g0, w], [r0, ca.jacobian(r0, ca.vertcat(q0, v0, phys0))])
+        self.start_rj = ca.Function("start_rj", [q0, v0, phys0, d0, g0, w],
+                                    [ca.densify(r0), ca.densify(ca.jacobian(r0, ca.vertcat(q0, v0, phys0)))])
         th = ca.SX.sym("theta", self.n_theta)
         self.phys_of_theta = ca.Function("phys_jac", [th], [pr.phys_sx(th, self.L, self.m0),
-                                                            ca.jacobian(pr.phys_sx(th, self.L, self.m0), th)])
+                                                            ca.densify(ca.jacobian(pr.phys_sx(th, self.L, self.m0),
+                                                                                   th))])
 
-    def _map(self, fun, N):
+    def _call(self, fun, N, *args):
+        """Evaluate ``fun`` mapped over N samples (inputs (n, N) or (n,) arrays, outputs
+        (m, N·k) arrays): a cached :class:`_Buffered` evaluator per (function, N)."""
         key = (fun.name(), N)
         if key not in self._mapped:
-            self._mapped[key] = fun.map(N)
-        return self._mapped[key]
+            self._mapped[key] = _Buffered(fun.map(N) if N != 1 else fun)
+        return self._mapped[key](*args)
 
     # -- data of a prediction -------------------------------------------------------
     def _data(self, run: Run):
@@ -417,79 +452,74 @@ class ExpectedInformation:
     def linearize(self, model: ModelState, pred: PredictedPoke, run: Run | None = None) -> "Linearization":
         """Whitened residuals of a predicted poke and their Jacobian at the prediction
         (ground impulses fitted): a :class:`Linearization`."""
+        from scipy.optimize import nnls
+
         run = run or pred.to_run(model)
         T = pred.n_samples
         K = self.K
         g, D, w = self._data(run)
         theta = theta_of_model(model, self.L, self.m0)
-        phys, dphys = (np.asarray(a) for a in self.phys_of_theta(theta))
+        phys, dphys = self._call(self.phys_of_theta, 1, theta)
         phys = phys.reshape(-1)
         Q, Vv, LF = self._states(pred)
         N = T - 1
-        f = self._map(self.stage_rj, N)
-        args = [Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], None, LF, np.repeat(phys[:, None], N, 1), D[:, 1:],
-                np.repeat(g[:, None], N, 1), np.repeat(w[:, None], N, 1)]
+        args = [Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((K, N)), LF, np.repeat(phys[:, None], N, 1),
+                D[:, 1:], np.repeat(g[:, None], N, 1), np.repeat(w[:, None], N, 1)]
         # ground impulses: non-negative least squares per sample (exact: residuals are linear in them)
-        args[4] = np.zeros((K, N))
-        r, J = (np.asarray(a) for a in f(*args))  # (n_r, N), (n_r, N·n_y): blocks side by side
+        r, J_lg = self._call(self.stage_r_lg, N, *args)  # (n_r, N), (n_r, N·K): blocks side by side
         n_r = r.shape[0]
-        J = J.reshape(n_r, N, self.n_y)
-        lg_cols = slice(12, 12 + K)
+        J_lg = J_lg.reshape(n_r, N, K)
         LG = np.zeros((K, N))
-        from scipy.optimize import nnls
-
         for t in range(N):
-            A = J[:, t, lg_cols]
+            A = J_lg[:, t, :]
             if np.any(A):
                 LG[:, t] = nnls(A, -r[:, t], maxiter=50 * K)[0]
         args[4] = LG
-        r, J = (np.asarray(a) for a in f(*args))
+        r, J = self._call(self.stage_rj, N, *args)
         J = J.reshape(n_r, N, self.n_y)
-        r0, J0 = (np.asarray(a) for a in self.start_rj(Q[:, 0], Vv[:, 0], phys, D[:, 0], g, w))
+        r0, J0 = self._call(self.start_rj, 1, Q[:, 0], Vv[:, 0], phys, D[:, 0], g, w)
         Ja, Jx, r_all = self._assemble(J, r, J0, r0.reshape(-1), dphys, T, run)
         return Linearization(Ja=Ja, Jx=Jx, r=r_all, theta=theta, Q=Q, V=Vv, LG=LG, LF=LF, run=run)
 
     def _assemble(self, J, r, J0, r0, dphys, T, run):
+        """Global Jacobian of a prediction from the per-sample blocks J (n_r, N, n_y) and
+        the start block J0 (n_0, 3 + 3 + n_phys): kept columns Ja (θ through the lifted
+        physical quantities, start pose), nuisance columns Jx (sparse, layout of
+        :class:`Linearization`).  Rows: sample 1's residuals, ..., sample N's, then sample 0's."""
         K, F = self.K, self.F
         N = T - 1
         n_r = J.shape[0]
         n_phys = dphys.shape[0]
-        # nuisance layout: V (3T), Q[1:] (3(T-1)), LG (K N), LF (2F N) ; kept: theta, Q[0]
-        iV = lambda t: 3 * t  # noqa: E731
-        iQ = lambda t: 3 * T + 3 * (t - 1)  # noqa: E731
+        n_loc = 12 + K + 2 * F  # y = [q_prev 3, v_prev 3, q 3, v 3, lg K, lf 2F] + phys
+        # nuisance layout: V (3T), Q[1:] (3(T-1)), LG (K N), LF (2F N); kept: theta, Q[0]
         iLG = 6 * T - 3
         iLF = iLG + K * N
         n_x = iLF + 2 * F * N
-        rows, cols, vals = [], [], []
-        Ja = np.zeros((n_r * N + len(r0), self.n_theta + 3))
-        # per-sample local variable y = [qp 3, vp 3, q 3, v 3, lg K, lf 2F, phys n_phys]
-        for t in range(1, T):
-            Jt = J[:, t - 1, :]
-            base = (t - 1) * n_r
-            blocks = []
-            if t - 1 == 0:
-                Ja[base:base + n_r, self.n_theta:] += Jt[:, 0:3]
-            else:
-                blocks.append((slice(0, 3), iQ(t - 1)))
-            blocks += [(slice(3, 6), iV(t - 1)), (slice(6, 9), iQ(t)), (slice(9, 12), iV(t)),
-                       (slice(12, 12 + K), iLG + K * (t - 1)), (slice(12 + K, 12 + K + 2 * F), iLF + 2 * F * (t - 1))]
-            for sl, c0 in blocks:
-                sub = Jt[:, sl]
-                ii, jj = np.nonzero(sub)
-                rows.append(base + ii)
-                cols.append(c0 + jj)
-                vals.append(sub[ii, jj])
-            Ja[base:base + n_r, :self.n_theta] += Jt[:, 12 + K + 2 * F:] @ dphys
+        t = np.arange(1, T)[:, None]  # sample index of each block
+        col = np.concatenate([3 * T + 3 * (t - 2) + np.arange(3),  # q_prev = Q[t-1] (t-1 >= 1)
+                              3 * (t - 1) + np.arange(3),  # v_prev = V[t-1]
+                              3 * T + 3 * (t - 1) + np.arange(3),  # q = Q[t]
+                              3 * t + np.arange(3),  # v = V[t]
+                              iLG + K * (t - 1) + np.arange(K),
+                              iLF + 2 * F * (t - 1) + np.arange(2 * F)], axis=1)  # (N, n_loc)
+        col[0, 0:3] = -1  # Q[0] is kept, not nuisance
+        rows_all = (np.arange(N)[None, :, None] * n_r + np.arange(n_r)[:, None, None])  # (n_r, N, 1)
+        Jl = J[:, :, :n_loc]
+        mask = (col[None, :, :] >= 0) & (Jl != 0)
+        rr = np.broadcast_to(rows_all, Jl.shape)[mask]
+        cc = np.broadcast_to(col[None, :, :], Jl.shape)[mask]
+        vv = Jl[mask]
+        n_0 = len(r0)
+        Ja = np.zeros((n_r * N + n_0, self.n_theta + 3))
+        Ja[:n_r * N, :self.n_theta] = np.einsum("inp,pk->nik", J[:, :, n_loc:], dphys).reshape(N * n_r, -1)
+        Ja[:n_r, self.n_theta:] = J[:, 0, 0:3]
         base = n_r * N
-        J0 = np.asarray(J0)
-        Ja[base:, self.n_theta:] += J0[:, 0:3]
-        ii, jj = np.nonzero(J0[:, 3:6])
-        rows.append(base + ii)
-        cols.append(iV(0) + jj)
-        vals.append(J0[:, 3:6][ii, jj])
-        Ja[base:, :self.n_theta] += J0[:, 6:6 + n_phys] @ dphys
-        Jx = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(Ja.shape[0], n_x))
+        J0 = np.asarray(J0).reshape(n_0, -1)
+        Ja[base:, self.n_theta:] = J0[:, 0:3]
+        Ja[base:, :self.n_theta] = J0[:, 6:6 + n_phys] @ dphys
+        i0, j0 = np.nonzero(J0[:, 3:6])  # v = V[0]
+        Jx = sp.csc_matrix((np.concatenate([vv, J0[:, 3:6][i0, j0]]),
+                            (np.concatenate([rr, base + i0]), np.concatenate([cc, j0]))), shape=(Ja.shape[0], n_x))
         # finger impulses are fixed at 0 where the predicted tactile flag is 0 (as the
         # estimator's bounds do): they are no variables there
         from tacest.estimation.data import touching
@@ -529,13 +559,12 @@ class ExpectedInformation:
         K = self.K
         g, D, w = self._data(run)
         theta = theta_of_model(model, self.L, self.m0)
-        phys, dphys = (np.asarray(a) for a in self.phys_of_theta(theta))
+        phys, dphys = self._call(self.phys_of_theta, 1, theta)
         phys = phys.reshape(-1)
         Q, Vv, LF = self._states(pred)
-        f = self._map(self.stage_meas, N)
-        J = np.asarray(f(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((K, N)), LF,
-                         np.repeat(phys[:, None], N, 1), D[:, 1:], np.repeat(g[:, None], N, 1),
-                         np.repeat(w[:, None], N, 1)))
+        (J,) = self._call(self.stage_meas, N, Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((K, N)), LF,
+                          np.repeat(phys[:, None], N, 1), D[:, 1:], np.repeat(g[:, None], N, 1),
+                          np.repeat(w[:, None], N, 1))
         n_r = J.shape[0]
         J = J.reshape(n_r, N, 3 + len(phys))  # per sample: [q (3), phys]
         Ja = np.concatenate([np.einsum("rnp,pk->nrk", J[:, :, 3:], dphys).reshape(-1, self.n_theta),
