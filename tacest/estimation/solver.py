@@ -140,6 +140,10 @@ class BuiltSolver:
                 "warm_start_mult_bound_push": 1e-8,
             },
         }
+        # a problem may supply its own derivative functions (grad_f, jac_g) and IPOPT options
+        extra = dict(getattr(problem, "nlpsol_options", None) or {})
+        opts["ipopt"].update(extra.pop("ipopt", {}))
+        opts.update(extra)
         return ca.nlpsol(f"tacest_nlp_{mode.replace('-', '_')}", "ipopt", problem.nlp, opts)
 
     def solve(self, z0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None, label="", echo=None,

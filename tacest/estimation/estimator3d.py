@@ -1,0 +1,529 @@
+"""``estimate_runs_3d(runs, shape, config)``: the implicit estimator for 3-D runs.
+
+Pipeline (as in 2-D): scales → starting shape → initial trajectory (the pose
+observations, or the prior's resting pose) → staged solve (contact impulses alone, then
+the homotopy stages of the config, IPOPT) → unscaled trajectories, per-sample
+residuals, observed information → a :class:`tacest.io.estimate.Estimate` with dim 3.
+A failed IPOPT solve raises SolveFailedError; nothing is reported as an estimate then.
+
+Without a measured force (e.g. pose-only motion capture of a tossed object) the mass
+is not identifiable: every impulse scales with it.  It is then held at the prior
+(``identifiable["mass"] = False``, zero rows in the information matrix), and the inertia
+is identified only relative to that mass (I / m).
+"""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
+                                     quat_log_rate)
+from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_velocity, touching
+from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
+                                         Problem3D, impulse_variable)
+from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, BuiltSolver, SolveOutcome, StageInfo,
+                                     check_success)
+from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
+from tacest.geometry.transforms import quat_to_matrix
+from tacest.io.estimate import Estimate, RunEstimate
+from tacest.io.h5util import sha256_file
+from tacest.io.run import Run
+
+#: log(m / m0) bounds (as in 2-D: a factor e^6 either way)
+LOG_MASS_BOUNDS = (-6.0, 6.0)
+#: friction coefficient bounds (as in 2-D)
+FRICTION_BOUNDS = (0.01, 2.0)
+#: log-Cholesky diagonal bounds: sqrt of the second moment per unit mass between
+#: e^-8 L and e^2 L (any object of size ~L lies far inside); off-diagonals ±2 L
+INERTIA_DIAG_BOUNDS = (-8.0, 2.0)
+INERTIA_OFFDIAG_BOUND = 2.0
+#: Estimator3D.choose_start_shape: range of starting scales (units of L) and the
+#: relative width of its histogram bins (0.5 %: 0.5 mm on a 10 cm object, finer than the
+#: spread of a resting object's height under motion-capture noise but not much finer)
+START_SCALE_RANGE = (0.2, 5.0)
+START_SCALE_BIN = 0.005
+#: factors on the mode tried by the refinement (0.5 % steps up to 6 %)
+START_SCALE_REFINE = np.array([0.995, 1.0, 1.01, 1.02, 1.03, 1.045, 1.06])
+#: largest number of fingers a 3-D run may have
+MAX_FINGERS = 8
+
+_CACHE: dict = {}
+
+
+def _noop(*_a, **_k):
+    pass
+
+
+def check_runs_3d(runs: list[Run]):
+    """One clear error for runs the 3-D estimator cannot use."""
+    if not runs:
+        raise TacestError("no run files given")
+    for r in runs:
+        name = r.filename or "run"
+        if r.dim != 3:
+            raise TacestError(f"{name}: is {r.dim}-D; the 3-D estimator needs 3-D runs")
+        if r.n_samples < 4:
+            raise TacestError(f"{name}: needs at least 4 samples (3-D dynamics need three poses per interval)")
+        if r.pose_obs is None and not r.n_fingers:
+            raise TacestError(f"{name}: has neither pose observations nor fingertip data: nothing to estimate from")
+        if r.pose_obs is not None and not np.any(np.all(np.isfinite(r.pose_obs), axis=1)):
+            raise TacestError(f"{name}: /observations/pose has no observed (finite) row")
+        if r.n_fingers > MAX_FINGERS:
+            raise TacestError(f"{name}: {r.n_fingers} fingers; the 3-D estimator handles at most {MAX_FINGERS}")
+        if not (r.sigma_position > 0 and r.sigma_angle > 0):
+            raise TacestError(f"{name}: /observations/pose sigmas must be > 0")
+
+
+def get_solver_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, echo=None) -> BuiltSolver:
+    """The cached solver of this structure (built on first use)."""
+    key = (shape.name, layout, repr(config.solver))
+    if key not in _CACHE:
+        _CACHE.clear()  # one structure at a time: a problem holds large CasADi graphs
+        _CACHE[key] = BuiltSolver(Problem3D(shape, layout, config, echo=echo), config)
+    return _CACHE[key]
+
+
+# ---------------------------------------------------------------------------------
+# data
+
+
+def observed_poses(run: Run):
+    """(poses (T, 7) with missing rows filled by interpolation, observed (T,) bool), or
+    (None, all False) without observations.  Quaternions are normalised and their signs
+    made continuous; the filled rows are for the initial guess only."""
+    T = run.n_samples
+    if run.pose_obs is None:
+        return None, np.zeros(T, bool)
+    P = np.array(run.pose_obs, float)
+    ok = np.all(np.isfinite(P), axis=1)
+    P[ok, 3:] /= np.linalg.norm(P[ok, 3:], axis=1, keepdims=True)
+    P[:, 3:] = align_quaternion_signs(P[:, 3:])
+    idx = np.nonzero(ok)[0]
+    t = np.arange(T)
+    filled = np.stack([np.interp(t, idx, P[idx, c]) for c in range(7)], 1)
+    filled[:, 3:] /= np.linalg.norm(filled[:, 3:], axis=1, keepdims=True)
+    return filled, ok
+
+
+def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
+    """(n_data, T) per-sample data of one run in the layout of problem3d.D_NAMES /
+    DF_NAMES (F fingers; a run with fewer is padded with zero weights)."""
+    T = run.n_samples
+    D = np.zeros((len(D_NAMES) + len(DF_NAMES) * F, T))
+    D[DI["dt"]] = run.dt
+    D[DI["Lam"]] = scales.m0 * GRAVITY * run.dt
+    D[DI["nx"]: DI["nz"] + 1] = np.asarray(run.up, float)[:, None]
+    D[DI["h"]] = run.ground_height
+    D[DI["sig_pos"]] = run.sigma_position
+    D[DI["sig_ang"]] = run.sigma_angle
+    D[DI["qw"]] = 1.0
+    poses, ok = observed_poses(run)
+    if poses is not None:
+        D[DI["w_pose"]] = ok.astype(float)
+        D[DI["px"]: DI["qz"] + 1] = np.where(ok[:, None], poses, D[DI["px"]: DI["qz"] + 1].T).T
+    D[DI["w_rest"], 0] = 0.0 if ok[0] else 1.0  # a run that starts unobserved starts at rest
+    if run.n_fingers:
+        valid = ~run.finger_missing_mask  # (T, F)
+        on = touching(run) & valid
+        vel = finger_velocity(run)
+        for f in range(run.n_fingers):
+            o = len(D_NAMES) + len(DF_NAMES) * f
+            D[o: o + 3] = run.finger_position[:, f].T
+            D[o + 3: o + 6] = vel[:, f].T
+            D[o + 6] = on[:, f]
+            D[o + 7: o + 10] = np.where(np.isfinite(run.normal[:, f]), run.normal[:, f], 0.0).T
+            if run.force is not None:
+                D[o + 10: o + 13] = run.force[:, f].T
+                D[o + 13] = valid[:, f]
+            D[o + 14] = valid[:, f]
+            D[o + 15] = run.finger_radius[f]
+    for f in range(run.n_fingers, F):  # padding: a finger far away with no weight
+        D[len(D_NAMES) + len(DF_NAMES) * f + 15] = 1.0
+    return D
+
+
+class Estimator3D:
+    """Implicit estimator for a set of 3-D runs of one object."""
+
+    def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
+                 echo=None):
+        check_runs_3d(runs)
+        self.runs = runs
+        self.config = config or EstimatorConfig()
+        self.echo = echo or _noop
+        self.shape = make_shape_3d(shape_spec)
+        self.scales: Scales = choose_scales(runs, self.config)
+        self.F = max(r.n_fingers for r in runs)
+        self.layout = Layout3D(lengths=tuple(int(r.n_samples) for r in runs), F=self.F)
+        self.has_force = any(r.force is not None for r in runs)
+        self.has_pose = any(r.pose_obs is not None for r in runs)
+        size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
+        self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound
+        if not self.size_bound > self.scales.L * MIN_BOUND_OVER_SCALE:
+            raise TacestError(f"size bound {self.size_bound:g} m is below the length scale {self.scales.L:g} m "
+                              f"times {MIN_BOUND_OVER_SCALE}: no shape fits")
+        self.s0 = self.shape.initial(np.full(3, 1.0))  # a cube of the length scale
+        t0 = time.perf_counter()
+        self.built = get_solver_3d(self.shape, self.layout, self.config, self.echo)
+        self.build_time = time.perf_counter() - t0
+        self.problem: Problem3D = self.built.problem
+        self.z = None
+        self.p_final = None
+
+    # --------------------------------------------------------------------------------
+    def params(self, eps, comp_mult, dyn_mult=1.0, ridge=None, s_ref=None):
+        """Parameter vector p of the NLP."""
+        cfg, sc = self.config, self.scales
+        D = np.concatenate([data_matrix_3d(r, self.F, sc) for r in self.runs], axis=1)
+        nz = cfg.noise
+        gvals = dict(L=sc.L, m0=sc.m0, sig_proc=nz.process, sig_pen=nz.penetration, sig_gap=nz.contact_gap,
+                     sig_comp=nz.complementarity, eps=eps, comp_mult=comp_mult, dyn_mult=dyn_mult,
+                     sig_force=nz.force, sig_normal=nz.normal, sig_diss=nz.dissipation, sig_rest=nz.rest)
+        g = np.array([gvals[n] for n in G3_NAMES], float)
+        w = np.array([getattr(cfg.weights, t) for t in TERMS3D], float)
+        pr = cfg.prior
+        prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
+                                 pr.shape_sigma, 1.0], self.s0 if s_ref is None else s_ref])
+        ridge = cfg.solver.hessian_ridge if ridge is None else ridge
+        p = np.concatenate([D.T.reshape(-1), g, w, prior, [ridge]])
+        assert p.shape[0] == self.problem.n_p
+        return p
+
+    def initial_guess(self, s0=None) -> np.ndarray:
+        """Scaled z0: theta (shape s0, log mass 0, uniform-density inertia, friction at
+        the prior), the observed (or resting) poses, small ground impulses (replaced by
+        :meth:`ground_impulses_nnls` before the solve), finger impulses from the
+        measured force (or a small push along the measured normal)."""
+        pr, sc = self.problem, self.scales
+        s0 = self.s0 if s0 is None else np.asarray(s0, float)
+        theta = np.zeros(pr.n_theta)
+        theta[: pr.n_shape] = s0
+        theta[pr.n_shape + 1: pr.n_shape + 7] = np.array(
+            ca.DM(self.shape.uniform_cholesky_reference(ca.DM(s0)))).reshape(-1)
+        theta[pr.theta_index("friction_ground")] = self.config.prior.friction
+        theta[pr.theta_index("friction_finger")] = self.config.prior.friction
+        X = np.zeros((NP, self.layout.S))
+        LF = np.zeros((3 * self.F, self.layout.M))
+        V = numeric_vertices_3d(self.shape, s0, sc.L)
+        for i, run in enumerate(self.runs):
+            poses = self.start_poses(run, V)
+            X[:, self.layout.run_samples(i)] = np.concatenate([poses[:, :3] / sc.L, poses[:, 3:]], 1).T
+            if run.n_fingers:
+                T = run.n_samples
+                Lam = sc.m0 * GRAVITY * run.dt
+                on = touching(run)[2:]
+                n = np.where(np.isfinite(run.normal[2:]), run.normal[2:], 0.0)
+                imp = run.force[2:] * run.dt / Lam if run.force is not None else -0.3 * n
+                imp = imp * on[:, :, None]  # (T-2, F, 3)
+                blk = np.zeros((T - 2, 3 * self.F))
+                blk[:, : 3 * run.n_fingers] = imp.reshape(T - 2, -1)
+                LF[:, self.layout.run_intervals(i)] = blk.T
+        U = impulse_variable(np.full((pr.K, self.layout.M), 1e-3))
+        return pr.join(theta, X, U, LF)
+
+    def start_poses(self, run: Run, V_body: np.ndarray) -> np.ndarray:
+        """(T, 7) starting poses: the observations (interpolated where missing), else the
+        prior's initial pose, else resting on the ground at the origin, unrotated."""
+        poses, ok = observed_poses(run)
+        if poses is not None:
+            return poses
+        if "initial_pose" in run.prior:
+            pose0 = np.asarray(run.prior["initial_pose"], float)[:7].copy()
+            pose0[3:] /= np.linalg.norm(pose0[3:])
+        else:
+            pose0 = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+            up = np.asarray(run.up, float)
+            lowest = np.min((V_body @ quat_to_matrix(pose0[3:]).T) @ up)
+            pose0[:3] = (run.ground_height - lowest) * up
+        return np.repeat(pose0[None], run.n_samples, 0)
+
+    def variable_bounds(self, z):
+        """lbx, ubx (scaled): shape and parameter bounds; finger impulses 0 where the
+        fingertip did not touch; the mass fixed without a force stream; the gauge."""
+        pr = self.problem
+        lbx = np.full(pr.n_z, -np.inf)
+        ubx = np.full(pr.n_z, np.inf)
+        ns = pr.n_shape
+        lbx[:ns], ubx[:ns] = self.shape.bounds(self.size_bound / self.scales.L)
+        i_lm = pr.theta_index("log_mass")
+        lbx[i_lm], ubx[i_lm] = LOG_MASS_BOUNDS
+        if not self.has_force:  # mass is not identifiable without a force measurement
+            lbx[i_lm] = ubx[i_lm] = 0.0
+        for k, name in enumerate(PHYS_NAMES_3D[1:7]):
+            j = pr.theta_index(name)
+            lbx[j], ubx[j] = INERTIA_DIAG_BOUNDS if k < 3 else (-INERTIA_OFFDIAG_BOUND, INERTIA_OFFDIAG_BOUND)
+        for name in ("friction_ground", "friction_finger"):
+            j = pr.theta_index(name)
+            lbx[j], ubx[j] = FRICTION_BOUNDS
+        if self.F:
+            for i, run in enumerate(self.runs):
+                on = np.zeros((run.n_samples - 2, self.F), bool)
+                if run.n_fingers:
+                    on[:, : run.n_fingers] = touching(run)[2:]
+                idx = pr.lf_index(np.arange(self.layout.M)[self.layout.run_intervals(i)])  # (T-2, 3F)
+                off = np.repeat(~on, 3, axis=1)
+                lbx[idx[off]] = 0.0
+                ubx[idx[off]] = 0.0
+        if self.shape.name != "box" and not self.has_pose:
+            # gauge: a free polytope can rotate in its body frame; fix run 0's start orientation
+            j = pr.x_index([0])[0, 3:7]
+            lbx[j] = ubx[j] = z[j]
+        return lbx, ubx
+
+    def choose_start_shape(self):
+        """Starting shape parameters: the cube-like ``initial(c·(1, 1, 1))`` scaled to touch
+        the ground where the observed object most often does.  For every observed pose,
+        the scale c_t at which the lowest vertex of the unit-scale shape would touch the
+        ground is (COM height) / (support distance downward); samples at rest or sliding
+        pile up at one value, samples in flight spread above it.  c is the mode of the c_t
+        (a histogram of START_SCALE_BIN relative width).  Without pose observations the
+        start is the shape of size L."""
+        if not self.has_pose:
+            return self.s0
+        V = numeric_vertices_3d(self.shape, self.shape.initial(np.ones(3)), self.scales.L) / self.scales.L
+        scales = []
+        for run in self.runs:
+            poses, ok = observed_poses(run)
+            if poses is None or not ok.any():
+                continue
+            up = np.asarray(run.up, float)
+            R = quat_to_matrix(poses[ok, 3:])
+            support = np.max(-np.einsum("tij,kj->tki", R, V) @ up, axis=1)  # (T,) in units of L
+            height = (poses[ok, :3] @ up - run.ground_height) / self.scales.L
+            c = height[support > 0] / support[support > 0]
+            scales.append(c[(c > START_SCALE_RANGE[0]) & (c < START_SCALE_RANGE[1])])
+        c = np.concatenate(scales) if scales else np.zeros(0)
+        if c.size < 10:
+            return self.s0
+        edges = np.exp(np.arange(np.log(START_SCALE_RANGE[0]), np.log(START_SCALE_RANGE[1]), START_SCALE_BIN))
+        hist, _ = np.histogram(c, edges)
+        hist = np.convolve(hist, np.ones(3), mode="same")  # a cluster split by a bin edge still wins
+        k = int(np.argmax(hist))
+        mode = float(np.median(c[(c >= edges[max(k - 1, 0)]) & (c < edges[min(k + 2, len(edges) - 1)])]))
+        # the mode is biased low: orientation noise tilts the observed resting object, and
+        # a tilted shape reaches lower; refine on a grid above it by the loss after
+        # non-negative least squares impulses (too small: impulses act at a distance;
+        # too large: penetration)
+        p = self.params(*self.config.solver.homotopy[-1])
+        candidates = mode * START_SCALE_REFINE
+        losses = [self.nnls_loss(self.initial_guess(self.shape.initial(np.full(3, c_))), p) for c_ in candidates]
+        return self.shape.initial(np.full(3, float(candidates[int(np.argmin(losses))])))
+
+    def nnls_loss(self, z, p) -> float:
+        """The loss 0.5 |r|² of the dynamic intervals after :meth:`ground_impulses_nnls`."""
+        return float(self.ground_impulses_nnls(z, p, return_loss=True))
+
+    def ground_impulses_nnls(self, z, p, return_loss=False):
+        """z with the ground impulses replaced by the solution of the impulses-only
+        problem for the current poses, shape and parameters: with those held, every
+        residual is affine in the interval's impulses lambda_n (K,) (the dynamics, the
+        closed-form friction and the complementarity are linear in them), so the problem
+        splits into one K-variable non-negative least squares per interval."""
+        from scipy.optimize import nnls
+
+        pr = self.problem
+        theta, X, U, LF = pr.split(z)
+        D, g, w = pr.split_parameters(p)
+        tr = pr.triples
+        M = self.layout.M
+        args = [X[:, tr[:, 0]], X[:, tr[:, 1]], X[:, tr[:, 2]], np.zeros_like(U), LF, theta, D[:, tr[:, 2]], g, w]
+        res, jac = pr.direct_residual_functions()
+        r0 = np.asarray(res.map(M)(*args))  # (n_r, M) at lambda_n = 0
+        A = np.asarray(jac.map(M)(*args))  # (n_r, K M)
+        K = pr.K
+        LN = np.zeros_like(U)
+        loss = 0.0
+        for n in range(M):
+            LN[:, n], rn = nnls(A[:, K * n: K * (n + 1)], -r0[:, n])
+            loss += 0.5 * rn * rn
+        if return_loss:
+            return loss
+        return pr.join(theta, X, impulse_variable(LN), LF)
+
+    def _impulse_only(self, lbx, ubx, z):
+        pr = self.problem
+        free = np.zeros(pr.n_z, bool)
+        free[pr.u_offset:] = True
+        return np.where(free, lbx, z), np.where(free, ubx, z)
+
+    # --------------------------------------------------------------------------------
+    def solve(self) -> SolveOutcome:
+        """Staged solve: the ground impulses by non-negative least squares for the
+        observed (or resting) trajectory; with fingers, the contact impulses alone by
+        IPOPT; then the homotopy stages of the config with everything free (see
+        estimator.py).  Hessian models as configured (``gauss-newton-then-exact``: the
+        exact Hessian in the last stage only)."""
+        cfg = self.config.solver
+        pr = self.problem
+        t0 = time.perf_counter()
+        self.s0 = self.choose_start_shape()
+        self.echo(f"starting shape {np.round(self.s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
+        self.z = self.initial_guess()
+        hom = list(cfg.homotopy)
+        plan = [("impulses", *hom[0], "impulses")] if self.F else []
+        for k, (eps, w, wd) in enumerate(hom):
+            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, "all"))
+        stages, lam_x = [], None
+        t0 = time.perf_counter()
+        self.z = self.ground_impulses_nnls(self.z, self.params(*hom[0]))
+        nnls_time = time.perf_counter() - t0
+        self.echo(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
+        stages.append(StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
+                                wall_time=nnls_time, objective=float("nan")))
+        for label, eps, w, wd, which in plan:
+            lbx, ubx = self.variable_bounds(self.z)
+            if which == "impulses":
+                lbx, ubx = self._impulse_only(lbx, ubx, self.z)
+            self.z = np.clip(self.z, lbx, ubx)
+            final = label == plan[-1][0]
+            mode = cfg.hessian
+            if mode == "gauss-newton-then-exact":
+                mode = "exact" if final and len(hom) > 1 else "gauss-newton"
+            sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x, None,
+                                         label=label, echo=self.echo, hessian=mode,
+                                         max_iter=cfg.max_iter if final else cfg.stage_max_iter)
+            stages.append(info)
+            self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
+                      f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+            if final or which == "impulses" or info.status in FATAL_STATUSES:
+                check_success(info)
+            self.z = np.asarray(sol["x"]).reshape(-1)
+            if which == "all":
+                lam_x = np.asarray(sol["lam_x"]).reshape(-1)
+        self.p_final = self.params(*plan[-1][1:4])
+        self.bounds_final = self.variable_bounds(self.z)
+        last = stages[-1]
+        return SolveOutcome(z=self.z, lam_g=np.zeros(0), lam_x=lam_x, status=last.status,
+                            success=last.status in SUCCESS_STATUSES, iterations=sum(s.iterations for s in stages),
+                            wall_time=sum(s.wall_time for s in stages), objective=last.objective, stages=stages)
+
+    # --------------------------------------------------------------------------------
+    def physical(self, z):
+        """(vertices (K, 3) m, mass kg, inertia (3, 3) kg·m², mu_g, mu_f)."""
+        pr, sc = self.problem, self.scales
+        th = np.asarray(z, float)[: pr.n_theta]
+        mass = sc.m0 * float(np.exp(th[pr.theta_index("log_mass")]))
+        inertia = mass * sc.L ** 2 * inertia_numeric(th[pr.n_shape + 1: pr.n_shape + 7])
+        return (numeric_vertices_3d(self.shape, th[: pr.n_shape], sc.L), mass, inertia,
+                float(th[pr.theta_index("friction_ground")]), float(th[pr.theta_index("friction_finger")]))
+
+    def stage_outputs(self, z, p=None):
+        """({name: (n_out, M)} stage outputs over all dynamic intervals, {name: (n_out, R)}
+        start outputs over the runs)."""
+        pr = self.problem
+        theta, X, U, LF = pr.split(z)
+        D, g, _ = pr.split_parameters(self.p_final if p is None else p)
+        tr = pr.triples
+        out = pr.stage_fun.map(self.layout.M)(X[:, tr[:, 0]], X[:, tr[:, 1]], X[:, tr[:, 2]], U, LF, theta,
+                                              D[:, tr[:, 2]], g)
+        f0 = pr.first
+        o0 = pr.start_fun.map(len(self.runs))(X[:, f0], X[:, f0 + 1], theta, D[:, f0], D[:, f0 + 1], g)
+        return ({n: np.asarray(v) for n, v in zip(pr.stage_fun.name_out(), out)},
+                {n: np.asarray(v) for n, v in zip(pr.start_fun.name_out(), o0)})
+
+    def run_results(self, z):
+        """Per run: (pose (T, 7), velocity (T, 6) [v world m/s, omega world rad/s],
+        impulses {name: N·s}, residuals {term: (T,)} (0.5 |r|² per sample, weights not
+        applied)).  The velocity at sample t is that of the interval (t-1, t]; sample 0
+        repeats sample 1's."""
+        pr, sc = self.problem, self.scales
+        _, X, _, _ = pr.split(z)
+        st, o0 = self.stage_outputs(z)
+        K = pr.K
+        results = []
+        for i, run in enumerate(self.runs):
+            T = run.n_samples
+            xs = X[:, self.layout.run_samples(i)].T
+            iv = self.layout.run_intervals(i)
+            q = xs[:, 3:7] / np.linalg.norm(xs[:, 3:7], axis=1, keepdims=True)
+            pose = np.concatenate([xs[:, 0:3] * sc.L, q], 1)
+            vel_b = np.zeros((T, 6))
+            vel_b[2:] = st["velocity"][:, iv].T
+            vel_b[1, :3] = (pose[1, :3] - pose[0, :3]) / run.dt
+            vel_b[1, 3:] = quat_log_rate(q[0], q[1], run.dt)
+            vel_b[0] = vel_b[1]
+            w_world = np.einsum("tij,tj->ti", quat_to_matrix(q), vel_b[:, 3:])
+            vel = np.concatenate([vel_b[:, :3], w_world], 1)
+            Lam = sc.m0 * GRAVITY * run.dt
+            lt = st["lam_t_ground"][:, iv].T.reshape(T - 2, K, 3)
+            imp = {"ground_normal": np.vstack([np.zeros((2, K)), st["lam_n_ground"][:, iv].T * Lam]),
+                   "ground_tangent": np.concatenate([np.zeros((2, K, 3)), lt * Lam], 0)}
+            fi = st["imp_finger"][:, iv].T if self.F else np.zeros((T - 2, 0))
+            for f in range(run.n_fingers):
+                imp[f"finger_{f}"] = np.vstack([np.zeros((2, 3)), fi[:, 3 * f: 3 * f + 3]])
+            res = {}
+            for t in TERMS3D:
+                vals = 0.5 * np.sum(st[t][:, iv] ** 2, axis=0) if st[t].size else np.zeros(T - 2)
+                first = np.zeros(2)
+                if t in o0 and o0[t].size:
+                    blk = o0[t][:, i]
+                    if t == "dynamics":  # the rest term belongs to sample 1
+                        first[1] = 0.5 * float(np.sum(blk ** 2))
+                    else:  # samples 0 and 1 stacked in equal halves
+                        h = blk.size // 2
+                        first = np.array([0.5 * np.sum(blk[:h] ** 2), 0.5 * np.sum(blk[h:] ** 2)])
+                res[t] = np.concatenate([first, vals])
+            results.append((pose, vel, imp, res))
+        return results
+
+
+#: the size bound must exceed this multiple of the length scale (the smallest extent is
+#: MIN_SIZE_FRACTION of the bound; a bound below half the scale leaves no room to start)
+MIN_BOUND_OVER_SCALE = 0.5
+
+
+def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
+                     echo=None) -> Estimate:
+    """Estimate one object's shape, inertia, friction and every run's trajectory from 3-D
+    runs.  See the module docstring."""
+    from tacest.information.observed3d import observed_information_3d
+
+    echo = echo or _noop
+    t_start = time.perf_counter()
+    est = Estimator3D(runs, shape_spec, config, echo)
+    pr = est.problem
+    echo(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
+    out = est.solve()
+    V, mass, inertia, mu_g, mu_f = est.physical(out.z)
+    run_ests = []
+    for run, (pose, vel, imp, res) in zip(runs, est.run_results(out.z)):
+        src = run.filename or ""
+        run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
+                                    source_sha256=sha256_file(src) if src else ""))
+    info, names, std = observed_information_3d(pr, out.z, est.p_final, *est.bounds_final, est.scales.L, mass)
+    params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
+    identifiable = {"mass": est.has_force, "inertia": est.has_force, "friction_ground": True,
+                    "friction_finger": est.F > 0}
+    # a parameter the data leave (nearly) undetermined: one sigma above half its value
+    for k in ("friction_ground", "friction_finger"):
+        if not std.get(k, np.inf) <= 0.5 * max(params[k], 1e-3):
+            identifiable[k] = False
+    for k, n in enumerate(est.shape.param_names):
+        std.setdefault(n, np.inf)
+    notes = []
+    if not est.has_force:
+        notes.append("no force measurement: mass is not identifiable (held at the prior "
+                     f"{est.scales.m0:g} kg); inertia is identified only relative to it (I/m)")
+    wall = time.perf_counter() - t_start
+    return Estimate(
+        dim=3, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=[],
+        solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
+        objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
+        config=est.config.to_dict(), method="implicit",
+        extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
+                                          for s in out.stages),
+                     "length_scale": est.scales.L, "mass_scale": est.scales.m0,
+                     "shape_params": np.asarray(out.z[: pr.n_shape] * est.scales.L, float),
+                     "notes": "; ".join(notes)},
+    )
+
+
+def inertia_parameters(inertia, mass, L) -> np.ndarray:
+    """Log-Cholesky parameters (6,) of a physical inertia (3, 3) kg·m² of an object of
+    ``mass`` kg at length scale L m (the inverse of Estimator3D.physical's map)."""
+    return cholesky_from_inertia(np.asarray(inertia, float) / (mass * L * L))
