@@ -10,7 +10,7 @@ import click
 @click.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Estimate file to write (HDF5).")
-@click.option("--shape", default="box", show_default=True, help="Shape parameterization: box or polygon:K.")
+@click.option("--shape", default="box", show_default=True, help="Shape parameterization: box or polygon:K (2-D runs); box or polytope:K (3-D runs).")
 @click.option("--method", type=click.Choice(["implicit", "shooting"]), default="implicit", show_default=True,
               help="implicit: one NLP over states, impulses and parameters; shooting: baseline.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,

@@ -34,14 +34,16 @@ def _noop(*_a, **_k):
     pass
 
 
-def check_runs(runs: list[Run]):
+def check_runs(runs: list[Run], allow_3d: bool = False):
+    """One clear error for runs that cannot be estimated together; 3-D runs pass only
+    where the caller hands them to the 3-D estimator (estimator3d.py)."""
     if not runs:
         raise TacestError("no run files given")
     dims = {r.dim for r in runs}
     if len(dims) > 1:
         raise TacestError("runs mix 2-D and 3-D recordings; estimate them separately")
-    if dims != {2}:
-        raise TacestError("3-D estimation is not available in this version (2-D runs only)")
+    if dims != {2} and not allow_3d:
+        raise TacestError("3-D runs are estimated by the implicit method only (--method implicit)")
     for r in runs:
         if r.n_samples < 3:
             raise TacestError(f"{r.filename}: needs at least 3 samples")
@@ -251,6 +253,11 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         return estimate_shooting(runs, shape_spec, config, echo)
     if method != "implicit":
         raise TacestError(f"unknown method {method!r}: use implicit or shooting")
+    check_runs(runs, allow_3d=True)
+    if runs[0].dim == 3:  # the one place where 2-D and 3-D part
+        from tacest.estimation.estimator3d import estimate_runs_3d
+
+        return estimate_runs_3d(runs, shape_spec, config, echo)
     est = ImplicitEstimator(runs, shape_spec, config, echo)
     echo(f"built NLP: {est.problem.n_z} variables, {est.problem.g.shape[0]} constraints "
          f"({est.build_time:.1f} s)")

@@ -67,6 +67,10 @@ def check_runs_3d(runs: list[Run]):
         name = r.filename or "run"
         if r.dim != 3:
             raise TacestError(f"{name}: is {r.dim}-D; the 3-D estimator needs 3-D runs")
+        if r.n_fingers and np.shape(r.finger_position)[-1] != 3 or (
+                r.pose_obs is not None and np.shape(r.pose_obs)[-1] != 7):
+            raise TacestError(f"{name}: not a valid 3-D run (fingertip positions need 3 coordinates, "
+                              "poses 7)")
         if r.n_samples < 4:
             raise TacestError(f"{name}: needs at least 4 samples (3-D dynamics need three poses per interval)")
         if r.pose_obs is None and not r.n_fingers:
@@ -260,6 +264,9 @@ class Estimator3D:
         for name in ("friction_ground", "friction_finger"):
             j = pr.theta_index(name)
             lbx[j], ubx[j] = FRICTION_BOUNDS
+        if not self.F:  # no fingertip: its friction is not in the model; hold it at the prior
+            j = pr.theta_index("friction_finger")
+            lbx[j] = ubx[j] = z[j]
         if self.F:
             for i, run in enumerate(self.runs):
                 on = np.zeros((run.n_samples - 2, self.F), bool)
@@ -309,7 +316,7 @@ class Estimator3D:
         # a tilted shape reaches lower; refine on a grid above it by the loss after
         # non-negative least squares impulses (too small: impulses act at a distance;
         # too large: penetration)
-        p = self.params(*self.config.solver.homotopy[-1])
+        p = self.params(*self.config.solver3d.homotopy[-1])
         candidates = mode * START_SCALE_REFINE
         losses = [self.nnls_loss(self.initial_guess(self.shape.initial(np.full(3, c_))), p) for c_ in candidates]
         return self.shape.initial(np.full(3, float(candidates[int(np.argmin(losses))])))
@@ -358,13 +365,13 @@ class Estimator3D:
         IPOPT; then the homotopy stages of the config with everything free (see
         estimator.py).  Hessian models as configured (``gauss-newton-then-exact``: the
         exact Hessian in the last stage only)."""
-        cfg = self.config.solver
+        cfg, cfg3 = self.config.solver, self.config.solver3d
         pr = self.problem
         t0 = time.perf_counter()
         self.s0 = self.choose_start_shape()
         self.echo(f"starting shape {np.round(self.s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
         self.z = self.initial_guess()
-        hom = list(cfg.homotopy)
+        hom = list(cfg3.homotopy)
         plan = [("impulses", *hom[0], "impulses")] if self.F else []
         for k, (eps, w, wd) in enumerate(hom):
             plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, "all"))
@@ -381,7 +388,7 @@ class Estimator3D:
                 lbx, ubx = self._impulse_only(lbx, ubx, self.z)
             self.z = np.clip(self.z, lbx, ubx)
             final = label == plan[-1][0]
-            mode = cfg.hessian
+            mode = cfg3.hessian
             if mode == "gauss-newton-then-exact":
                 mode = "exact" if final and len(hom) > 1 else "gauss-newton"
             sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x, None,

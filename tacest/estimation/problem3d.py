@@ -193,7 +193,186 @@ class LazyHessians(dict):
         return fun
 
 
-class Problem3D:
+class StageModel3D:
+    """The model's per-sample residual functions (SX) for a shape and F fingers: what
+    the NLP maps over samples and what the forward simulator (rollout3d.py) solves
+    step by step."""
+
+    def __init__(self, shape: Shape3D, F: int):
+        self.shape = shape
+        self.K = shape.n_vertices
+        self.F = int(F)
+        self.n_shape = shape.n_params
+        self.n_theta = self.n_shape + len(PHYS_NAMES_3D)
+        self.n_d = n_data(self.F)
+
+    def theta_index(self, name):
+        return self.n_shape + PHYS_NAMES_3D.index(name)
+
+    def unpack_theta(self, th, L, m0):
+        """(s (n_s), mass kg, a (3, 3) = I / m in m², mu_g, mu_f) from theta."""
+        ns = self.n_shape
+        I_s, _ = inertia_from_cholesky(th[ns + 1: ns + 7])
+        return th[:ns], m0 * ca.exp(th[ns]), I_s * L * L, th[ns + 7], th[ns + 8]
+
+    def _prior_residual(self, th, pr):
+        ns = self.n_shape
+        s = th[:ns]
+        lm_sig, lI_sig, mu0, mu_sig, sh_sig, on = (pr[i] for i in range(N_PRIOR_FIXED))
+        c_ref = self.shape.uniform_cholesky_reference(s)
+        r = ca.vertcat(th[ns] / lm_sig, (th[ns + 1: ns + 7] - c_ref) / lI_sig, (th[ns + 7] - mu0) / mu_sig,
+                       (th[ns + 8] - mu0) / mu_sig, (s - pr[N_PRIOR_FIXED:]) / sh_sig)
+        return ca.sqrt(on) * r
+
+    @staticmethod
+    def finger_geometry(p, R, s, L, c_f, radius, sd_fun):
+        """Gap phi_f (m), outward normal n (3, world) and body-frame contact point r_b
+        (3, m) of one fingertip sphere centred at c_f (3, world)."""
+        c_b = ca.mtimes(R.T, c_f - p)
+        sd, n_b = sd_fun(c_b, s, L)
+        n_b = n_b / ca.sqrt(ca.dot(n_b, n_b) + 1e-12)
+        return sd - radius, ca.mtimes(R, n_b), c_b - sd * n_b
+
+    @staticmethod
+    def pose_residual(p, q, d):
+        """Whitened pose observation residual (6,) of the pose (p m, q) at one sample."""
+        q_hat = q / ca.sqrt(ca.dot(q, q))
+        return d[DI["w_pose"]] * ca.vertcat((p - d[DI["px"]: DI["pz"] + 1]) / d[DI["sig_pos"]],
+                                            quat_error_vector(d[DI["qw"]: DI["qz"] + 1], q_hat) / d[DI["sig_ang"]])
+
+    def _stage_function(self, direct=False):
+        """Residuals of one dynamic interval (t-1, t] from the poses t-2, t-1, t.  The
+        ground-impulse input is the variable u (lambda_n = softplus(u)) or, with
+        ``direct``, lambda_n itself (for the non-negative least squares start)."""
+        K, F = self.K, self.F
+        xa, xb, xc = (ca.SX.sym(n, NP) for n in ("x_tm2", "x_tm1", "x_t"))
+        u_in = ca.SX.sym("lam_ground" if direct else "u_ground", K)
+        ln = u_in if direct else impulse_of(u_in)
+        lf = ca.SX.sym("lam_finger", 3 * F)
+        th = ca.SX.sym("theta", self.n_theta)
+        d = ca.SX.sym("d", self.n_d)
+        g = ca.SX.sym("g", len(G3_NAMES))
+        L, m0 = g[G3["L"]], g[G3["m0"]]
+        dt, Lam = d[DI["dt"]], d[DI["Lam"]]
+        n_g = d[DI["nx"]: DI["nz"] + 1]
+        s, mass, a_inertia, mu_g, mu_f = self.unpack_theta(th, L, m0)
+        V = self.shape.vertices(s, L)
+        p, q = xc[0:3] * L, xc[3:7]
+        v, w = pose_velocity(xb, xc, dt, L)
+        v_prev, w_prev = pose_velocity(xa, xb, dt, L)
+        phi, slip, levers, R = ground_contacts(p, q, v, w, V, n_g, d[DI["h"]])
+        imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
+        torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
+        comp, pen, lt_out = [], [], []
+        for k in range(K):
+            # C2 + C3 in closed form: on the cone's boundary, against the slip
+            lt = -mu_g * ln[k] * slip[k] / ca.sqrt(ca.dot(slip[k], slip[k]) + SLIP_EPS ** 2)
+            lt_out.append(lt)
+            imp = ln[k] * n_g + lt
+            imp_world += imp
+            torque_b += cross(levers[k], ca.mtimes(R.T, imp))
+            # smoothed gap in units of sig_gap, shifted by one as in 2-D: within about one
+            # sig_gap of the ground a vertex counts as touching; saturating, and relative
+            # to the object's own weight (lambda_n is in units of m0 g dt)
+            gap = smooth_pos(phi[k] / g[G3["sig_gap"]] - 1, g[G3["eps"]])
+            comp.append(ln[k] * (m0 / mass) * gap / (1 + gap))
+            # penetration: the shifted one-sided penalty of 2-D (≈ 0 at phi = 0, so that
+            # resting contacts are not pushed off the ground)
+            pen.append(one_sided(phi[k], g[G3["sig_pen"]]))
+        r_force, r_normal, r_contact, cone, diss, imp_f_out = [], [], [], [], [], []
+        sd_fun = shape_sd_and_normal_function(self.shape) if F else None
+        for f in range(F):
+            o = len(D_NAMES) + len(DF_NAMES) * f
+            c_f, v_f = d[o: o + 3], d[o + 3: o + 6]
+            contact, n_meas, F_meas = d[o + 6], d[o + 7: o + 10], d[o + 10: o + 13]
+            w_force, w_tact, radius = d[o + 13], d[o + 14], d[o + 15]
+            phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun)
+            imp_s = lf[3 * f: 3 * f + 3]
+            lam_n = -ca.dot(imp_s, n_w)
+            lam_t = imp_s + lam_n * n_w  # tangential part
+            u_rel = v + ca.mtimes(R, cross(w, r_b)) - v_f
+            s_t = (u_rel - ca.dot(u_rel, n_w) * n_w) / L  # object lengths per second
+            # eq. C3 at the fingertip: zero when lambda_t opposes the slip at the cone's edge
+            diss.append(mu_f * lam_n * ca.sqrt(ca.dot(s_t, s_t) + (SLIP_EPS / L) ** 2) + ca.dot(lam_t, s_t))
+            # |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty; the 1e-12
+            # (scaled impulse units squared) keeps |lambda_t| differentiable at 0
+            cone.append(one_sided(mu_f * lam_n - ca.sqrt(ca.dot(lam_t, lam_t) + 1e-12), CONE_TOLERANCE)
+                        * CONE_TOLERANCE)
+            imp_world += imp_s
+            torque_b += cross(r_b, ca.mtimes(R.T, imp_s))
+            imp_f_out.append(Lam * imp_s)
+            r_force.append(w_force * (Lam * imp_s / dt - F_meas) / g[G3["sig_force"]])
+            r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
+            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]]))
+        # D1 divided by the mass (matrix), whitened as process noise on the velocity change
+        acc_scale = GRAVITY * dt * (m0 / mass)  # scaled impulse -> velocity change, m/s
+        r_lin = (v - v_prev) + GRAVITY * dt * n_g - acc_scale * imp_world
+        r_ang = (w - w_prev) - ca.solve(a_inertia, acc_scale * torque_b - dt * cross(w, ca.mtimes(a_inertia, w)))
+        sig_v = g[G3["sig_proc"]] * GRAVITY * dt
+        r_dyn = ca.sqrt(g[G3["dyn_mult"]]) * ca.vertcat(r_lin / sig_v, r_ang * (L / 2) / sig_v)
+        empty = ca.SX.zeros(0)
+        outs = {
+            "force": ca.vertcat(*r_force) if F else empty,
+            "normal": ca.vertcat(*r_normal) if F else empty,
+            "contact": ca.vertcat(*r_contact) if F else empty,
+            "pose": self.pose_residual(p, q, d),
+            "dynamics": r_dyn,
+            "penetration": ca.vertcat(*pen),
+            "complementarity": ca.sqrt(g[G3["comp_mult"]]) * ca.vertcat(*comp) / g[G3["sig_comp"]],
+            "dissipation": (ca.vertcat(*diss) if F else empty) / g[G3["sig_diss"]],
+            "cone": (ca.vertcat(*cone) if F else empty) / g[G3["sig_comp"]],
+            "quat_norm": (ca.dot(q, q) - 1) / QUAT_NORM_SIGMA,
+            # diagnostics (not in the loss): normal (K) and tangential (3K) ground
+            # impulses in units of m0 g dt, finger impulses on the object (3F, N·s),
+            # vertex gaps (K, m), velocity [v world, omega body] (6)
+            "lam_n_ground": ln,
+            "lam_t_ground": ca.vertcat(*lt_out),
+            "imp_finger": ca.vertcat(*imp_f_out) if F else empty,
+            "phi_ground": ca.vertcat(*phi),
+            "velocity": ca.vertcat(v, w),
+        }
+        names = list(outs)
+        return ca.Function(f"stage3d_K{K}_F{F}" + ("_direct" if direct else ""),
+                           [xa, xb, xc, u_in, lf, th, d, g], [outs[n] for n in names],
+                           ["x_tm2", "x_tm1", "x_t", "lam_ground" if direct else "u_ground", "lam_finger",
+                            "theta", "d", "g"], names)
+
+    def _start_function(self):
+        """Terms of a run's first two samples: pose observations, penetration, finger gaps,
+        the quaternion norms, and the rest term v[1] ≈ 0 where the run has no pose
+        observation at its start (an unobserved object starts at rest)."""
+        K, F = self.K, self.F
+        xa, xb = ca.SX.sym("x_0", NP), ca.SX.sym("x_1", NP)
+        th = ca.SX.sym("theta", self.n_theta)
+        da, db = ca.SX.sym("d_0", self.n_d), ca.SX.sym("d_1", self.n_d)
+        g = ca.SX.sym("g", len(G3_NAMES))
+        L, m0 = g[G3["L"]], g[G3["m0"]]
+        s, *_ = self.unpack_theta(th, L, m0)
+        V = self.shape.vertices(s, L)
+        sd_fun = shape_sd_and_normal_function(self.shape) if F else None
+        pose, pen, contact, qn = [], [], [], []
+        for x, d in ((xa, da), (xb, db)):
+            p, q = x[0:3] * L, x[3:7]
+            phi, _, _, R = ground_contacts(p, q, ca.SX.zeros(3), ca.SX.zeros(3), V, d[DI["nx"]: DI["nz"] + 1],
+                                           d[DI["h"]])
+            pose.append(self.pose_residual(p, q, d))
+            pen += [one_sided(ph, g[G3["sig_pen"]]) for ph in phi]
+            for f in range(F):
+                o = len(D_NAMES) + len(DF_NAMES) * f
+                phi_f, _, _ = self.finger_geometry(p, R, s, L, d[o: o + 3], d[o + 15], sd_fun)
+                contact.append(contact_residual(phi_f, d[o + 6], d[o + 14], g[G3["sig_gap"]]))
+            qn.append((ca.dot(q, q) - 1) / QUAT_NORM_SIGMA)
+        v, w = pose_velocity(xa, xb, da[DI["dt"]], L)
+        rest = da[DI["w_rest"]] * ca.vertcat(v, w * (L / 2)) / g[G3["sig_rest"]]
+        return ca.Function("start3d", [xa, xb, th, da, db, g],
+                           [ca.vertcat(*pose), rest, ca.vertcat(*pen),
+                            ca.vertcat(*contact) if F else ca.SX.zeros(0), ca.vertcat(*qn)],
+                           ["x_0", "x_1", "theta", "d_0", "d_1", "g"],
+                           ["pose", "dynamics", "penetration", "contact", "quat_norm"])
+
+
+
+class Problem3D(StageModel3D):
     """The 3-D NLP for a set of runs of one object (see module docstring).
 
     Parameters
@@ -205,15 +384,10 @@ class Problem3D:
     """
 
     def __init__(self, shape: Shape3D, layout: Layout3D, config: EstimatorConfig, echo=None):
-        self.shape = shape
+        super().__init__(shape, layout.F)
         self.layout = layout
         self.config = config
         self.echo = echo
-        self.K = shape.n_vertices
-        self.F = layout.F
-        self.n_shape = shape.n_params
-        self.n_theta = self.n_shape + len(PHYS_NAMES_3D)
-        self.n_d = n_data(self.F)
         lay = layout
         self.x_offset = self.n_theta
         self.u_offset = self.x_offset + NP * lay.S
@@ -225,9 +399,6 @@ class Problem3D:
 
     # ------------------------------------------------------------------------------
     # layout of z
-
-    def theta_index(self, name):
-        return self.n_shape + PHYS_NAMES_3D.index(name)
 
     def x_index(self, samples):
         """(len(samples), 7) z indices of the poses of the given samples."""
@@ -402,171 +573,6 @@ class Problem3D:
         res, _ = self._residual_function(self._stage_function(direct=True), STAGE_TERMS, n_state=3)
         ins = res.sx_in()
         return res, ca.Function("jac_ln3d", ins, [ca.densify(ca.jacobian(res(*ins), ins[3]))])
-
-    # ------------------------------------------------------------------------------
-    # model pieces (SX)
-
-    def unpack_theta(self, th, L, m0):
-        """(s (n_s), mass kg, a (3, 3) = I / m in m², mu_g, mu_f) from theta."""
-        ns = self.n_shape
-        I_s, _ = inertia_from_cholesky(th[ns + 1: ns + 7])
-        return th[:ns], m0 * ca.exp(th[ns]), I_s * L * L, th[ns + 7], th[ns + 8]
-
-    def _prior_residual(self, th, pr):
-        ns = self.n_shape
-        s = th[:ns]
-        lm_sig, lI_sig, mu0, mu_sig, sh_sig, on = (pr[i] for i in range(N_PRIOR_FIXED))
-        c_ref = self.shape.uniform_cholesky_reference(s)
-        r = ca.vertcat(th[ns] / lm_sig, (th[ns + 1: ns + 7] - c_ref) / lI_sig, (th[ns + 7] - mu0) / mu_sig,
-                       (th[ns + 8] - mu0) / mu_sig, (s - pr[N_PRIOR_FIXED:]) / sh_sig)
-        return ca.sqrt(on) * r
-
-    @staticmethod
-    def finger_geometry(p, R, s, L, c_f, radius, sd_fun):
-        """Gap phi_f (m), outward normal n (3, world) and body-frame contact point r_b
-        (3, m) of one fingertip sphere centred at c_f (3, world)."""
-        c_b = ca.mtimes(R.T, c_f - p)
-        sd, n_b = sd_fun(c_b, s, L)
-        n_b = n_b / ca.sqrt(ca.dot(n_b, n_b) + 1e-12)
-        return sd - radius, ca.mtimes(R, n_b), c_b - sd * n_b
-
-    @staticmethod
-    def pose_residual(p, q, d):
-        """Whitened pose observation residual (6,) of the pose (p m, q) at one sample."""
-        q_hat = q / ca.sqrt(ca.dot(q, q))
-        return d[DI["w_pose"]] * ca.vertcat((p - d[DI["px"]: DI["pz"] + 1]) / d[DI["sig_pos"]],
-                                            quat_error_vector(d[DI["qw"]: DI["qz"] + 1], q_hat) / d[DI["sig_ang"]])
-
-    def _stage_function(self, direct=False):
-        """Residuals of one dynamic interval (t-1, t] from the poses t-2, t-1, t.  The
-        ground-impulse input is the variable u (lambda_n = softplus(u)) or, with
-        ``direct``, lambda_n itself (for the non-negative least squares start)."""
-        K, F = self.K, self.F
-        xa, xb, xc = (ca.SX.sym(n, NP) for n in ("x_tm2", "x_tm1", "x_t"))
-        u_in = ca.SX.sym("lam_ground" if direct else "u_ground", K)
-        ln = u_in if direct else impulse_of(u_in)
-        lf = ca.SX.sym("lam_finger", 3 * F)
-        th = ca.SX.sym("theta", self.n_theta)
-        d = ca.SX.sym("d", self.n_d)
-        g = ca.SX.sym("g", len(G3_NAMES))
-        L, m0 = g[G3["L"]], g[G3["m0"]]
-        dt, Lam = d[DI["dt"]], d[DI["Lam"]]
-        n_g = d[DI["nx"]: DI["nz"] + 1]
-        s, mass, a_inertia, mu_g, mu_f = self.unpack_theta(th, L, m0)
-        V = self.shape.vertices(s, L)
-        p, q = xc[0:3] * L, xc[3:7]
-        v, w = pose_velocity(xb, xc, dt, L)
-        v_prev, w_prev = pose_velocity(xa, xb, dt, L)
-        phi, slip, levers, R = ground_contacts(p, q, v, w, V, n_g, d[DI["h"]])
-        imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
-        torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
-        comp, pen, lt_out = [], [], []
-        for k in range(K):
-            # C2 + C3 in closed form: on the cone's boundary, against the slip
-            lt = -mu_g * ln[k] * slip[k] / ca.sqrt(ca.dot(slip[k], slip[k]) + SLIP_EPS ** 2)
-            lt_out.append(lt)
-            imp = ln[k] * n_g + lt
-            imp_world += imp
-            torque_b += cross(levers[k], ca.mtimes(R.T, imp))
-            # smoothed gap in units of sig_gap, shifted by one as in 2-D: within about one
-            # sig_gap of the ground a vertex counts as touching; saturating, and relative
-            # to the object's own weight (lambda_n is in units of m0 g dt)
-            gap = smooth_pos(phi[k] / g[G3["sig_gap"]] - 1, g[G3["eps"]])
-            comp.append(ln[k] * (m0 / mass) * gap / (1 + gap))
-            # penetration: the shifted one-sided penalty of 2-D (≈ 0 at phi = 0, so that
-            # resting contacts are not pushed off the ground)
-            pen.append(one_sided(phi[k], g[G3["sig_pen"]]))
-        r_force, r_normal, r_contact, cone, diss, imp_f_out = [], [], [], [], [], []
-        sd_fun = shape_sd_and_normal_function(self.shape) if F else None
-        for f in range(F):
-            o = len(D_NAMES) + len(DF_NAMES) * f
-            c_f, v_f = d[o: o + 3], d[o + 3: o + 6]
-            contact, n_meas, F_meas = d[o + 6], d[o + 7: o + 10], d[o + 10: o + 13]
-            w_force, w_tact, radius = d[o + 13], d[o + 14], d[o + 15]
-            phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun)
-            imp_s = lf[3 * f: 3 * f + 3]
-            lam_n = -ca.dot(imp_s, n_w)
-            lam_t = imp_s + lam_n * n_w  # tangential part
-            u_rel = v + ca.mtimes(R, cross(w, r_b)) - v_f
-            s_t = (u_rel - ca.dot(u_rel, n_w) * n_w) / L  # object lengths per second
-            # eq. C3 at the fingertip: zero when lambda_t opposes the slip at the cone's edge
-            diss.append(mu_f * lam_n * ca.sqrt(ca.dot(s_t, s_t) + (SLIP_EPS / L) ** 2) + ca.dot(lam_t, s_t))
-            # |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty; the 1e-12
-            # (scaled impulse units squared) keeps |lambda_t| differentiable at 0
-            cone.append(one_sided(mu_f * lam_n - ca.sqrt(ca.dot(lam_t, lam_t) + 1e-12), CONE_TOLERANCE)
-                        * CONE_TOLERANCE)
-            imp_world += imp_s
-            torque_b += cross(r_b, ca.mtimes(R.T, imp_s))
-            imp_f_out.append(Lam * imp_s)
-            r_force.append(w_force * (Lam * imp_s / dt - F_meas) / g[G3["sig_force"]])
-            r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
-            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]]))
-        # D1 divided by the mass (matrix), whitened as process noise on the velocity change
-        acc_scale = GRAVITY * dt * (m0 / mass)  # scaled impulse -> velocity change, m/s
-        r_lin = (v - v_prev) + GRAVITY * dt * n_g - acc_scale * imp_world
-        r_ang = (w - w_prev) - ca.solve(a_inertia, acc_scale * torque_b - dt * cross(w, ca.mtimes(a_inertia, w)))
-        sig_v = g[G3["sig_proc"]] * GRAVITY * dt
-        r_dyn = ca.sqrt(g[G3["dyn_mult"]]) * ca.vertcat(r_lin / sig_v, r_ang * (L / 2) / sig_v)
-        empty = ca.SX.zeros(0)
-        outs = {
-            "force": ca.vertcat(*r_force) if F else empty,
-            "normal": ca.vertcat(*r_normal) if F else empty,
-            "contact": ca.vertcat(*r_contact) if F else empty,
-            "pose": self.pose_residual(p, q, d),
-            "dynamics": r_dyn,
-            "penetration": ca.vertcat(*pen),
-            "complementarity": ca.sqrt(g[G3["comp_mult"]]) * ca.vertcat(*comp) / g[G3["sig_comp"]],
-            "dissipation": (ca.vertcat(*diss) if F else empty) / g[G3["sig_diss"]],
-            "cone": (ca.vertcat(*cone) if F else empty) / g[G3["sig_comp"]],
-            "quat_norm": (ca.dot(q, q) - 1) / QUAT_NORM_SIGMA,
-            # diagnostics (not in the loss): normal (K) and tangential (3K) ground
-            # impulses in units of m0 g dt, finger impulses on the object (3F, N·s),
-            # vertex gaps (K, m), velocity [v world, omega body] (6)
-            "lam_n_ground": ln,
-            "lam_t_ground": ca.vertcat(*lt_out),
-            "imp_finger": ca.vertcat(*imp_f_out) if F else empty,
-            "phi_ground": ca.vertcat(*phi),
-            "velocity": ca.vertcat(v, w),
-        }
-        names = list(outs)
-        return ca.Function(f"stage3d_K{K}_F{F}" + ("_direct" if direct else ""),
-                           [xa, xb, xc, u_in, lf, th, d, g], [outs[n] for n in names],
-                           ["x_tm2", "x_tm1", "x_t", "lam_ground" if direct else "u_ground", "lam_finger",
-                            "theta", "d", "g"], names)
-
-    def _start_function(self):
-        """Terms of a run's first two samples: pose observations, penetration, finger gaps,
-        the quaternion norms, and the rest term v[1] ≈ 0 where the run has no pose
-        observation at its start (an unobserved object starts at rest)."""
-        K, F = self.K, self.F
-        xa, xb = ca.SX.sym("x_0", NP), ca.SX.sym("x_1", NP)
-        th = ca.SX.sym("theta", self.n_theta)
-        da, db = ca.SX.sym("d_0", self.n_d), ca.SX.sym("d_1", self.n_d)
-        g = ca.SX.sym("g", len(G3_NAMES))
-        L, m0 = g[G3["L"]], g[G3["m0"]]
-        s, *_ = self.unpack_theta(th, L, m0)
-        V = self.shape.vertices(s, L)
-        sd_fun = shape_sd_and_normal_function(self.shape) if F else None
-        pose, pen, contact, qn = [], [], [], []
-        for x, d in ((xa, da), (xb, db)):
-            p, q = x[0:3] * L, x[3:7]
-            phi, _, _, R = ground_contacts(p, q, ca.SX.zeros(3), ca.SX.zeros(3), V, d[DI["nx"]: DI["nz"] + 1],
-                                           d[DI["h"]])
-            pose.append(self.pose_residual(p, q, d))
-            pen += [one_sided(ph, g[G3["sig_pen"]]) for ph in phi]
-            for f in range(F):
-                o = len(D_NAMES) + len(DF_NAMES) * f
-                phi_f, _, _ = self.finger_geometry(p, R, s, L, d[o: o + 3], d[o + 15], sd_fun)
-                contact.append(contact_residual(phi_f, d[o + 6], d[o + 14], g[G3["sig_gap"]]))
-            qn.append((ca.dot(q, q) - 1) / QUAT_NORM_SIGMA)
-        v, w = pose_velocity(xa, xb, da[DI["dt"]], L)
-        rest = da[DI["w_rest"]] * ca.vertcat(v, w * (L / 2)) / g[G3["sig_rest"]]
-        return ca.Function("start3d", [xa, xb, th, da, db, g],
-                           [ca.vertcat(*pose), rest, ca.vertcat(*pen),
-                            ca.vertcat(*contact) if F else ca.SX.zeros(0), ca.vertcat(*qn)],
-                           ["x_0", "x_1", "theta", "d_0", "d_1", "g"],
-                           ["pose", "dynamics", "penetration", "contact", "quat_norm"])
-
 
 def scatter_matrix(blocks, n_rows, n_cols):
     """A global sparse (n_rows, n_cols) MX matrix from local sparse blocks that do not
