@@ -1,0 +1,72 @@
+"""``tacest diagnose``: where and why the model disagrees with recordings."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+
+@click.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(file_okay=False), required=True,
+              help="Report folder to write (report.md, PNG figures, diagnosis.json).")
+@click.option("--estimate", "estimate_path", type=click.Path(dir_okay=False), default=None,
+              help="An estimate of exactly these runs with the plain model (saves the first fit).")
+@click.option("--shape", default=None, help="Shape parameterization: box or polygon:K "
+              "(default: the estimate's, else box).")
+@click.option("--effects", default=None, metavar="a,b,...",
+              help="Candidate effects to compare (default: every SPEC effect).")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+              help="Estimator settings (TOML, see configs/estimate.toml).")
+@click.option("--window", type=click.IntRange(min=1), default=None,
+              help="Longest residual window, samples (default 20).")
+@click.option("--alpha", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=None,
+              help="False-alarm rate of the window tests (default 0.01).")
+@click.option("--max-folds", type=click.IntRange(min=2), default=None,
+              help="Folds of the held-out comparison (default 3).")
+@click.option("--fit-iterations", type=click.IntRange(min=10), default=None,
+              help="IPOPT iterations per stage of every candidate and held-out fit (default 150).")
+@click.option("--max-candidates", type=click.IntRange(min=1), default=None,
+              help="Refit only this many candidates, ranked by their residual signature (default: all).")
+@click.option("--floor", "floor_mode", type=click.Choice(["calibrated", "nominal"]), default="calibrated",
+              show_default=True, help="Noise floor: levels from the data (capped at the configured noise) "
+              "or the configured noise levels themselves.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
+@click.option("--quiet", is_flag=True, help="No progress output.")
+def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
+             max_candidates, floor_mode, as_json, quiet):
+    """Diagnose where and why the model disagrees with RUNS (run files of one object):
+    residuals against the noise floor, candidate effects compared on held-out data,
+    the verdict (an effect or none).  See docs/diagnosis.md."""
+    from tacest.diagnosis.candidates import parse_effect_list
+    from tacest.diagnosis.diagnose import DiagnoseOptions
+    from tacest.diagnosis.diagnose import diagnose as run_diagnosis
+    from tacest.diagnosis.report import write_report
+    from tacest.errors import TacestError
+    from tacest.estimation.config import load_config
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+
+    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise TacestError(f"{out}: exists and is not a folder")
+    names = parse_effect_list(effects)
+    config = load_config(config_path)
+    loaded = [read_run(p) for p in runs]
+    est = read_estimate(estimate_path) if estimate_path else None
+    shape = shape or (est.shape if est is not None else "box")
+    opts = DiagnoseOptions(effects=names, floor=floor_mode)
+    for key, val in (("window", window), ("alpha", alpha), ("max_folds", max_folds),
+                     ("fit_iterations", fit_iterations), ("max_candidates", max_candidates)):
+        if val is not None:
+            setattr(opts, key, val)
+    diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, echo=echo)
+    obj = diag.to_json()
+    written = write_report(diag, out, obj)
+    if as_json:
+        click.echo(json.dumps(obj))
+    if not quiet:
+        click.echo(f"verdict: {diag.verdict} ({diag.reason}); wrote {out}/ ({', '.join(written)})", err=True)

@@ -1,0 +1,542 @@
+"""``diagnose(runs, ...)``: where, which effect, and how far the model misses the data.
+
+1. Where.  Fit the model as it is to all runs (or take a given estimate of them) and
+   test its residuals per term, run, window and contact state against the noise floor
+   (tacest.diagnosis.floor): the flagged windows with their share of the excess.
+2. Which.  Every candidate effect (tacest.diagnosis.candidates) is fitted to all data
+   (its parameters: a few grid values for a data transform, the NLP's own parameters
+   otherwise), then compared with the plain model on held-out data
+   (tacest.diagnosis.heldout): train on some pieces, fit the held-out pieces with the
+   trained parameters held fixed, sum the held-out objective.
+3. How far.  gap = held-out objective − its noise floor (the floor model's expected
+   objective of the same samples); ``gap_before`` is the plain model's, ``gap_after``
+   the candidate's, ``reduction`` = (before − after) / before.
+
+Verdict.  A candidate with k parameters scores ``improvement − k · penalty`` where
+improvement = held-out objective of the plain model − the candidate's (over the folds
+where every fit succeeded) and penalty = 0.5 · ln(N) per parameter, N the number of
+held-out samples (BIC's price in the objective's units, a negative log-likelihood
+under the configured noise model).  It counts only if its score is positive and it
+improves the held-out objective in at least half of the folds; the verdict is the
+best such candidate, or ``none``.
+
+Fairness.  Every candidate gets the same data, folds, iteration budget
+(``fit_iterations`` per IPOPT stage), warm start (from the plain model's fit to all
+data; a transform candidate's training fits from its own fit to all data), at most
+``fits_per_candidate`` fits to all data to choose its parameters, and the same
+penalty per parameter.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from tacest.diagnosis import candidates as cands
+from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, estimator_supports_effects, fit_estimator,
+                                      fit_local, weighted_objective)
+from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
+from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
+                                    fit_floor, flagged_windows, residual_dof, window_tests)
+from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_folds, make_pieces
+from tacest.diagnosis.transforms import apply_transform
+from tacest.errors import SolveFailedError, TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.io.estimate import CORE_PARAMS, Estimate
+
+#: IPOPT iterations per stage of every diagnosis fit (the fit budget; the plain model's
+#: fit to all data uses the configuration's own budget)
+FIT_ITERATIONS = 150
+#: fits to all data a candidate may use to choose its parameters (grid values)
+FITS_PER_CANDIDATE = 2
+
+
+def _noop(*_a, **_k):
+    pass
+
+
+@dataclass
+class DiagnoseOptions:
+    """Settings of a diagnosis (see module doc).
+
+    effects : candidate names (None: every SPEC effect); window : samples per window;
+    alpha : family-wise false-alarm rate of the window tests; max_folds : folds of the
+    held-out comparison; fit_iterations : IPOPT iterations per stage of every candidate
+    and held-out fit; fits_per_candidate : fits to all data per candidate;
+    max_candidates : refit only this many candidates, ranked by their screening
+    signature (None: all); floor : ``calibrated`` or ``nominal`` noise floor
+    (tacest.diagnosis.floor).
+    """
+
+    effects: Optional[tuple] = None
+    window: int = WINDOW
+    alpha: float = ALPHA
+    max_folds: int = MAX_FOLDS
+    fit_iterations: int = FIT_ITERATIONS
+    fits_per_candidate: int = FITS_PER_CANDIDATE
+    max_candidates: Optional[int] = None
+    floor: str = "calibrated"
+
+    def validate(self):
+        if self.floor not in MODES:
+            raise TacestError(f"floor must be one of {', '.join(MODES)}, got {self.floor!r}")
+        if not (isinstance(self.window, int) and self.window >= 1):
+            raise TacestError(f"window must be a positive integer, got {self.window!r}")
+        if not (0 < self.alpha < 1):
+            raise TacestError(f"alpha must be in (0, 1), got {self.alpha!r}")
+        if not (isinstance(self.max_folds, int) and self.max_folds >= 2):
+            raise TacestError(f"max_folds must be an integer >= 2, got {self.max_folds!r}")
+        if not (isinstance(self.fit_iterations, int) and self.fit_iterations >= 10):
+            raise TacestError(f"fit_iterations must be an integer >= 10, got {self.fit_iterations!r}")
+        if not (isinstance(self.fits_per_candidate, int) and self.fits_per_candidate >= 1):
+            raise TacestError(f"fits_per_candidate must be an integer >= 1, got {self.fits_per_candidate!r}")
+        return self
+
+
+@dataclass
+class CandidateResult:
+    """One candidate's fits and held-out comparison.
+
+    status : ``ok``, ``unavailable`` (the estimator cannot model it), ``failed`` (its
+    fits failed), ``screened`` (not refitted: see max_candidates);
+    value : chosen grid value of a transform candidate; params / params_std : fitted
+    effect parameters and their one-sigma uncertainty (NaN: not available);
+    fits : [{value, objective, status, wall_time}] fits to all data;
+    heldout : {fold: objective}; gap_before / gap_after / reduction / improvement /
+    penalty / score : see the module doc; folds_improved : folds where it beat the
+    plain model.
+    """
+
+    name: str
+    kind: str
+    n_params: int
+    status: str = "ok"
+    message: str = ""
+    value: object = None
+    params: dict = field(default_factory=dict)
+    params_std: dict = field(default_factory=dict)
+    fits: list = field(default_factory=list)
+    full_objective: float = float("nan")
+    heldout: dict = field(default_factory=dict)
+    gap_before: float = float("nan")
+    gap_after: float = float("nan")
+    reduction: float = float("nan")
+    improvement: float = float("nan")
+    penalty: float = float("nan")
+    score: float = float("nan")
+    folds_improved: int = 0
+    folds_compared: int = 0
+    significant: bool = False
+    screening: float = 0.0
+    wall_time: float = 0.0
+
+    def to_json(self) -> dict:
+        return {
+            "name": self.name, "kind": self.kind, "status": self.status, "message": self.message,
+            "gap_before": _num(self.gap_before), "gap_after": _num(self.gap_after), "reduction": _num(self.reduction),
+            "params": {k: _num(v) for k, v in self.params.items()},
+            "params_std": {k: _num(v) for k, v in self.params_std.items()},
+            "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
+            "score": _num(self.score), "significant": bool(self.significant),
+            "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
+            "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
+            "full_objective": _num(self.full_objective), "fits": self.fits, "screening": _num(self.screening),
+            "wall_time": _num(self.wall_time),
+        }
+
+
+def _num(v):
+    """A JSON-safe number: NaN and inf become None (strict JSON)."""
+    if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+        return int(v)
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return v
+    return f if math.isfinite(f) else None
+
+
+@dataclass
+class Diagnosis:
+    """Everything a diagnosis found (see :func:`diagnose`)."""
+
+    verdict: str
+    reason: str
+    effects: list
+    where: list
+    stats: list
+    table: list
+    floor: FloorModel
+    base: Estimate
+    runs: list
+    shape: str
+    backend: str
+    heldout: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    wall_time: float = 0.0
+    options: DiagnoseOptions = field(default_factory=DiagnoseOptions)
+
+    def to_json(self) -> dict:
+        """The ``--json`` object (SPEC: verdict, effects best first, where)."""
+        return {
+            "verdict": self.verdict,
+            "reason": self.reason,
+            "effects": [c.to_json() for c in self.effects],
+            "where": [{"run": s.run, "file": _run_name(self.runs, s.run), "start": s.start, "stop": s.stop,
+                       "term": s.term, "share": _num(s.share), "excess": _num(s.excess), "p": _num(s.p),
+                       "contact": bool(s.contact)} for s in self.where],
+            "breakdown": [{k: _num(v) if not isinstance(v, (str, bool)) else v for k, v in row.items()}
+                          for row in self.table],
+            "floor": {k: ({t: _num(x) for t, x in v.items()} if isinstance(v, dict) else v)
+                      for k, v in self.floor.to_dict().items()},
+            "excess": {k: _num(v) for k, v in excess_summary(self.stats).items()},
+            "heldout": {k: (_num(v) if isinstance(v, (float, int, np.floating)) else v)
+                        for k, v in self.heldout.items()},
+            "base": {"solver_status": self.base.solver_status, "objective": _num(self.base.objective),
+                     "params": {k: _num(v) for k, v in self.base.params.items() if np.ndim(v) == 0}},
+            "shape": self.shape, "backend": self.backend, "notes": list(self.notes),
+            "wall_time": _num(self.wall_time),
+            "options": {"window": self.options.window, "alpha": self.options.alpha,
+                        "max_folds": self.options.max_folds, "fit_iterations": self.options.fit_iterations,
+                        "fits_per_candidate": self.options.fits_per_candidate,
+                        "max_candidates": self.options.max_candidates, "floor": self.options.floor},
+        }
+
+
+def _run_name(runs, i):
+    r = runs[i] if 0 <= i < len(runs) else None
+    return (r.filename or f"run {i}") if r is not None else f"run {i}"
+
+
+# ------------------------------------------------------------------------------------
+# the given estimate
+
+
+def check_estimate_matches(estimate: Estimate, runs: list):
+    """TacestError unless ``estimate`` was fitted to exactly these runs (same count,
+    lengths and, where recorded, file checksums) with the plain model."""
+    from tacest.io.h5util import sha256_file
+
+    where = estimate.filename or "estimate"
+    if estimate.dim != 2:
+        raise TacestError(f"{where}: a {estimate.dim}-D estimate; diagnose works on 2-D runs")
+    if estimate.model:
+        raise TacestError(f"{where}: includes effects {', '.join(map(str, estimate.model))}; "
+                          "diagnose needs an estimate of the plain model")
+    if len(estimate.runs) != len(runs):
+        raise TacestError(f"{where}: estimates {len(estimate.runs)} run(s), {len(runs)} given; "
+                          "it is an estimate of other data")
+    for i, (re, run) in enumerate(zip(estimate.runs, runs)):
+        name = run.filename or f"run {i}"
+        if len(re.pose) != run.n_samples:
+            raise TacestError(f"{where}: run {i} has {len(re.pose)} samples, {name} has {run.n_samples}; "
+                              "it is an estimate of other data")
+        if re.source_sha256 and run.filename:
+            if sha256_file(run.filename) != re.source_sha256:
+                raise TacestError(f"{where}: run {i} was fitted to a file with another checksum than {name}; "
+                                  "it is an estimate of other data")
+        for term in FLOOR_TERMS:
+            if term not in re.residuals:
+                raise TacestError(f"{where}: /runs/{i}/residuals/{term} is missing; "
+                                  "diagnose needs the per-sample residuals of every loss term")
+
+
+# ------------------------------------------------------------------------------------
+
+
+class _Context:
+    """Shared state of one diagnosis: runs, shape, configs, back end, base fits."""
+
+    def __init__(self, runs, shape, config, options, echo, backend):
+        self.runs = runs
+        self.shape = shape
+        self.config = config
+        self.options = options
+        self.echo = echo
+        self.backend = backend
+        # the fit budget: the same for every candidate and held-out fit
+        self.budget_config = copy.deepcopy(config)
+        self.budget_config.solver.max_iter = min(int(config.solver.max_iter), int(options.fit_iterations))
+        self.budget_config.solver.stage_max_iter = min(int(config.solver.stage_max_iter),
+                                                       int(options.fit_iterations))
+        self.notes = []
+
+    def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
+        """Candidate fit to all runs (a transform applied first), warm-started from ``warm``."""
+        runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
+        if self.backend == "estimator":
+            return fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=self.echo)
+        return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
+                         warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True)
+
+    def fold_objective(self, fold: Fold, name: str, value, effects, cfit: FitResult) -> tuple:
+        """(held-out objective, status text) of one candidate in one fold."""
+        tr_runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
+        train = [p.cut(tr_runs) for p in fold.train]
+        held = [p.cut(tr_runs) for p in fold.heldout]
+        if self.backend == "estimator":
+            tf = fit_estimator(train, self.shape, self.budget_config, effects=effects, echo=_noop)
+            hf = fit_estimator(held, self.shape, self.budget_config, effects=effects, fixed=tf.estimate, echo=_noop)
+        else:
+            tf = fit_local(train, self.shape, self.budget_config, warm=cfit.estimate,
+                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True)
+            hf = fit_local(held, self.shape, self.budget_config, warm=cfit.estimate,
+                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.heldout], pinned=tf.theta,
+                           pin="physics", accept_budget=True)
+        status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
+        return weighted_objective(hf.estimate, self.config), status
+
+
+def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, options: DiagnoseOptions = None,
+             estimate: Estimate = None, echo=None) -> Diagnosis:
+    """Diagnose where and why the model (the estimator) disagrees with ``runs``.
+
+    runs : list of 2-D Run (one object); shape : ``box`` or ``polygon:K``;
+    estimate : an estimate of exactly these runs with the plain model (optional: saves
+    the first fit; checked by :func:`check_estimate_matches`); echo : progress lines.
+    Raises TacestError for bad input and SolveFailedError when the plain model's fit
+    to all data fails.
+    """
+    from tacest.estimation.estimator import check_runs
+    from tacest.geometry.shapes import make_shape
+
+    t_start = time.perf_counter()
+    echo = echo or _noop
+    config = config or EstimatorConfig()
+    options = (options or DiagnoseOptions()).validate()
+    check_runs(runs)
+    K = make_shape(shape, dim=2).n_vertices
+    names = cands.parse_effect_list(options.effects)
+    wanted = [cands.candidate(n, n_vertices=K) for n in names]
+    need_nlp = any(c.kind == "nlp" for c in wanted)
+    backend = "estimator" if need_nlp and estimator_supports_effects() else "local"
+    ctx = _Context(runs, shape, config, options, echo, backend)
+
+    # 1. the plain model on all data -------------------------------------------------
+    if estimate is not None:
+        check_estimate_matches(estimate, runs)
+        if make_shape(estimate.shape, dim=2).name != make_shape(shape, dim=2).name:
+            raise TacestError(f"{estimate.filename or 'estimate'}: shape {estimate.shape}, "
+                              f"but --shape {shape} was asked for")
+        echo(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
+        base = FitResult(estimate=estimate, runs=list(runs), backend=backend)
+        base_est = estimate
+    else:
+        echo("plain model: fitting all runs")
+        if backend == "estimator":
+            base = fit_estimator(runs, shape, config, echo=_noop)
+        else:
+            base = fit_local(runs, shape, config)
+        base_est = base.estimate
+        echo(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
+             f"{base.wall_time:.1f} s")
+    base_full_obj = weighted_objective(base.estimate, config)
+
+    # 2. where ---------------------------------------------------------------------
+    residuals = [re.residuals for re in base_est.runs]
+    dofs = [residual_dof(r, K) for r in runs]
+    states = [contact_state(r) for r in runs]
+    weights = {t: float(getattr(config.weights, t)) for t in dofs[0]}
+    floor = fit_floor(residuals, dofs, states, weights=weights, window=options.window, mode=options.floor)
+    stats = window_tests(residuals, dofs, states, floor, alpha=options.alpha)
+    where = flagged_windows(stats)
+    table = breakdown(stats, floor)
+    echo(f"where: {len(where)} flagged window(s); largest share "
+         f"{where[0].share:.0%} ({where[0].term}, run {where[0].run}, samples {where[0].start}-{where[0].stop})"
+         if where else "where: nothing stands out from the noise floor")
+    screening = cands.signature_scores(stats, names)
+
+    # 3. held-out design -----------------------------------------------------------
+    pieces = make_pieces(runs)
+    folds = make_folds(pieces, options.max_folds)
+    results = [cands.candidate(n, n_vertices=K) for n in names]
+    cres = [CandidateResult(name=c.name, kind=c.kind, n_params=c.n_params, screening=screening.get(c.name, 0.0))
+            for c in results]
+    heldout_info = {"design": describe_pieces(pieces, runs) if folds else "no held-out data",
+                    "folds": len(folds), "pieces": [[p.run, p.start, p.stop] for p in pieces]}
+    if not folds:
+        note = ("no held-out data: give several runs, or a run with at least two actions "
+                "(/actions/segments); only the residual breakdown was done")
+        ctx.notes.append(note)
+        for c in cres:
+            c.status, c.message = "failed", "no held-out data"
+        return Diagnosis(verdict="none", reason=note, effects=cres, where=where, stats=stats, table=table,
+                         floor=floor, base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info,
+                         notes=ctx.notes, wall_time=time.perf_counter() - t_start, options=options)
+
+    # which candidates are refitted (screening only when their number is limited)
+    order = sorted(range(len(cres)), key=lambda i: -cres[i].screening)
+    if options.max_candidates is not None:
+        for rank, i in enumerate(order):
+            if rank >= options.max_candidates:
+                cres[i].status = "screened"
+                cres[i].message = (f"not refitted: screening signature {cres[i].screening:.0%} ranked "
+                                   f"{rank + 1} of {len(order)} (max_candidates {options.max_candidates})")
+    for c in cres:
+        if c.status == "ok" and c.kind == "nlp" and backend != "estimator":
+            c.status = "unavailable"
+            c.message = ("the estimator has no NLP augmentation for this effect yet "
+                         "(estimate_runs takes no effects=/fixed=)")
+
+    # 4. the plain model, held out ---------------------------------------------------
+    echo(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
+    base_fold = {}
+    base_fold_status = {}
+    for fold in folds:
+        try:
+            obj, st = ctx.fold_objective(fold, "none", None, (), base)
+            base_fold[fold.index] = obj
+            base_fold_status[fold.index] = st
+        except (SolveFailedError, CandidateUnavailable) as exc:
+            base_fold_status[fold.index] = f"failed: {exc}"
+            ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({exc}); fold dropped")
+        echo(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
+             + (f", held-out objective {base_fold[fold.index]:.4g}" if fold.index in base_fold else ""))
+    floor_fold = {}
+    for fold in folds:
+        pieces_h = [p.cut(runs) for p in fold.heldout]
+        floor_fold[fold.index] = sum(floor.objective_floor(residual_dof(r, K), contact_state(r)) for r in pieces_h)
+    n_heldout_samples = sum(p.stop - p.start for p in pieces)
+    penalty_per_param = 0.5 * math.log(max(n_heldout_samples, 2))
+
+    # 5. candidates ------------------------------------------------------------------
+    for c, spec in zip(cres, results):
+        if c.status != "ok":
+            echo(f"{c.name}: {c.status} ({c.message})")
+            continue
+        t0 = time.perf_counter()
+        try:
+            _fit_candidate(ctx, c, spec, base, base_full_obj, folds, base_fold, floor_fold, penalty_per_param)
+        except CandidateUnavailable as exc:
+            c.status, c.message = "unavailable", str(exc)
+        c.wall_time = time.perf_counter() - t0
+        echo(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
+             + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ({c.reduction:.0%} closed), "
+                f"score {c.score:.3g}" if c.status == "ok" else "") + f", {c.wall_time:.0f} s")
+
+    # 6. verdict ---------------------------------------------------------------------
+    ok = [c for c in cres if c.status == "ok" and np.isfinite(c.score)]
+    ranked = sorted(ok, key=lambda c: -c.score) + [c for c in cres if c not in ok]
+    winners = [c for c in ranked if c.significant]
+    base_gap = sum(base_fold.values()) - sum(floor_fold[j] for j in base_fold)
+    heldout_info.update({"folds_valid": len(base_fold), "samples": n_heldout_samples,
+                         "penalty_per_parameter": penalty_per_param, "objective_plain": sum(base_fold.values()),
+                         "floor": sum(floor_fold[j] for j in base_fold), "gap_plain": base_gap,
+                         "fold_objective_plain": {str(k): v for k, v in base_fold.items()},
+                         "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
+    if not base_fold:
+        verdict, reason = "none", "every held-out fit of the plain model failed: no comparison possible"
+    elif winners:
+        w = winners[0]
+        verdict = w.name
+        reason = (f"{w.name} closes {w.reduction:.0%} of the held-out gap ({w.gap_before:.4g} -> {w.gap_after:.4g}), "
+                  f"improvement {w.improvement:.4g} > penalty {w.penalty:.3g} for {w.n_params} parameter(s), "
+                  f"better in {w.folds_improved} of {w.folds_compared} folds")
+    else:
+        verdict = "none"
+        best = ranked[0] if ok else None
+        reason = ("no candidate improves the held-out fit by more than its parameter penalty in at least half "
+                  "of the folds" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
+                                    f"{best.penalty:.3g})" if best else ""))
+    return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
+                     base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
+                     wall_time=time.perf_counter() - t_start, options=options)
+
+
+def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, base_full_obj, folds, base_fold,
+                   floor_fold, penalty_per_param):
+    """Fill ``c``: choose parameters on all data, then the held-out comparison."""
+    opts = ctx.options
+    if spec.kind == "transform":
+        screening = None
+        if spec.name == "latency":
+            screening = cands.latency_mismatch(ctx.runs, base.estimate, ctx.config.noise.contact_gap)
+        grid = cands.transform_order(spec.name, screening)[: opts.fits_per_candidate]
+        tried = []
+        for value in grid:
+            try:
+                f = ctx.fit_all(spec.name, value, warm=base)
+                obj = weighted_objective(f.estimate, ctx.config)
+                c.fits.append({"value": value, "objective": obj, "status": f.estimate.solver_status,
+                               "wall_time": f.wall_time})
+                tried.append((obj, value, f))
+            except SolveFailedError as exc:
+                c.fits.append({"value": value, "objective": None, "status": f"failed: {exc}", "wall_time": None})
+        if not tried:
+            c.status, c.message = "failed", "every fit to all data failed"
+            return
+        obj, value, cfit = min(tried, key=lambda x: x[0])
+        c.value = value
+        pname = spec.param_names[0]
+        c.params = {pname: value}
+        profile = [(cands.TRANSFORM_IDENTITY[spec.name], base_full_obj)] + [(v, o) for o, v, _ in tried]
+        c.params_std = {pname: _profile_std(profile, spec.name, value)}
+        effects = ()
+    else:
+        effects = (spec.name,)
+        try:
+            cfit = ctx.fit_all(spec.name, None, effects=effects, warm=base)
+        except SolveFailedError as exc:
+            c.status, c.message = "failed", f"fit to all data failed: {exc}"
+            return
+        obj = weighted_objective(cfit.estimate, ctx.config)
+        c.fits.append({"value": None, "objective": obj, "status": cfit.estimate.solver_status,
+                       "wall_time": cfit.wall_time})
+        c.params = {k: v for k, v in cfit.estimate.params.items() if k not in CORE_PARAMS and np.ndim(v) == 0}
+        c.params_std = {k: float(cfit.estimate.std.get(k, float("nan"))) for k in c.params}
+        value = None
+    c.full_objective = obj
+    # held-out comparison on the folds where the plain model's fit succeeded
+    name = spec.name if spec.kind == "transform" else "none"
+    for fold in folds:
+        if fold.index not in base_fold:
+            continue
+        try:
+            o, _ = ctx.fold_objective(fold, name, value, effects, cfit)
+            c.heldout[fold.index] = o
+        except SolveFailedError as exc:
+            ctx.notes.append(f"{c.name}, fold {fold.index}: held-out comparison failed ({exc}); fold not counted")
+    common = [j for j in c.heldout if j in base_fold]
+    if not common:
+        c.status, c.message = "failed", "every held-out fit failed"
+        return
+    before = sum(base_fold[j] for j in common)
+    after = sum(c.heldout[j] for j in common)
+    fl = sum(floor_fold[j] for j in common)
+    c.gap_before = before - fl
+    c.gap_after = after - fl
+    c.improvement = before - after
+    c.reduction = c.improvement / c.gap_before if c.gap_before > 0 else 0.0
+    c.penalty = c.n_params * penalty_per_param
+    c.score = c.improvement - c.penalty
+    c.folds_compared = len(common)
+    c.folds_improved = sum(1 for j in common if c.heldout[j] < base_fold[j])
+    if len(common) < len(base_fold):
+        c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
+    c.significant = bool(c.score > 0 and 2 * c.folds_improved >= c.folds_compared)
+
+
+def _profile_std(profile, name, best):
+    """One-sigma uncertainty of a transform parameter from the objectives of the fits
+    to all data at the values tried (the objective is a negative log-likelihood under
+    the noise model): time scale, from the curvature of a parabola through the three
+    lowest points; latency (an integer), the spread of the values weighted by
+    exp(-(objective - minimum))."""
+    vals = np.array([v for v, _ in profile], float)
+    objs = np.array([o for _, o in profile], float)
+    ok = np.isfinite(objs)
+    vals, objs = vals[ok], objs[ok]
+    if name == "latency":
+        w = np.exp(-(objs - objs.min()))
+        w /= w.sum()
+        return float(np.sqrt(np.sum(w * (vals - best) ** 2)))
+    if len(vals) < 3:
+        return float("nan")
+    idx = np.argsort(objs)[:3]
+    a, _, _ = np.polyfit(vals[idx], objs[idx], 2)
+    return float(1.0 / math.sqrt(2 * a)) if a > 0 else float("inf")

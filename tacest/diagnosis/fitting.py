@@ -1,0 +1,388 @@
+"""Fits for the diagnosis: training fits (warm-started) and held-out fits with the
+parameters held fixed.
+
+Two back ends, chosen once per diagnosis so that every candidate is fitted and
+evaluated the same way:
+
+``estimator``
+    ``tacest.estimation.estimator.estimate_runs(..., effects=(...), fixed=EST)`` when
+    the estimator offers those keywords (model augmentations inside the NLP; ``fixed``
+    holds every parameter of EST and fits trajectories and impulses only).
+``local``
+    the estimator as it is (no effect parameters in the NLP), driven from here: a
+    subclass of :class:`ImplicitEstimator` that (a) starts from a given estimate
+    (warm start: parameters and trajectories), and (b) can pin the shared parameters
+    (shape, mass, inertia, frictions) at the values of a training fit, so that only
+    trajectories and impulses of the held-out data are fitted.  Only the data-transform
+    candidates (``latency``, ``time_scale``) and ``none`` can be fitted this way.
+
+Both return :class:`tacest.io.estimate.Estimate` objects with per-sample residuals;
+:func:`weighted_objective` sums them the same way for every candidate.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from tacest.errors import SolveFailedError, TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.io.estimate import Estimate, RunEstimate
+from tacest.io.run import Run
+
+
+#: IPOPT statuses of a solve that ran out of its iteration or time budget: with
+#: ``accept_budget`` its last iterate is used (and reported with this status)
+BUDGET_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded")
+
+
+#: half-width (scaled units, relative to max(1, |value|)) of the interval that pins a
+#: parameter.  IPOPT removes variables whose bounds are equal; with the Gauss–Newton
+#: Hessian model some problems with pinned parameters then failed at iteration 0
+#: (Error_In_Step_Computation), while the same problems with the parameters kept as
+#: variables in an interval of 2e-9 solve.  1e-9 of a scaled parameter (O(1)) is far
+#: below anything the data resolve.
+PIN_HALF_WIDTH = 1e-9
+#: what a local fit can hold fixed (see fit_local)
+PIN_MODES = ("all", "shape", "physics")
+
+
+class CandidateUnavailable(TacestError):
+    """A candidate effect cannot be fitted by this version of the estimator."""
+
+
+def _noop(*_a, **_k):
+    pass
+
+
+def estimator_supports_effects() -> bool:
+    """True when ``estimate_runs`` takes ``effects=`` and ``fixed=`` (NLP augmentations)."""
+    from tacest.estimation.estimator import estimate_runs
+
+    params = inspect.signature(estimate_runs).parameters
+    return "effects" in params and "fixed" in params
+
+
+def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None) -> float:
+    """Σ over runs, samples and loss terms of weight × per-sample residual value (the
+    NLP objective without its parameter priors), from an estimate's residuals."""
+    from tacest.estimation.problem import TERMS
+
+    w = config.weights
+    total = 0.0
+    idx = range(len(est.runs)) if runs_index is None else runs_index
+    for i in idx:
+        res = est.runs[i].residuals
+        for t in TERMS:
+            if t in res:
+                total += float(getattr(w, t)) * float(np.sum(res[t]))
+    return total
+
+
+@dataclass
+class FitResult:
+    """One fit: the estimate, the runs it was fitted to (after any transform), the
+    pinned-parameter vector of the local back end (scaled theta), its wall time (s)."""
+
+    estimate: Estimate
+    runs: list
+    theta: Optional[np.ndarray] = None
+    wall_time: float = 0.0
+    backend: str = "local"
+    effects: tuple = ()
+    notes: list = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------------
+# local back end
+
+
+def _local_estimator_class():
+    """The subclass is defined lazily (CasADi and the estimator import on first use)."""
+    from tacest.estimation.estimator import ImplicitEstimator
+
+    class LocalEstimator(ImplicitEstimator):
+        """ImplicitEstimator with a warm start and optional pinned shared parameters."""
+
+        def __init__(self, runs, shape_spec, config, echo, pinned_theta=None, pin="all"):
+            super().__init__(runs, shape_spec, config, echo)
+            self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
+            self.pin = pin
+            self.z = None
+
+        def variable_bounds(self):
+            lbx, ubx = super().variable_bounds()
+            if self.pinned_theta is None:
+                return lbx, ubx
+            pr = self.problem
+            th = self.pinned_theta
+            lbx0, ubx0 = lbx.copy(), ubx.copy()
+            if self.pin == "shape":
+                # the shape alone: the lifted vertices follow from the constraint phys = phys(theta)
+                lbx[: pr.n_shape] = ubx[: pr.n_shape] = th[: pr.n_shape]
+            elif self.pin == "physics":
+                # everything but the shape (mass, inertia, frictions, effect parameters)
+                lbx[pr.n_shape: pr.n_theta] = ubx[pr.n_shape: pr.n_theta] = th[pr.n_shape:]
+            else:
+                phys = np.asarray(pr.phys_sx(th, self.scales.L, self.scales.m0)).reshape(-1)
+                lbx[: pr.n_theta] = ubx[: pr.n_theta] = th
+                a = pr.phys_offset
+                lbx[a: a + pr.n_phys] = ubx[a: a + pr.n_phys] = phys
+            if self.shape.name != "box" and self.pin != "physics":
+                # a pinned shape has its orientation: no gauge on the start angle
+                g = pr.offsets[0]["Q"][0] + 2
+                lbx[g], ubx[g] = -np.inf, np.inf
+            # pinned = a tiny interval, not equal bounds (see PIN_HALF_WIDTH)
+            pinned = (lbx == ubx) & ~(lbx0 == ubx0)
+            half = PIN_HALF_WIDTH * np.maximum(1.0, np.abs(lbx[pinned]))
+            lbx[pinned] -= half
+            ubx[pinned] += half
+            return lbx, ubx
+
+        def solve_from(self, z0, cold: bool, accept_budget: bool = False):
+            """Staged solve from z0: impulses alone, then every homotopy stage (cold) or
+            only the last one (warm: z0 is already a solution of a nearby problem).
+
+            accept_budget: a final stage that stops at its iteration budget
+            (Maximum_Iterations_Exceeded) keeps its last iterate and its status, instead
+            of raising; success stays False for it."""
+            from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success
+
+            cfg = self.config.solver
+            pr = self.problem
+            self.z = np.asarray(z0, float).copy()
+            hom = list(cfg.homotopy)
+            stages = hom if cold else hom[-1:]
+            plan = [("impulses", *stages[0], "impulses")]
+            plan += [(f"homotopy {k + 1}/{len(stages)}", *s, "all") for k, s in enumerate(stages)]
+            lam_x = lam_g = None
+            infos = []
+            for label, eps, w, wd, which in plan:
+                lbx, ubx = self.variable_bounds()
+                if which == "impulses":
+                    lbx, ubx = self.impulse_only_bounds(lbx, ubx)
+                self.z = np.clip(self.z, lbx, ubx)
+                final = label == plan[-1][0]
+                mode = cfg.hessian
+                if mode == "gauss-newton-then-exact":
+                    mode = "exact" if final and len(plan) > 2 else "gauss-newton"
+                max_iter = cfg.max_iter if final else cfg.stage_max_iter
+                sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x,
+                                             lam_g, label=label, echo=self.echo, hessian=mode, max_iter=max_iter)
+                infos.append(info)
+                self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
+                          f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+                budget_hit = final and accept_budget and info.status in BUDGET_STATUSES
+                if (final and not budget_hit) or which == "impulses" or info.status in FATAL_STATUSES:
+                    check_success(info)
+                self.z = np.asarray(sol["x"]).reshape(-1)
+                if which == "all":
+                    lam_x = np.asarray(sol["lam_x"]).reshape(-1)
+                    lam_g = np.asarray(sol["lam_g"]).reshape(-1)
+            self.p_final = self.params(*plan[-1][1:4])
+            last = infos[-1]
+            return SolveOutcome(z=self.z, lam_g=lam_g, lam_x=lam_x, status=last.status,
+                                success=last.status in SUCCESS_STATUSES,
+                                iterations=sum(s.iterations for s in infos), wall_time=sum(s.wall_time for s in infos),
+                                objective=last.objective, stages=infos)
+
+    return LocalEstimator
+
+
+def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
+    """Scaled theta [shape s, log(m/m0), log(I/I_uniform), mu_ground, mu_finger] of an
+    estimate (the inverse of the problem's theta -> physical map)."""
+    from tacest.geometry.shapes import polygon_area_centroid_j
+
+    shape = problem.shape
+    V = np.asarray(estimate.vertices, float)
+    L, m0 = scales.L, scales.m0
+    if shape.name == "box":
+        s = np.array([V[:, 0].max() - V[:, 0].min(), V[:, 1].max() - V[:, 1].min()]) / L
+    else:
+        if V.shape[0] != shape.n_vertices:
+            raise TacestError(f"estimate has {V.shape[0]} vertices, the shape {shape.name} has {shape.n_vertices}")
+        s = V.reshape(-1) / L
+    area, _, J = polygon_area_centroid_j(V)
+    mass = float(estimate.params["mass"])
+    inertia = float(estimate.params["inertia"])
+    i_uniform = mass * float(J) / float(area)
+    return np.concatenate([s, [np.log(mass / m0), np.log(inertia / i_uniform),
+                               float(estimate.params["friction_ground"]), float(estimate.params["friction_finger"])]])
+
+
+def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
+    """Scaled decision vector: the warm estimate's parameters and, for every run i with
+    warm_runs[i] (a RunEstimate of the same length), its trajectory and impulses; the
+    estimator's own start (push tracker) for the others."""
+    from tacest.estimation.data import GRAVITY
+    from tacest.estimation.initial import initial_guess
+
+    pr = est.problem
+    theta = theta_from_estimate(pr, est.scales, warm)
+    ns = pr.n_shape
+    lo, hi = est.shape.bounds(est.size_bound / est.scales.L)
+    theta[:ns] = np.clip(theta[:ns], lo, hi)
+    z = initial_guess(pr, runs, est.scales, theta[:ns])
+    z[: pr.n_theta] = theta
+    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
+        pr.phys_sx(theta, est.scales.L, est.scales.m0)).reshape(-1)
+    L = est.scales.L
+    scale = np.array([L, L, 1.0])
+    for i, (run, wr) in enumerate(zip(runs, warm_runs)):
+        if wr is None or np.asarray(wr.pose).shape[0] != run.n_samples:
+            continue
+        Lam = est.scales.m0 * GRAVITY * run.dt
+        Q = (np.asarray(wr.pose, float)[:, :3] / scale).T
+        Vv = (np.asarray(wr.velocity, float)[:, :3] / scale).T
+        # eq. D2 holds exactly at the start, whatever dt the warm trajectory had (a
+        # clock candidate changes dt; the impulse-only stage cannot move Q or V)
+        Vv[:, 1:] = np.diff(Q, axis=1) / run.dt
+        kw = {"Q": Q, "V": Vv}
+        gn = wr.impulses.get("ground_normal")
+        if gn is not None and np.asarray(gn).shape == (run.n_samples, pr.K):
+            kw["LG"] = np.maximum(np.asarray(gn, float)[1:] / Lam, 0.0).T
+        F = run.n_fingers
+        if F and all(f"finger_{f}" in wr.impulses for f in range(F)):
+            LF = np.concatenate([np.asarray(wr.impulses[f"finger_{f}"], float)[1:] for f in range(F)], axis=1)
+            on = run.contact[1:].astype(bool)
+            LF = LF * np.repeat(on, 2, axis=1)  # off-contact finger impulses are pinned at 0
+            kw["LF"] = (LF / Lam).T
+        pr.set_run_blocks(z, i, **kw)
+    return z
+
+
+def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estimate:
+    """An Estimate from a LocalEstimator's solution (as estimate_runs writes it)."""
+    from tacest.io.h5util import sha256_file
+
+    V, mass, inertia, mu_g, mu_f = est.physical(out.z)
+    run_ests = []
+    for i, run in enumerate(runs):
+        pose, vel, imp = est.trajectories(out.z, i)
+        res = est.per_sample_residuals(out.z, i)
+        src = run.filename or ""
+        run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
+                                    source_sha256=sha256_file(src) if src else ""))
+    info, names, std = None, [], {}
+    if information:
+        from tacest.information.observed import observed_information
+
+        info, names, std = observed_information(est, out.z)
+    return Estimate(dim=2, shape=est.shape.name, vertices=V,
+                    params={"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f},
+                    runs=run_ests, model=list(model), solver_status=out.status, success=out.success,
+                    iterations=out.iterations, wall_time=out.wall_time, objective=out.objective, information=info,
+                    info_names=names, std=std, config=est.config.to_dict(), method="implicit",
+                    extra_attrs={"length_scale": est.scales.L, "mass_scale": est.scales.m0})
+
+
+def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = None, warm_runs: list = None,
+              pinned: np.ndarray = None, pin: str = "all", echo=None, information: bool = False,
+              accept_budget: bool = False) -> FitResult:
+    """Fit ``runs`` with the local back end (see module docstring).
+
+    warm : Estimate whose parameters (and, per run, ``warm_runs[i]`` trajectories) start
+        the solve; without it the estimator's own cold start is used;
+    pinned : scaled theta (a previous FitResult.theta) held fixed: all of it (``pin``
+        "all"), its shape part only (``pin`` "shape"), or all but the shape (``pin``
+        "physics": mass, inertia, frictions, effect parameters);
+    accept_budget : keep the last iterate of a final stage that used up its iteration
+        budget (config.solver.max_iter), reporting IPOPT's status (see BUDGET_STATUSES).
+    Raises SolveFailedError when IPOPT fails.
+    """
+    echo = echo or _noop
+    t0 = time.perf_counter()
+    cls = _local_estimator_class()
+    if pin not in PIN_MODES:
+        raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
+    est = cls(runs, shape, config, echo, pinned_theta=pinned, pin=pin)
+    notes = []
+    warm_given = warm is not None and any(w is not None for w in (warm_runs or []))
+    try:
+        if warm is not None:
+            z0 = _warm_z(est, runs, warm, warm_runs or [None] * len(runs))
+            out = est.solve_from(_pin_start(est, z0, pinned, pin), cold=not warm_given, accept_budget=accept_budget)
+        else:
+            out = _cold_solve(est, runs, pinned, pin, accept_budget)
+    except SolveFailedError as exc:
+        if warm is None:
+            raise
+        # a warm start can land in a region where IPOPT stalls: try once from the
+        # estimator's own consistent start (same budget), and say so
+        notes.append(f"warm start failed ({exc}); solved from the estimator's start")
+        echo(notes[-1])
+        out = _cold_solve(est, runs, pinned, pin, accept_budget)
+    estimate = _estimate_of(est, out, runs, [], information)
+    estimate.wall_time = time.perf_counter() - t0
+    theta = np.asarray(out.z[: est.problem.n_theta], float).copy()
+    return FitResult(estimate=estimate, runs=list(runs), theta=theta, wall_time=estimate.wall_time, backend="local",
+                     notes=notes)
+
+
+def _pin_start(est, z0, pinned, pin):
+    """z0 with the pinned part of theta (and the lifted quantities) set."""
+    if pinned is None:
+        return z0
+    pr = est.problem
+    if pin == "shape":
+        z0[: pr.n_shape] = pinned[: pr.n_shape]
+    elif pin == "physics":
+        z0[pr.n_shape: pr.n_theta] = pinned[pr.n_shape:]
+    else:
+        z0[: pr.n_theta] = pinned
+    z0[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
+        pr.phys_sx(z0[: pr.n_theta], est.scales.L, est.scales.m0)).reshape(-1)
+    return z0
+
+
+def _cold_solve(est, runs, pinned, pin, accept_budget):
+    """The estimator's own start (start shape, push-tracker trajectories) and every
+    homotopy stage; a pinned shape replaces the start shape."""
+    from tacest.estimation.initial import choose_start_shape, initial_guess, start_trajectories
+
+    pr = est.problem
+    if pinned is None or pin == "physics":
+        s0 = choose_start_shape(pr, runs, est.scales, est.s0)
+    else:
+        s0 = np.asarray(pinned[: pr.n_shape], float)
+    traj = start_trajectories(pr, runs, est.scales, s0)
+    z0 = initial_guess(pr, runs, est.scales, s0, traj)
+    return est.solve_from(_pin_start(est, z0, pinned, pin), cold=True, accept_budget=accept_budget)
+
+
+# ------------------------------------------------------------------------------------
+# estimator back end
+
+
+def fit_estimator(runs: list, shape: str, config: EstimatorConfig, effects=(), fixed: Estimate = None,
+                  echo=None) -> FitResult:
+    """Fit with ``estimate_runs(..., effects=..., fixed=...)`` (the NLP augmentations).
+
+    Raises CandidateUnavailable with a clear message when the estimator does not offer
+    them (TypeError / NotImplementedError from the call)."""
+    from tacest.estimation.estimator import estimate_runs
+
+    t0 = time.perf_counter()
+    kwargs = {}
+    if effects:
+        kwargs["effects"] = tuple(effects)
+    if fixed is not None:
+        kwargs["fixed"] = fixed
+    try:
+        est = estimate_runs(runs, shape, config, echo=echo or _noop, method="implicit", **kwargs)
+    except (TypeError, NotImplementedError) as exc:
+        what = ", ".join(effects) if effects else "fixed-parameter (held-out) fits"
+        raise CandidateUnavailable(f"the estimator cannot model {what} in this version "
+                                   f"({exc.__class__.__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    return FitResult(estimate=est, runs=list(runs), wall_time=time.perf_counter() - t0, backend="estimator",
+                     effects=tuple(effects))
+
+
+def check_fit(fit: FitResult, what: str):
+    if not fit.estimate.success:
+        raise SolveFailedError(f"{what}: IPOPT status {fit.estimate.solver_status}")

@@ -1,0 +1,436 @@
+"""tacest diagnose: noise-floor statistics, run slicing, the data-transform candidates,
+the whole pipeline on a cheap stand-in of the estimator, the JSON schema, failure paths,
+and (slow) latency recovery with the real estimator.
+
+The pipeline tests replace the estimator's fits by a stand-in (``_StandIn``) whose
+residuals come from the recording's truth geometry: the contact-flag residual of every
+finger, which a tactile latency disturbs, plus fixed whitened noise on the other terms.
+It runs in milliseconds, so the folds, the candidate choice, the verdict, the report and
+the JSON are tested end to end; a real estimate of a 3-poke run takes 20-100 s here.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tacest.diagnosis import diagnose as diag_mod
+from tacest.diagnosis.candidates import candidate, latency_mismatch, parse_effect_list
+from tacest.diagnosis.fitting import FitResult, estimator_supports_effects
+from tacest.diagnosis.floor import (TERMS, contact_state, contact_windows, fit_floor, flagged_windows,
+                                    residual_dof, window_tests)
+from tacest.diagnosis.heldout import make_folds, make_pieces
+from tacest.diagnosis.slicing import join_runs, slice_run, slice_run_estimate, split_at_actions
+from tacest.diagnosis.transforms import undo_latency, undo_time_scale
+from tacest.errors import TacestError
+from tacest.estimation.initial import finger_gaps
+from tacest.io.estimate import Estimate, RunEstimate, write_estimate
+from tacest.io.h5util import sha256_file
+from tacest.io.run import write_run
+from tacest.sim.record import SimOptions, record_sim
+
+TACEST = str(Path(sys.executable).parent / "tacest")
+#: m, the estimator's default contact-gap sigma (configs/estimate.toml noise.contact_gap)
+SIGMA_GAP = 5e-4
+
+
+# ------------------------------------------------------------------------------------
+# synthetic whitened residuals
+
+
+def _synthetic(rng, n_runs=2, T=600, K=4, F=1, excess=None):
+    """Residuals (0.5·‖r‖²) of pure whitened noise with the dof of residual_dof, for
+    runs with alternating contact phases; ``excess`` = (run, start, stop, term, amount)
+    adds ``amount`` (‖r‖² units) spread over the window."""
+    residuals, dofs, states = [], [], []
+    for i in range(n_runs):
+        state = (np.arange(T) // 70) % 2 == 1
+        dof = {t: np.zeros(T) for t in TERMS}
+        dof["force"][1:] = 2 * F
+        dof["normal"][1:] = state[1:] * F
+        dof["contact"][:] = F
+        dof["dynamics"][:] = 3
+        dof["penetration"][:] = K
+        dof["complementarity"][1:] = K
+        dof["dissipation"][1:] = F
+        dof["cone"][1:] = 2 * F
+        res = {t: 0.5 * rng.chisquare(np.maximum(d, 1e-12)) * (d > 0) for t, d in dof.items()}
+        if excess is not None and excess[0] == i:
+            _, a, b, term, amount = excess
+            res[term][a:b] += 0.5 * amount / (b - a)
+        residuals.append(res)
+        dofs.append(dof)
+        states.append(state)
+    return residuals, dofs, states
+
+
+@pytest.mark.parametrize("mode", ["nominal", "calibrated"])
+def test_pure_noise_flags_at_most_the_stated_false_alarm_rate(mode):
+    # family-wise false-alarm rate alpha = 0.1 over 120 independent synthetic diagnoses:
+    # the flagged fraction is binomial(120, <= 0.1): mean <= 12, sd ~3.3; allowing 0.1 +
+    # 3 sd (0.182) keeps this test from failing by chance while catching a broken test
+    # (an uncorrected test at alpha 0.1 flags nearly every diagnosis)
+    rng = np.random.default_rng(0)
+    alpha, trials = 0.1, 120
+    hits = 0
+    for _ in range(trials):
+        res, dofs, states = _synthetic(rng, T=420)
+        floor = fit_floor(res, dofs, states, mode=mode)
+        stats = window_tests(res, dofs, states, floor, alpha=alpha)
+        hits += any(s.flagged for s in stats)
+    assert hits / trials <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / trials), hits
+
+
+def test_pure_noise_floor_is_the_nominal_level():
+    rng = np.random.default_rng(1)
+    res, dofs, states = _synthetic(rng, n_runs=3)
+    floor = fit_floor(res, dofs, states)
+    for key, mu in floor.mu.items():
+        # whitened noise: level 1 per degree of freedom; the median estimate over ~25
+        # windows has a relative sd of ~0.1, and the cap at 1 only lowers it
+        assert 0.75 <= mu <= 1.0, (key, mu)
+        assert floor.phi[key] < 1.35, (key, floor.phi[key])
+
+
+@pytest.mark.parametrize("mode", ["nominal", "calibrated"])
+def test_injected_excess_is_flagged_with_most_of_the_share(mode):
+    rng = np.random.default_rng(2)
+    # 300 extra units of ‖r‖² in the dynamics residual of one 20-sample window (60 dof):
+    # ~25 sigma of a chi-square with 60 dof
+    res, dofs, states = _synthetic(rng, excess=(1, 145, 160, "dynamics", 300.0))
+    floor = fit_floor(res, dofs, states, mode=mode)
+    stats = window_tests(res, dofs, states, floor, alpha=0.01)
+    where = flagged_windows(stats)
+    assert where, "the injected window is not flagged"
+    top = where[0]
+    assert (top.run, top.term) == (1, "dynamics")
+    assert top.start <= 145 and top.stop >= 160 - 5  # windows are cut at contact changes
+    assert top.share > 0.5
+    # nothing else is flagged far from it
+    assert all(s.run == 1 and s.term == "dynamics" for s in where)
+
+
+def test_contact_windows_tile_and_respect_states():
+    state = np.array([0] * 45 + [1] * 7 + [0] * 3, bool)
+    wins = contact_windows(state, window=20)
+    assert wins[0][0] == 0 and wins[-1][1] == len(state)
+    assert all(a < b for a, b, _ in wins)
+    assert all(w1[1] == w2[0] for w1, w2 in zip(wins, wins[1:]))
+    assert all(b - a <= 20 for a, b, _ in wins)
+    for a, b, c in wins:
+        assert np.all(state[a:b] == c)
+
+
+# ------------------------------------------------------------------------------------
+# recordings
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """Short simulated recordings (3 pokes): clean, and with a 2-sample tactile latency."""
+    folder = tmp_path_factory.mktemp("diag")
+    out = {}
+    for name, effects in (("none", []), ("latency", ["latency:samples=2"])):
+        run = record_sim(SimOptions(seed=3, pokes=3, effects=effects))
+        path = folder / f"{name}.h5"
+        write_run(run, path)
+        out[name] = path
+    return out
+
+
+def _read(path):
+    from tacest.io.run import read_run
+
+    return read_run(path)
+
+
+def test_slicing_round_trip(recordings):
+    run = _read(recordings["latency"])
+    parts = split_at_actions(run)
+    assert len(parts) == 3
+    for p in parts:
+        p.validate()
+        assert p.actions.segments[0, 0] == 0
+    joined = join_runs(parts)
+    for name in ("time", "finger_position", "contact", "force", "normal"):
+        np.testing.assert_array_equal(getattr(joined, name), getattr(run, name))
+    np.testing.assert_array_equal(joined.actions.segments, run.actions.segments)
+    np.testing.assert_array_equal(joined.truth.pose, run.truth.pose)
+    sub = slice_run(run, 10, 50)
+    assert sub.n_samples == 40 and np.array_equal(sub.contact, run.contact[10:50])
+    with pytest.raises(TacestError):
+        slice_run(run, 50, 51)
+
+
+def test_slice_run_estimate_zeroes_the_first_impulse():
+    T = 30
+    re = RunEstimate(pose=np.arange(T * 3.0).reshape(T, 3), velocity=np.ones((T, 3)),
+                     impulses={"finger_0": np.ones((T, 2))}, residuals={"force": np.arange(T, dtype=float)})
+    s = slice_run_estimate(re, 5, 12)
+    assert s.pose.shape == (7, 3) and s.pose[0, 0] == 15.0
+    assert np.all(s.impulses["finger_0"][0] == 0) and np.all(s.impulses["finger_0"][1:] == 1)
+    assert s.residuals["force"][0] == 5.0
+
+
+def test_folds_hold_out_every_piece_once(recordings):
+    run = _read(recordings["none"])
+    pieces = make_pieces([run])
+    folds = make_folds(pieces, max_folds=2)
+    held = [p for f in folds for p in f.heldout]
+    assert sorted(held, key=lambda p: p.start) == pieces
+    for f in folds:
+        assert not set(f.train) & set(f.heldout)
+    assert make_folds(pieces[:1]) == []
+
+
+def test_undo_latency_and_time_scale(recordings):
+    run = _read(recordings["latency"])
+    u = undo_latency(run, 2)
+    np.testing.assert_array_equal(u.contact[:-2], run.contact[2:])
+    np.testing.assert_array_equal(u.contact[-2:], np.repeat(run.contact[-1:], 2, axis=0))
+    np.testing.assert_array_equal(u.finger_position, run.finger_position)
+    u.validate()
+    s = undo_time_scale(run, 1.04)
+    assert s.dt == pytest.approx(run.dt / 1.04)
+    np.testing.assert_allclose(np.diff(s.time), run.dt / 1.04)
+
+
+def _truth_estimate(runs):
+    """A stand-in estimate: the truth shape and poses of the runs."""
+    tr = runs[0].truth
+    return Estimate(dim=2, shape="box", vertices=np.asarray(tr.vertices), params={},
+                    runs=[RunEstimate(pose=r.truth.pose, velocity=np.zeros_like(r.truth.pose)) for r in runs])
+
+
+def test_latency_signature_finds_the_delay_from_the_true_geometry(recordings):
+    # the screening statistic alone, on the true geometry: its minimum is the delay
+    run = _read(recordings["latency"])
+    mism = latency_mismatch([run], _truth_estimate([run]), SIGMA_GAP, max_shift=5)
+    assert min(mism, key=mism.get) == 2
+    clean = _read(recordings["none"])
+    mism = latency_mismatch([clean], _truth_estimate([clean]), SIGMA_GAP, max_shift=5)
+    assert min(mism, key=mism.get) == 0
+
+
+# ------------------------------------------------------------------------------------
+# the pipeline on a stand-in estimator
+
+
+class _StandIn:
+    """Replaces fit_local / fit_estimator in tacest.diagnosis.diagnose (see module doc).
+
+    Residuals: contact = 0.5 Σ_f [c (gap/σ)² + (1 - c) min(gap, 0)²/σ²] with the true
+    geometry (gap at the nearer end of the flag's interval where c = 1): what a fit with
+    the right shape and poses would leave; every other term 0.5·0.1·χ²(dof) from draws
+    seeded by the piece, so the same for every candidate."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def fit_local(self, runs, shape, config, warm=None, warm_runs=None, pinned=None, pin="all", echo=None,
+                  information=False, accept_budget=False):
+        self.calls += 1
+        tr = runs[0].truth
+        V = np.asarray(tr.vertices, float)
+        rests = []
+        for run in runs:
+            seed = run.n_samples * 100003 + int(run.extra_attrs.get("slice_start", 0))
+            rng = np.random.default_rng(seed)
+            dof = residual_dof(run, V.shape[0])
+            # the same normal draws whatever the flags; a term sums as many squares as it has dof
+            z2 = rng.normal(size=(len(TERMS), run.n_samples, 8)) ** 2
+            csum = np.cumsum(np.concatenate([np.zeros((len(TERMS), run.n_samples, 1)), z2], axis=2), axis=2)
+            res = {t: 0.05 * np.take_along_axis(csum[i], dof[t].astype(int)[:, None], axis=1)[:, 0]
+                   for i, t in enumerate(TERMS)}
+            gaps = finger_gaps(run, V, run.truth.pose) / SIGMA_GAP
+            # a flag covers the interval (t-1, t] (SPEC): the nearer end counts
+            g_int = np.minimum(gaps, np.vstack([gaps[:1], gaps[:-1]]))
+            c = run.contact.astype(bool)
+            res["contact"] = 0.5 * np.sum(np.where(c, g_int ** 2, np.minimum(gaps, 0) ** 2), axis=1)
+            rests.append(RunEstimate(pose=run.truth.pose, velocity=np.zeros_like(run.truth.pose), residuals=res,
+                                     source_file=run.filename or ""))
+        est = Estimate(dim=2, shape="box", vertices=V,
+                       params={"mass": tr.mass, "inertia": tr.inertia, "friction_ground": tr.friction_ground,
+                               "friction_finger": tr.friction_finger},
+                       runs=rests, solver_status="Solve_Succeeded", success=True, objective=0.0)
+        return FitResult(estimate=est, runs=list(runs), theta=np.zeros(6))
+
+    def fit_estimator(self, *a, **k):
+        raise AssertionError("the stand-in pipeline uses the local back end")
+
+
+@pytest.fixture
+def stand_in(monkeypatch):
+    s = _StandIn()
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    return s
+
+
+def test_pipeline_blames_latency_and_recovers_it(recordings, stand_in):
+    run = _read(recordings["latency"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale"),
+                                                                          fits_per_candidate=5))
+    assert d.verdict == "latency", d.reason
+    lat = next(c for c in d.effects if c.name == "latency")
+    assert lat.params == {"samples": 2}
+    assert lat.reduction > 0.5
+    assert lat.folds_improved == lat.folds_compared == 3
+    # time scale changes nothing the stand-in sees: no improvement, not significant
+    ts = next(c for c in d.effects if c.name == "time_scale")
+    assert not ts.significant and abs(ts.improvement) < 1e-9
+    # where: the contact term carries the flagged excess
+    assert d.where and d.where[0].term == "contact"
+
+
+def test_pipeline_on_a_clean_recording_says_none(recordings, stand_in):
+    run = _read(recordings["none"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale")))
+    assert d.verdict == "none", d.reason
+    assert all(not c.significant for c in d.effects)
+
+
+def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkeypatch):
+    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
+    run = _read(recordings["none"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_bias", "latency")))
+    fb = next(c for c in d.effects if c.name == "force_bias")
+    assert fb.status == "unavailable" and "effects=" in fb.message
+
+
+def test_json_schema_and_report_folder(recordings, stand_in, tmp_path):
+    from click.testing import CliRunner
+
+    from tacest.cli.diagnose import diagnose as cmd
+
+    out = tmp_path / "report"
+    res = CliRunner().invoke(cmd, [str(recordings["latency"]), "--effects", "latency,time_scale,force_bias",
+                                   "-o", str(out), "--json", "--quiet"])
+    assert res.exit_code == 0, res.output
+    obj = json.loads(res.stdout)  # exactly one JSON object on stdout
+    assert obj["verdict"] in ("none", "latency", "time_scale", "force_bias")
+    assert isinstance(obj["effects"], list) and len(obj["effects"]) == 3
+    for e in obj["effects"]:
+        for key in ("name", "gap_before", "gap_after", "reduction", "params", "params_std", "status"):
+            assert key in e, key
+        assert isinstance(e["params"], dict) and isinstance(e["params_std"], dict)
+    assert obj["effects"][0]["name"] == obj["verdict"]
+    assert isinstance(obj["where"], list)
+    for w in obj["where"]:
+        assert set(("run", "start", "stop", "term", "share")) <= set(w)
+        assert 0 <= w["share"] <= 1 and 0 <= w["start"] < w["stop"]
+    files = {p.name for p in out.iterdir()}
+    assert {"report.md", "heldout_gap.png", "residuals_run0.png", "diagnosis.json"} <= files
+    assert "Verdict" in (out / "report.md").read_text()
+    # a folder that is not a report is never replaced
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    res = CliRunner().invoke(cmd, [str(recordings["none"]), "--effects", "latency", "-o", str(other), "--quiet"])
+    assert res.exit_code != 0 and (other / "keep.txt").exists()
+
+
+# ------------------------------------------------------------------------------------
+# failure paths through the installed CLI
+
+
+def _tacest(*args):
+    return subprocess.run([TACEST, *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def _one_error_line(res):
+    assert res.returncode == 2, (res.returncode, res.stderr)
+    assert "Traceback" not in res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("tacest: error:"), res.stderr
+    return lines[0]
+
+
+def test_missing_file_exits_2(tmp_path):
+    line = _one_error_line(_tacest("diagnose", tmp_path / "nope.h5", "-o", tmp_path / "out"))
+    assert "nope.h5" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_effect_exits_2(recordings, tmp_path):
+    line = _one_error_line(_tacest("diagnose", recordings["none"], "--effects", "latency,wobble",
+                                   "-o", tmp_path / "out"))
+    assert "wobble" in line and "valid effects" in line
+    with pytest.raises(TacestError):
+        parse_effect_list("none")
+    with pytest.raises(TacestError):
+        candidate("none")
+
+
+def test_estimate_of_another_object_exits_2(recordings, tmp_path):
+    run = _read(recordings["latency"])
+    T = run.n_samples
+    res = {t: np.zeros(T) for t in TERMS}
+    est = Estimate(dim=2, shape="box", vertices=np.asarray(run.truth.vertices),
+                   params={"mass": 0.5, "inertia": 1e-3, "friction_ground": 0.3, "friction_finger": 0.5},
+                   runs=[RunEstimate(pose=np.zeros((T, 3)), velocity=np.zeros((T, 3)), residuals=res,
+                                     source_file=str(recordings["latency"]),
+                                     source_sha256=sha256_file(recordings["latency"]))],
+                   solver_status="Solve_Succeeded", success=True)
+    path = tmp_path / "est.h5"
+    write_estimate(est, path)
+    line = _one_error_line(_tacest("diagnose", recordings["none"], "--estimate", path, "-o", tmp_path / "out"))
+    assert "other data" in line
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------
+# with the real estimator (slow)
+
+
+@pytest.mark.slow
+def test_latency_recovered_by_the_transform_path_with_the_estimator():
+    """Fits of a 2-poke recording with a 2-sample tactile delay, its tactile streams
+    advanced by k = 0..3: the objective is lowest at k = 2 (or within the solver's
+    budget noise of it at a neighbour, which the held-out comparison then settles)."""
+    from tacest.diagnosis.fitting import fit_local, weighted_objective
+    from tacest.estimation.config import EstimatorConfig
+
+    run = record_sim(SimOptions(seed=3, pokes=2, effects=["latency:samples=2"]))
+    cfg = EstimatorConfig()
+    base = fit_local([run], "box", cfg)
+    objs = {0: weighted_objective(base.estimate, cfg)}
+    for k in (1, 2, 3):
+        f = fit_local([undo_latency(run, k)], "box", cfg, warm=base.estimate, warm_runs=list(base.estimate.runs))
+        objs[k] = weighted_objective(f.estimate, cfg)
+    best = min(objs, key=objs.get)
+    assert best == 2, objs
+    assert objs[0] - objs[2] > 3.0, objs  # the delay costs more than one parameter's penalty
+
+
+NLP_EFFECTS = {  # effect: (record spec, parameter, relative tolerance)
+    "restitution": ("restitution:e=0.6", "e", 0.3),
+    "angular_damping": ("angular_damping", "c", 0.5),
+    "linear_drag": ("linear_drag", "b", 0.5),
+    "soft_contact": ("soft_contact:stiffness=3000", "stiffness", 0.5),
+    "force_bias": ("force_bias:fx=0.3,fy=-0.2", "fx", 0.3),
+    "force_scale": ("force_scale:gain=1.3", "gain", 0.1),
+    "com_offset": ("com_offset", "dx", 0.5),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not estimator_supports_effects(),
+                    reason="estimate_runs has no effects=/fixed= (NLP augmentations) in this version")
+@pytest.mark.parametrize("name", sorted(NLP_EFFECTS))
+def test_nlp_augmentation_recovers_its_parameter(name):
+    from tacest.estimation.estimator import estimate_runs
+    from tacest.sim.effects import effects_from_json
+
+    spec, param, rel = NLP_EFFECTS[name]
+    run = record_sim(SimOptions(seed=4, pokes=6, effects=[spec]))
+    truth = effects_from_json(run.truth.effects)[0].params[param]
+    est = estimate_runs([run], "box", effects=(name,))
+    got = [v for k, v in est.params.items() if k.endswith(param)]
+    assert got, est.params
+    assert abs(got[0] - truth) <= rel * abs(truth), (got[0], truth)
