@@ -309,6 +309,11 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     echo = echo or _noop
     config = config or EstimatorConfig()
     options = (options or DiagnoseOptions()).validate()
+    if not runs:
+        raise TacestError("no run files given")
+    dims = sorted({r.dim for r in runs})
+    if dims != [2]:
+        raise TacestError(f"diagnose works on 2-D runs in this version (got dim {', '.join(map(str, dims))})")
     check_runs(runs)
     K = make_shape(shape, dim=2).n_vertices
     names = cands.parse_effect_list(options.effects)
@@ -331,10 +336,13 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         if backend == "estimator":
             base = fit_estimator(runs, shape, config, echo=_noop)
         else:
-            base = fit_local(runs, shape, config)
+            base = fit_local(runs, shape, config, accept_budget=True)
         base_est = base.estimate
         echo(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
              f"{base.wall_time:.1f} s")
+        if not base_est.success:
+            ctx.notes.append(f"the plain model's fit to all data stopped at its iteration budget "
+                             f"({base_est.solver_status}); its last iterate is used")
     base_full_obj = weighted_objective(base.estimate, config)
 
     # 2. where ---------------------------------------------------------------------

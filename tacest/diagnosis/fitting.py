@@ -219,7 +219,7 @@ def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
     """Scaled decision vector: the warm estimate's parameters and, for every run i with
     warm_runs[i] (a RunEstimate of the same length), its trajectory and impulses; the
     estimator's own start (push tracker) for the others."""
-    from tacest.estimation.data import GRAVITY
+    from tacest.estimation.data import GRAVITY, touching
     from tacest.estimation.initial import initial_guess
 
     pr = est.problem
@@ -243,13 +243,22 @@ def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
         # clock candidate changes dt; the impulse-only stage cannot move Q or V)
         Vv[:, 1:] = np.diff(Q, axis=1) / run.dt
         kw = {"Q": Q, "V": Vv}
+        # impulses: written into the estimator's own start blocks, whatever their layout
+        # holds (ground normal impulses first, then tangential ones when it has them)
+        _, _, LG0, LF0 = pr.run_blocks(z, i)
+        K = pr.K
         gn = wr.impulses.get("ground_normal")
-        if gn is not None and np.asarray(gn).shape == (run.n_samples, pr.K):
-            kw["LG"] = np.maximum(np.asarray(gn, float)[1:] / Lam, 0.0).T
+        if gn is not None and np.asarray(gn).shape == (run.n_samples, K) and LG0.shape[0] >= K:
+            LG = LG0.copy()
+            LG[:K] = np.maximum(np.asarray(gn, float)[1:] / Lam, 0.0).T
+            gt = wr.impulses.get("ground_tangent")
+            if LG0.shape[0] >= 2 * K and gt is not None and np.asarray(gt).shape == (run.n_samples, K):
+                LG[K: 2 * K] = (np.asarray(gt, float)[1:] / Lam).T
+            kw["LG"] = LG
         F = run.n_fingers
-        if F and all(f"finger_{f}" in wr.impulses for f in range(F)):
+        if F and all(f"finger_{f}" in wr.impulses for f in range(F)) and LF0.shape[0] == 2 * F:
             LF = np.concatenate([np.asarray(wr.impulses[f"finger_{f}"], float)[1:] for f in range(F)], axis=1)
-            on = run.contact[1:].astype(bool)
+            on = touching(run)[1:]
             LF = LF * np.repeat(on, 2, axis=1)  # off-contact finger impulses are pinned at 0
             kw["LF"] = (LF / Lam).T
         pr.set_run_blocks(z, i, **kw)
@@ -260,7 +269,7 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
     """An Estimate from a LocalEstimator's solution (as estimate_runs writes it)."""
     from tacest.io.h5util import sha256_file
 
-    V, mass, inertia, mu_g, mu_f = est.physical(out.z)
+    V, mass, inertia, mu_g, mu_f = est.physical(out.z)[:5]
     run_ests = []
     for i, run in enumerate(runs):
         pose, vel, imp = est.trajectories(out.z, i)
