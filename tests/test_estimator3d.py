@@ -1,0 +1,280 @@
+"""The 3-D estimator: quaternion kinematics, inertia validity, the box signed distance,
+exact derivatives, a known answer from synthetic tosses, failure paths and 3-D eval."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from tacest.dynamics.rigid3d import (cholesky_from_inertia, inertia_numeric, qexp_half, qmul, quat_log_rate)
+from tacest.errors import TacestError
+from tacest.estimation.problem3d import body_rate
+from tacest.geometry.polytope import box_vertices_3d, polytope_inertia
+from tacest.geometry.shapes3d import Box3D, box_signed_distance, shape_sd_and_normal_function
+from tacest.geometry.transforms import quat_angle, quat_from_axis_angle, quat_multiply
+from tacest.io.run import Run, write_run
+
+TACEST = str(Path(sys.executable).parent / "tacest")
+
+#: the synthetic object: a box of distinct extents (m), uniform density, friction
+EXTENTS = np.array([0.08, 0.10, 0.12])
+MASS = 0.4
+FRICTION = 0.3
+
+
+def _dm(x):
+    return np.asarray(ca.DM(x)).ravel()
+
+
+# ---------------------------------------------------------------------------------
+# quaternion kinematics
+
+
+def test_constant_body_rate_integrates_to_the_closed_form_rotation():
+    w = np.array([0.3, -1.2, 2.0])  # rad/s, body frame
+    dt, n = 0.01, 300
+    q0 = quat_from_axis_angle(np.array([1.0, 2.0, -0.5]), 0.7)
+    q = ca.DM(q0)
+    e = qexp_half(ca.DM(w), dt)
+    norms = []
+    for _ in range(n):
+        q = qmul(q, e)
+        norms.append(float(ca.norm_2(q)))
+    # closed form: a constant body rate turns the body by |w| n dt about w (body axis)
+    expected = quat_multiply(q0, quat_from_axis_angle(w, np.linalg.norm(w) * n * dt))
+    # 1e-9 rad: the series of exp is exact to ~1e-16 per step at |w| dt = 0.02, so
+    # what remains is float round-off accumulated over 300 products
+    assert quat_angle(_dm(q), expected) < 1e-9
+    # the update is normalised: unit norm kept to round-off over all steps
+    assert max(abs(np.array(norms) - 1.0)) < 1e-12
+
+
+def test_body_rate_inverts_the_update_and_is_smooth_at_rest():
+    dt = 0.0068
+    q0 = quat_from_axis_angle(np.array([0.2, -1.0, 0.4]), 1.1)
+    for w in (np.array([3.0, -20.0, 7.0]), np.array([1e-9, 0.0, -2e-9]), np.zeros(3)):
+        q1 = _dm(qmul(ca.DM(q0), qexp_half(ca.DM(w), dt)))
+        # 1e-7 relative (plus 1e-12 rad/s): the asin series is accurate to < 1e-8 for
+        # rotations below 0.5 rad per sample (here 0.15 rad at most)
+        np.testing.assert_allclose(_dm(body_rate(ca.DM(q0), ca.DM(q1), dt)), w, rtol=1e-7, atol=1e-12)
+        # the same body rate for -q (q and -q are one rotation) and for a scaled q
+        np.testing.assert_allclose(_dm(body_rate(ca.DM(q0), ca.DM(-3.0 * q1), dt)), w, rtol=1e-7, atol=1e-12)
+        np.testing.assert_allclose(quat_log_rate(q0, q1, dt), w, rtol=1e-7, atol=1e-12)
+    # derivatives are finite at zero rate (the series has no 0/0)
+    a, b = ca.SX.sym("a", 4), ca.SX.sym("b", 4)
+    J = ca.Function("J", [a, b], [ca.jacobian(body_rate(a, b, dt), ca.vertcat(a, b))])
+    assert np.all(np.isfinite(np.asarray(J(q0, q0))))
+
+
+# ---------------------------------------------------------------------------------
+# inertia
+
+
+def test_every_inertia_parameter_gives_a_physical_inertia_and_round_trips():
+    rng = np.random.default_rng(0)
+    for c in rng.normal(scale=1.5, size=(300, 6)):
+        I = inertia_numeric(c)
+        ev = np.linalg.eigvalsh(I)
+        assert ev[0] > 0
+        # triangle inequalities of the principal moments (strict, relative 1e-12)
+        assert ev[0] + ev[1] > ev[2] * (1 - 1e-12)
+        np.testing.assert_allclose(I, I.T, atol=0)
+        # 1e-8: the round trip goes through a Cholesky factorisation (condition numbers
+        # up to ~1e6 for parameters 3 sigma out)
+        np.testing.assert_allclose(cholesky_from_inertia(I), c, atol=1e-8 * max(1.0, np.abs(c).max()))
+    box = polytope_inertia(box_vertices_3d(EXTENTS), MASS) / MASS
+    np.testing.assert_allclose(inertia_numeric(cholesky_from_inertia(box)), box, rtol=1e-12)
+
+
+def test_an_unphysical_inertia_is_refused():
+    with pytest.raises(TacestError, match="not physically valid"):
+        cholesky_from_inertia(np.diag([1.0, 1.0, 3.0]))  # 1 + 1 < 3
+
+
+# ---------------------------------------------------------------------------------
+# signed distance
+
+
+@pytest.mark.parametrize("point,sd", [
+    ((0.0, 0.0, 0.0), -0.05),            # centre: nearest face at 0.05
+    ((0.07, 0.0, 0.0), 0.02),            # outside the x face
+    ((0.0, -0.12, 0.01), 0.02),          # outside the -y face
+    ((0.08, 0.14, 0.15), 0.05),          # beyond an edge: hypot(0.03, 0.04)
+    ((0.09, 0.13, 0.17), np.sqrt(0.04 ** 2 + 0.03 ** 2 + 0.02 ** 2)),  # beyond a corner
+    ((0.03, 0.0, 0.1), -0.02),           # inside, nearest the x face
+    ((0.05, 0.02, 0.01), 0.0),           # on the x face
+])
+def test_box_signed_distance_hand_table(point, sd):
+    half = np.array([0.05, 0.10, 0.15])
+    value = float(ca.DM(box_signed_distance(ca.DM(point), ca.DM(half))))
+    assert value == pytest.approx(sd, abs=1e-12)
+
+
+def test_box_normal_is_the_gradient():
+    fun = shape_sd_and_normal_function(Box3D())
+    s, L = np.array([1.0, 2.0, 3.0]), 0.1  # extents 0.1, 0.2, 0.3 m
+    for p, n in (((0.07, 0.0, 0.0), (1, 0, 0)), ((0.0, -0.11, 0.02), (0, -1, 0)),
+                 ((0.08, 0.14, 0.0), (0.6, 0.8, 0))):
+        _, nb = fun(p, s, L)
+        np.testing.assert_allclose(_dm(nb), n, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------
+# synthetic tosses
+
+
+@pytest.fixture(scope="module")
+def tosses():
+    """Two noiseless tosses of the box, simulated by the project's own 3-D model."""
+    from tacest.estimation.rollout3d import simulate_toss
+
+    inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
+    runs = []
+    for axis, angle, v, w in (((1.0, 2.0, 0.5), 0.6, (0.5, -0.2, -0.4), (4.0, -6.0, 2.0)),
+                              ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
+        q0 = quat_from_axis_angle(np.array(axis), angle)
+        run = simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w], 55)
+        assert run.extra_attrs["simulation_unconverged_steps"] == 0
+        runs.append(run)
+    return runs
+
+
+def test_derivatives_match_finite_differences(tosses, monkeypatch):
+    """Residual Jacobian, gradient and exact Hessian of the 3-D NLP against central
+    differences, at a generic point near the start (the virtual-machine functions; the
+    compiled kernels are generated from the same expressions)."""
+    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
+    from tacest.estimation.estimator3d import Estimator3D
+
+    run = tosses[0]
+    short = run.replace(time=run.time[:8], pose_obs=run.pose_obs[:8], truth=None)
+    est = Estimator3D([short], "box")
+    pr = est.problem
+    rng = np.random.default_rng(3)
+    p = est.params(0.5, 1.0, 1.0, ridge=0.0)
+    z = est.ground_impulses_nnls(est.initial_guess(), p)
+    # perturbation 0.01 (scaled units): inside the smooth regions, off symmetric values;
+    # the impulse variables u are moved into the linear part of the softplus
+    z = z + rng.normal(size=pr.n_z) * 0.01
+    z[pr.u_offset: pr.lf_offset] = 0.3 + rng.uniform(size=pr.lf_offset - pr.u_offset)
+    r_fun = ca.Function("r", [pr.z_sym, pr.p_sym], [pr.residual_jacobian(pr.z_sym, pr.p_sym)[0]])
+    f_fun = ca.Function("f", [pr.z_sym, pr.p_sym], [pr.f, ca.gradient(pr.f, pr.z_sym)])
+    r0, J = (np.asarray(a.full() if hasattr(a, "full") else a) for a in pr.residual_jacobian(z, p))
+    grad = _dm(f_fun(z, p)[1])
+    H = pr.hess_lag["exact"](z, p, 1.0, np.zeros(0)).full()
+    H = np.triu(H) + np.triu(H, 1).T
+    Hgn = pr.hess_lag["gauss-newton"](z, p, 1.0, np.zeros(0)).full()
+    h = 1e-6  # central differences: truncation ~h² · (third derivative), round-off ~1e-16 / h
+    Jfd, Hfd = np.zeros_like(J), np.zeros_like(H)
+    for k in range(pr.n_z):
+        e = np.zeros(pr.n_z)
+        e[k] = h
+        Jfd[:, k] = (_dm(r_fun(z + e, p)) - _dm(r_fun(z - e, p))) / (2 * h)
+        Hfd[:, k] = (_dm(f_fun(z + e, p)[1]) - _dm(f_fun(z - e, p)[1])) / (2 * h)
+    # relative 1e-6 of the largest entry: the whitened residuals reach 1e4 per unit of the
+    # scaled variables, so round-off in the differences is ~1e-10 · 1e4 / 1e-6
+    assert np.abs(J - Jfd).max() <= 1e-6 * np.abs(J).max()
+    np.testing.assert_allclose(grad, J.T @ _dm(r0), rtol=1e-9, atol=1e-9 * np.abs(grad).max())
+    assert np.abs(H - Hfd).max() <= 1e-6 * np.abs(Hfd).max()
+    # the Gauss–Newton model is exactly Jᵀ J (ridge 0), upper triangle
+    np.testing.assert_allclose(Hgn, np.triu(J.T @ J), atol=1e-9 * np.abs(Hgn).max())
+
+
+def test_noiseless_tosses_give_back_the_box(tosses):
+    from tacest.estimation.estimator3d import estimate_runs_3d
+
+    est = estimate_runs_3d(tosses, "box")
+    assert est.success, est.solver_status
+    extents = np.ptp(est.vertices, axis=0)
+    # 1 % (1 mm): the simulated data are the model's solution with near-hard dynamics and
+    # soft contact penalties, the estimate the same model with process noise, so the two
+    # optima differ by a fraction of the penetration sigma (0.5 mm) at the contacts
+    # (0.3 % seen)
+    np.testing.assert_allclose(extents, EXTENTS, rtol=0.01)
+    # friction: 5 %, seen only in the sliding samples of two tosses (1 % seen)
+    assert est.params["friction_ground"] == pytest.approx(FRICTION, rel=0.05)
+    # inertia over mass (what pose data can tell): principal moments within 10 %, told
+    # only by a few impacts (7 % seen)
+    true = np.linalg.eigvalsh(polytope_inertia(box_vertices_3d(EXTENTS), MASS) / MASS)
+    np.testing.assert_allclose(np.linalg.eigvalsh(est.params["inertia"] / est.params["mass"]), true, rtol=0.10)
+    # pose-only data: the mass is the prior's, flagged, with no information
+    assert est.identifiable["mass"] is False
+    k = est.info_names.index("mass")
+    assert np.all(est.information[k] == 0) and np.isinf(est.std["mass"])
+    # the trajectory follows the (noiseless) observations to well below a millimetre
+    pos = np.concatenate([r.pose[:, :3] - t.pose_obs[:, :3] for r, t in zip(est.runs, tosses)])
+    assert np.sqrt(np.mean(np.sum(pos ** 2, 1))) < 5e-4
+
+
+# ---------------------------------------------------------------------------------
+# the command line: estimate, eval, failures
+
+
+def _tacest(*args, cwd=None):
+    return subprocess.run([TACEST, *map(str, args)], capture_output=True, text=True, cwd=cwd)
+
+
+def test_estimate_and_eval_a_3d_run_through_the_cli(tosses, tmp_path):
+    runs = []
+    for i, run in enumerate(tosses):
+        path = tmp_path / f"toss{i}.h5"
+        write_run(run, path)
+        runs.append(path)
+    est_path = tmp_path / "est.h5"
+    r = _tacest("estimate", *runs, "--shape", "box", "--quiet", "-o", est_path)
+    assert r.returncode == 0, r.stderr
+    r = _tacest("eval", est_path, "--truth", runs[1], "--json")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout)
+    assert rep["dim"] == 3 and rep["run_index"] == 1 and rep["matched_by"] == "sha256"
+    # shape 1 % off at most (see the known-answer test): about a millimetre of Chamfer
+    assert rep["chamfer_body"] < 2e-3 and rep["chamfer"] < 3e-3
+    assert rep["pose_position_rmse"] < 1e-3 and rep["pose_angle_rmse"] < 0.01
+    assert rep["friction_ground_rel"] < 0.1
+    assert rep["params"]["mass"]["identifiable"] is False
+    assert rep["mass_rel"] == pytest.approx(abs(0.5 - MASS) / MASS)  # the prior's 0.5 kg, honestly
+
+
+def _assert_exit_2(result, *fragments):
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("tacest: error:"), result.stderr
+    for frag in fragments:
+        assert frag in lines[0], lines[0]
+
+
+def test_bad_3d_input_exits_2_without_output(tosses, tmp_path):
+    short = tosses[0].replace(time=tosses[0].time[:3], pose_obs=tosses[0].pose_obs[:3], truth=None)
+    write_run(short, tmp_path / "short.h5")
+    out = tmp_path / "est.h5"
+    _assert_exit_2(_tacest("estimate", tmp_path / "short.h5", "--quiet", "-o", out), "at least 4 samples")
+    write_run(tosses[0], tmp_path / "ok.h5")
+    _assert_exit_2(_tacest("estimate", tmp_path / "ok.h5", "--shape", "polygon:5", "--quiet", "-o", out),
+                   "polygon:5")
+    _assert_exit_2(_tacest("estimate", tmp_path / "ok.h5", "--method", "shooting", "--quiet", "-o", out),
+                   "implicit")
+    assert not out.exists()
+
+
+def test_a_failed_3d_solve_exits_2_without_output(tosses, tmp_path):
+    write_run(tosses[0], tmp_path / "ok.h5")
+    cfg = tmp_path / "few.toml"
+    cfg.write_text("[solver]\nmax_iter = 2\n")  # the 3-D stage cannot converge in 2 iterations
+    out = tmp_path / "est.h5"
+    _assert_exit_2(_tacest("estimate", tmp_path / "ok.h5", "--config", cfg, "--quiet", "-o", out), "IPOPT failed",
+                   "Maximum_Iterations_Exceeded")
+    assert not out.exists()
+
+
+def test_a_3d_run_without_observations_or_fingers_is_refused():
+    from tacest.estimation.estimator3d import check_runs_3d
+
+    run = Run(dim=3, dt=0.01, time=np.arange(5) * 0.01, gravity=np.array([0.0, 0.0, -9.81]))
+    with pytest.raises(TacestError, match="neither pose observations nor fingertip"):
+        check_runs_3d([run])
