@@ -104,7 +104,8 @@ def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float,
                 h=run.ground_height, sig_force=nz.force, sig_normal=nz.normal, sig_gap=nz.contact_gap,
                 sig_proc=nz.process, sig_pen=nz.penetration, sig_rest=nz.rest,
                 sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult,
-                dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation)
+                dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation,
+                m_ref=scales.m0, I_ref=scales.m0 * scales.L ** 2 / 6, sig_diss_g=nz.dissipation_ground)
     for k, v in vals.items():
         g[G[k]] = v
     return g

@@ -88,7 +88,8 @@ class ImplicitEstimator:
         for i, (run, st) in enumerate(zip(self.runs, self.structures)):
             off = pr.offsets[i]
             a, n = off["LG"]
-            lbx[a: a + n] = 0.0  # lambda_n >= 0
+            normal_rows = np.tile(np.arange(2 * pr.K) < pr.K, n // (2 * pr.K))
+            lbx[a: a + n][normal_rows] = 0.0  # lambda_n >= 0 (tangential impulses are free)
             if st.F:
                 # finger impulses exist only where the tactile flag says the finger touched
                 a, n = off["LF"]
@@ -229,8 +230,8 @@ class ImplicitEstimator:
         T = run.n_samples
         res = self._stage_outputs(z, i)
         imp = {
-            "ground_normal": np.vstack([np.zeros((1, K)), LG.T * Lam]),
-            "ground_tangent": np.vstack([np.zeros((1, K)), np.asarray(res["lam_t_ground"]).T * Lam]),
+            "ground_normal": np.vstack([np.zeros((1, K)), LG[:K].T * Lam]),
+            "ground_tangent": np.vstack([np.zeros((1, K)), LG[K:].T * Lam]),
         }
         F = self.structures[i].F
         fi = np.asarray(res["imp_finger"]).T  # (T-1, 2F)

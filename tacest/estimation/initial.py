@@ -191,13 +191,13 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, traj
         scale = np.array([scales.L, scales.L, 1.0])
         Q = (poses / scale).T
         Vv = (vel / scale).T
-        LG = np.zeros((K, T - 1))
+        LG = np.zeros((2 * K, T - 1))  # [normal; tangential], tangential 0 (sticking)
         # ground: weight carried by the vertices within 1 mm of the ground
         for t in range(1, T):
             Rt = np.array([[np.cos(poses[t, 2]), -np.sin(poses[t, 2])], [np.sin(poses[t, 2]), np.cos(poses[t, 2])]])
             phi = (V @ Rt.T + poses[t, :2]) @ run.up - run.ground_height
             low = phi < phi.min() + 1e-3
-            LG[:, t - 1][low] = 1.0 / low.sum()
+            LG[:K, t - 1][low] = 1.0 / low.sum()
         LF = np.zeros((2 * run.n_fingers, T - 1))
         if run.n_fingers:
             Lam = scales.m0 * GRAVITY * run.dt

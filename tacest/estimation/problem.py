@@ -7,7 +7,7 @@ Decision variables (all scaled to O(1); see :class:`Scales`):
   mu_finger] with the equality constraint phys = phys(theta)
 - per run i, per sample t: pose q[t] (3), velocity v[t] (3); per interval (t-1, t]:
   ground impulses [lambda_n (K), lambda_t (K)] at each shape vertex and, per finger,
-  its impulse on the object as a world-frame vector [x, y] (scaled by m0 g dt).
+  its impulse on the object as a world-frame vector [x, y] (all scaled by m0 g dt).
 
 Data (recorded streams, noise levels, homotopy settings) are CasADi *parameters*, so the
 NLP is built once per structure (shape, run lengths, fingers) and re-solved with new data.
@@ -17,26 +17,30 @@ so that a Gauss–Newton Hessian models the whole loss)::
 
     force          (lambda_f / dt - F_meas) / sigma_F                 where a force stream exists
     normal         c (n_meas - n_model) / sigma_n
-    contact        c phi_f / sigma_gap  +  (1 - c) min~(phi_f, 0) / sigma_gap
+    contact        c phi_f / sigma_gap  +  (1 - c) min~(phi_f) (fingertip gap / no overlap)
     pose           (q - q_obs) / sigma_pose                           where observed
-    dynamics       eq. D1 residual / (process · m0 g dt)
-    penetration    min~(phi_ground, 0) / sigma_pen
-    cone           min~(mu lambda_n ∓ lambda_t, 0) / sigma_comp   (fingertip friction cone, eq. C2)
-                   (min~ is a softplus-smoothed min(x, 0) of width sigma: see smooth_neg)
-    complementarity  lambda_n psi(phi) / sigma_comp (eq. C1, relaxed): psi = phi⁺ / (phi⁺ + sigma_gap),
-                   phi⁺ a smoothed max(phi, 0); psi saturates at 1 so that a vertex far
-                   above the ground costs lambda_n, not lambda_n · phi (the unbounded
+    dynamics       eq. D1 residual M(v - v_prev) - dt f_ext - Jᵀλ, whitened as process
+                   noise on the velocity change of a reference body (m_ref, I_ref)
+    penetration    min~(phi_ground) with tolerance sigma_pen
+    cone           min~(mu lambda_n ∓ lambda_t) / sigma_comp, ground vertices and fingertips (eq. C2)
+                   (min~ is a one-sided smooth penalty, ≈ 0 at the limit: see one_sided)
+    complementarity  lambda_n psi(phi) / sigma_comp (eq. C1, relaxed): psi = phi⁺ / (phi⁺ + 1),
+                   phi⁺ a smoothed max(phi / sigma_gap - 1, 0); psi saturates at 1 so that a
+                   vertex far above the ground costs lambda_n, not lambda_n · phi (the unbounded
                    bilinear form makes IPOPT's Hessian badly indefinite)
+    dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss (eq. C3, maximal dissipation:
+                   0 when friction opposes the slip s at the cone's limit, or when sticking);
+                   sigma_diss at the fingertips (slip from filtered positions), the tighter
+                   sigma_diss_g at the ground vertices
 
-Ground friction (eq. C2, C3) is in closed form: the tangential impulse is on the cone's
-boundary against the slip, lambda_t = -mu lambda_n s / sqrt(s² + eps_s²) (maximal
-dissipation, regularized below eps_s), so no ground friction variables or bilinear cone
-constraints appear.  Finger impulses are free world-frame vectors kept in the friction cone
-of the model's contact frame by the smooth cone penalty, with the maximal-dissipation penalty
-
-    dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss  >= 0 (eq. C3, zero at maximal dissipation)
-
-because fingertips often stick and their measured velocity is noisy.
+Ground and finger friction are both impulses (variables) inside the Coulomb cone with a
+maximal-dissipation residual, as in the violation-implicit loss of ContactNets: every
+term is polynomial in the impulses and the slip, so the Gauss–Newton model stays valid
+across stick–slip transitions (a closed-form regularized Coulomb law, mu lambda_n s /
+|s|_eps, is stiff as 1/eps and made IPOPT crawl), and static friction is represented
+exactly.  Impulse residuals are whitened in units of a fixed reference weight m0·g·dt
+(the dynamics by a fixed reference body): a whitening that scaled with the estimated
+mass would itself pull the mass estimate.
 
 Non-penetration and the fingertip cone are smooth penalties rather than inequality
 constraints: hard ones made IPOPT's filter trade huge objective increases for tiny
@@ -65,11 +69,12 @@ SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration"
 #: whitened residual, so the Gauss–Newton Hessian covers the whole loss
 PENALTY_TERMS = ()
 TERMS = SQUARED_TERMS + PENALTY_TERMS
-#: m/s: slip velocity below which ground friction is regularized (sign(s) ≈ s / eps).
-#: An object held by static friction may creep below it; 3 mm/s against poke speeds of
-#: several cm/s.  It is not driven down in the homotopy: the regularized law's stiffness
-#: grows as 1/eps, and shrinking it between stages throws the iterate far off.
+#: m/s: smoothing of |slip| in the maximal-dissipation residual (see
+#: dissipation_shortfall); well below poke speeds of several cm/s
 SLIP_EPS = 3e-3
+#: scaled impulse (units of m0·g·dt): tolerance of the fingertip friction cone penalty
+#: (1 % of the reference weight's impulse; finger impulses are ~5-50 % of it)
+CONE_TOLERANCE = 0.01
 #: Hessian models built for every problem (see Problem2D._local_hessian)
 HESSIAN_MODES = ("gauss-newton", "exact")
 #: names of the physical parameters in theta after the shape block
@@ -110,10 +115,24 @@ def smooth_neg(x, delta):
     return -delta * (ca.fmax(y, 0) + ca.log1p(ca.exp(-ca.fabs(y))))
 
 
+#: a one-sided penalty's smoothing width is its tolerance divided by this, and it is
+#: shifted by one tolerance into the violated side: at the limit itself the whitened
+#: residual is -log(1 + e^-3) / 3 ≈ -0.016 instead of the -log 2 ≈ -0.69 of an unshifted
+#: softplus, whose gradient pushes every resting contact off its limit and biases the
+#: parameters (the object floats, the finger friction cone widens)
+SOFT_SHIFT = 3.0
+
+
+def one_sided(x, sigma):
+    """Whitened smooth penalty of a limit x >= 0 with tolerance sigma (same units as x):
+    ≈ 0 for x >= 0, -0.23 at x = -sigma, ≈ (x + sigma) / sigma below (see SOFT_SHIFT)."""
+    return smooth_neg(x + sigma, sigma / SOFT_SHIFT) / sigma
+
+
 def contact_residual(phi_f, contact, weight, sigma_gap):
     """Whitened contact-flag residual of one fingertip: its gap phi_f (m) where the flag is
     1, its (smoothed) penetration where the flag is 0."""
-    return weight * (contact * phi_f + (1 - contact) * smooth_neg(phi_f, sigma_gap)) / sigma_gap
+    return weight * (contact * phi_f / sigma_gap + (1 - contact) * one_sided(phi_f, sigma_gap))
 
 
 def smooth_abs(x, eps):
@@ -121,9 +140,18 @@ def smooth_abs(x, eps):
     return ca.sqrt(x * x + eps * eps)
 
 
+def dissipation_shortfall(mu, lam_n, lam_t, slip, eps):
+    """Maximal-dissipation residual (eq. C3) of one contact: mu lam_n |slip| + lam_t slip,
+    >= 0 inside the friction cone, 0 when friction opposes the slip at the cone's limit
+    (or the contact sticks).  |slip| is smoothed as sqrt(slip² + eps²) - eps, which is 0
+    at slip 0 (no artificial residual while sticking); its slope is bounded by mu lam_n,
+    so the Gauss–Newton model stays valid across stick–slip transitions."""
+    return mu * lam_n * (smooth_abs(slip, eps) - eps) + lam_t * slip
+
+
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
-           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss")
+           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g")
 G = {n: i for i, n in enumerate(G_NAMES)}
 
 
@@ -161,8 +189,8 @@ class Problem2D:
             n += 3 * T
             blk["V"] = (n, 3 * T)
             n += 3 * T
-            blk["LG"] = (n, K * (T - 1))
-            n += K * (T - 1)
+            blk["LG"] = (n, 2 * K * (T - 1))
+            n += 2 * K * (T - 1)
             blk["LF"] = (n, 2 * F * (T - 1))
             n += 2 * F * (T - 1)
             self.offsets.append(blk)
@@ -232,7 +260,7 @@ class Problem2D:
             off = self.offsets[i]
             Q = ca.reshape(z[off["Q"][0]: off["Q"][0] + off["Q"][1]], 3, T)
             Vv = ca.reshape(z[off["V"][0]: off["V"][0] + off["V"][1]], 3, T)
-            LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], K, T - 1)
+            LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], 2 * K, T - 1)
             LF = ca.reshape(z[off["LF"][0]: off["LF"][0] + off["LF"][1]], 2 * F, T - 1)
             out = stage.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
                                              dsym[:, 1:], gsym)
@@ -417,7 +445,7 @@ class Problem2D:
         v_prev = off["V"][0] + 3 * (t - 1) + np.arange(3)
         q = off["Q"][0] + 3 * t + np.arange(3)
         v = off["V"][0] + 3 * t + np.arange(3)
-        lg = off["LG"][0] + K * (t - 1) + np.arange(K)
+        lg = off["LG"][0] + 2 * K * (t - 1) + np.arange(2 * K)
         lf = off["LF"][0] + 2 * F * (t - 1) + np.arange(2 * F)
         ph = np.repeat(self.phys_offset + np.arange(self.n_phys)[None, :], T - 1, 0)
         return np.hstack([q_prev, v_prev, q, v, lg, lf, ph])
@@ -510,7 +538,7 @@ class Problem2D:
         vp = ca.SX.sym("v_prev", 3)
         qs = ca.SX.sym("q", 3)
         vs = ca.SX.sym("v", 3)
-        lg = ca.SX.sym("lam_ground", K)
+        lg = ca.SX.sym("lam_ground", 2 * K)
         lf = ca.SX.sym("lam_finger", 2 * F)
         phys = ca.SX.sym("phys", 2 * K + 4)
         d = ca.SX.sym("d", self.n_data(F))
@@ -529,25 +557,30 @@ class Problem2D:
         gen = ca.SX.zeros(3)
         comp = []
         pen = []
-        lt_ground = []
-        eps_slip = SLIP_EPS  # m/s, smoothing of sign(slip)
+        cone, diss = [], []
+        eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
         for k in range(K):
-            ln = lg[k]
-            # eq. C2 + C3 in closed form (regularized Coulomb): on the cone's boundary,
-            # opposing the slip; |slip| << eps_slip behaves as sticking
-            lt = -mu_g * ln * slip[k] / smooth_abs(slip[k], eps_slip)
-            lt_ground.append(lt)
+            ln, lt = lg[k], lg[K + k]
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
-            gap = smooth_pos(phi[k] / g[G["sig_gap"]], eps)
-            # saturating (bounded curvature far from the ground), and relative to the
-            # object's own weight m·g·dt (ln is in units of m0·g·dt): whitened by a fixed
-            # scale, a lighter object would make every contact violation cheaper
-            comp.append(ln * (g[G["m0"]] / mass) * gap / (1 + gap))
-            pen.append(smooth_neg(phi[k], g[G["sig_pen"]]) / g[G["sig_pen"]])
+            # eq. C2 (Coulomb cone) as a smooth penalty and eq. C3 (maximal dissipation:
+            # friction opposes the slip with all the cone allows) as a whitened residual,
+            # both in units of the reference weight m0·g·dt like the impulses: whitened
+            # relative to the object's own weight instead, a heavy object would make
+            # every friction violation cheap (and a heavy, slippery fit win).  A sticking
+            # vertex (slip 0) may carry any friction inside the cone.
+            cone += [one_sided(mu_g * ln - lt, CONE_TOLERANCE) * CONE_TOLERANCE,
+                     one_sided(mu_g * ln + lt, CONE_TOLERANCE) * CONE_TOLERANCE]
+            diss.append(dissipation_shortfall(mu_g, ln, lt, slip[k] / L, eps_slip / L)
+                        * g[G["sig_diss"]] / g[G["sig_diss_g"]])
+            # smoothed gap in units of sig_gap, shifted by one: within about one sig_gap of
+            # the ground a vertex counts as touching (at phi = 0 the indicator is ~eps²/4)
+            gap = smooth_pos(phi[k] / g[G["sig_gap"]] - 1, eps)
+            # saturating (bounded curvature far from the ground); in units of the
+            # reference weight m0·g·dt, like every impulse (see the cone above)
+            comp.append(ln * gap / (1 + gap))
+            pen.append(one_sided(phi[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
-        cone = []
-        diss = []
         for f in range(F):
             phi_f, n_w, lever = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
             t_w = perp(n_w)
@@ -560,9 +593,10 @@ class Problem2D:
             ln = -ca.dot(imp_s, n_w)
             lt = ca.dot(imp_s, t_w)
             slip_f = ca.dot(t_w, point_velocity(v, lever) - v_f[:, f]) / L  # object lengths per second
-            diss.append(mu_f * ln * smooth_abs(slip_f, eps_slip / L) + lt * slip_f)
+            diss.append(dissipation_shortfall(mu_f, ln, lt, slip_f, eps_slip / L))
             # friction cone |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty
-            cone += [smooth_neg(mu_f * ln - lt, 0.05), smooth_neg(mu_f * ln + lt, 0.05)]
+            cone += [one_sided(mu_f * ln - lt, CONE_TOLERANCE) * CONE_TOLERANCE,
+                     one_sided(mu_f * ln + lt, CONE_TOLERANCE) * CONE_TOLERANCE]
             imp_finger.append(imp)
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (imp / dt - F_meas[:, f]) / g[G["sig_force"]])
@@ -571,9 +605,10 @@ class Problem2D:
         # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
         # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, gravity along -n_g.  (Whitening
         # the impulse form by a fixed scale would let a light object move for free.)
-        Minv = 1 / mass_matrix_diag(mass, inertia)
+        M = mass_matrix_diag(mass, inertia)
+        M_ref = ca.vertcat(g[G["m_ref"]], g[G["m_ref"]], g[G["I_ref"]])
         grav = ca.vertcat(-9.81 * n_g * dt, 0)
-        r_dyn_raw = (v - v_prev) - grav - Minv * gen
+        r_dyn_raw = (M * ((v - v_prev) - grav) - gen) / M_ref
         sig_v = g[G["sig_proc"]] * 9.81 * dt
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
@@ -586,12 +621,12 @@ class Problem2D:
             "dynamics": r_dyn,
             "penetration": ca.vertcat(*pen),
             "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
-            "dissipation": (ca.vertcat(*diss) if F else ca.SX.zeros(0)) / g[G["sig_diss"]],
-            "cone": (ca.vertcat(*cone) if F else ca.SX.zeros(0)) / g[G["sig_comp"]],
+            "dissipation": ca.vertcat(*diss) / g[G["sig_diss"]],
+            "cone": ca.vertcat(*cone) / g[G["sig_comp"]],
             "g_kin": g_kin,
             # diagnostics only (not in the loss): tangential ground impulses (scaled) and
             # finger impulses on the object (N·s, world)
-            "lam_t_ground": ca.vertcat(*lt_ground),
+            "lam_t_ground": lg[K:],
             "imp_finger": ca.vertcat(*imp_finger) if F else ca.SX.zeros(0),
         }
         names = list(outs)
@@ -614,7 +649,7 @@ class Problem2D:
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         phi, _, _ = ground_contacts(q, v, V, n_g, g[G["h"]])
-        pen = ca.vertcat(*[smooth_neg(p, g[G["sig_pen"]]) / g[G["sig_pen"]] for p in phi])
+        pen = ca.vertcat(*[one_sided(p, g[G["sig_pen"]]) for p in phi])
         rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         sd_fun = polygon_sd_and_normal_function(K)
@@ -630,7 +665,8 @@ class Problem2D:
     # helpers to slice z
 
     def run_blocks(self, z, i):
-        """Views (scaled values) of run i: Q (3, T), V (3, T), LG (K, T-1), LF (F, T-1)."""
+        """Views (scaled values) of run i: Q (3, T), V (3, T), LG (2K, T-1) ground impulses
+        [normal (K); tangential (K)], LF (2F, T-1)."""
         st = self.structures[i]
         off = self.offsets[i]
         z = np.asarray(z, float).reshape(-1)
@@ -640,7 +676,7 @@ class Problem2D:
             return z[a: a + n].reshape(-1, rows).T
 
         LF = blk("LF", 2 * st.F) if st.F else np.zeros((0, st.T - 1))
-        return blk("Q", 3), blk("V", 3), blk("LG", self.K), LF
+        return blk("Q", 3), blk("V", 3), blk("LG", 2 * self.K), LF
 
     def set_run_blocks(self, z, i, Q=None, V=None, LG=None, LF=None):
         off = self.offsets[i]
