@@ -197,11 +197,22 @@ class FloorModel:
         mu = np.where(state, self.level(term, True), self.level(term, False))
         return mu * np.asarray(dof, float)
 
+    def bulk_level(self, term: str, state: bool) -> float:
+        """The level most windows sit at, min(1, robust level), without the test's lower
+        limit MU_MIN (0 where no window had degrees of freedom)."""
+        r = self.robust.get(_key(term, state), float("nan"))
+        return float(min(1.0, r)) if np.isfinite(r) else 0.0
+
     def objective_floor(self, dof: dict, state) -> float:
-        """Expected objective (Σ weight × 0.5 ‖r‖²) of samples with dof {term: (T,)}
-        and contact states (T,)."""
-        return float(sum(self.weights.get(t, 1.0) * 0.5 * float(np.sum(self.expected_series(t, d, state)))
-                         for t, d in dof.items()))
+        """Expected objective (Σ weight × 0.5 ‖r‖²) of samples with dof {term: (T,)} and
+        contact states (T,) at the bulk levels (:meth:`bulk_level`): the floor of the
+        held-out gap, the same in both modes."""
+        state = np.asarray(state, bool)
+        total = 0.0
+        for t, d in dof.items():
+            lev = np.where(state, self.bulk_level(t, True), self.bulk_level(t, False))
+            total += self.weights.get(t, 1.0) * 0.5 * float(np.sum(lev * np.asarray(d, float)))
+        return float(total)
 
     def term_level(self, term: str) -> str:
         """Short text of a term's levels (contact / free)."""
