@@ -132,6 +132,15 @@ def _median(values):
     return float(np.median(vals)) if vals else math.nan
 
 
+def _reduction(c: dict) -> float:
+    """Share of the held-out gap a candidate closed, as diagnose defines it (capped at 1),
+    and 0 when the plain model had no gap above the floor (nothing was closed)."""
+    before, improvement = c.get("gap_before"), c.get("improvement")
+    if before is None or improvement is None or not before > 0:
+        return 0.0
+    return min(1.0, improvement / before)
+
+
 def summarize(results: list) -> dict:
     ok = [r for r in results if r.get("ok")]
     names = list(SPEC_EFFECTS)
@@ -151,8 +160,8 @@ def summarize(results: list) -> dict:
         if r["effect"] == "none":
             continue
         c = next((e for e in r["effects"] if e["name"] == r["effect"]), None)
-        if c is not None and c.get("status") == "ok" and c.get("reduction") is not None:
-            reductions.append(c["reduction"])
+        if c is not None and c.get("status") == "ok":
+            reductions.append(_reduction(c))
     unavailable = sorted({e["name"] for r in ok for e in r["effects"] if e.get("status") == "unavailable"})
     return {
         "recordings": len(results), "failures": len(results) - len(ok), "confusion": conf,
@@ -238,7 +247,7 @@ def main(argv=None):
             right = next((e for e in res.get("effects", []) if e["name"] == effect), None)
             extra = ""
             if right is not None and right.get("status") == "ok":
-                extra = f", {effect}: reduction {right['reduction']:.0%}, params {right['params']}"
+                extra = f", {effect}: reduction {_reduction(right):.0%}, params {right['params']}"
             elif right is not None:
                 extra = f", {effect}: {right.get('status')}"
             print(f"{effect:>16} seed {seed}: verdict {verdict:<16} ({res.get('wall', math.nan):.0f} s{extra})"

@@ -8,9 +8,10 @@
    otherwise), then compared with the plain model on held-out data
    (tacest.diagnosis.heldout): train on some pieces, fit the held-out pieces with the
    trained parameters held fixed, sum the held-out objective.
-3. How far.  gap = held-out objective − its noise floor (the floor model's expected
-   objective of the same samples); ``gap_before`` is the plain model's, ``gap_after``
-   the candidate's, ``reduction`` = (before − after) / before.
+3. How far.  gap = held-out objective − its noise floor (the expected objective of the
+   same samples at the bulk level of the plain model's residuals); ``gap_before`` is the
+   plain model's, ``gap_after`` the candidate's, ``reduction`` = (before − after) /
+   before, capped at 1 (NaN when the plain model has no gap above the floor).
 
 Verdict.  A candidate with k parameters scores ``improvement − k · penalty`` where
 improvement = held-out objective of the plain model − the candidate's (over the folds
@@ -425,7 +426,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         c.wall_time = time.perf_counter() - t0
         echo(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
              + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ({c.reduction:.0%} closed), "
-                f"score {c.score:.3g}" if c.status == "ok" else "") + f", {c.wall_time:.0f} s")
+                f"score {c.score:.3g}" if c.status == "ok" and np.isfinite(c.reduction) else "")
+             + f", {c.wall_time:.0f} s")
 
     # 6. verdict ---------------------------------------------------------------------
     ok = [c for c in cres if c.status == "ok" and np.isfinite(c.score)]
@@ -442,7 +444,9 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     elif winners:
         w = winners[0]
         verdict = w.name
-        reason = (f"{w.name} closes {w.reduction:.0%} of the held-out gap ({w.gap_before:.4g} -> {w.gap_after:.4g}), "
+        closes = f"closes {w.reduction:.0%} of the held-out gap" if np.isfinite(w.reduction) else \
+            "improves the held-out fit (the plain model's gap is not above the floor)"
+        reason = (f"{w.name} {closes} ({w.gap_before:.4g} -> {w.gap_after:.4g}), "
                   f"improvement {w.improvement:.4g} > penalty {w.penalty:.3g} for {w.n_params} parameter(s), "
                   f"better in {w.folds_improved} of {w.folds_compared} folds")
     else:
@@ -519,7 +523,9 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     c.gap_before = before - fl
     c.gap_after = after - fl
     c.improvement = before - after
-    c.reduction = c.improvement / c.gap_before if c.gap_before > 0 else 0.0
+    # capped at 1: a candidate that brings the held-out objective below the floor closes
+    # the whole gap; undefined (NaN) when the plain model has no gap above the floor
+    c.reduction = min(1.0, c.improvement / c.gap_before) if c.gap_before > 0 else float("nan")
     c.penalty = c.n_params * penalty_per_param
     c.score = c.improvement - c.penalty
     c.folds_compared = len(common)

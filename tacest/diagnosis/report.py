@@ -250,9 +250,10 @@ def plot_heldout(diag, path):
     fig, ax = plt.subplots(figsize=(8, 0.42 * len(rows) + 1.6))
     y = np.arange(len(rows))[::-1]
     ax.barh(y, vals, color=colors, edgecolor="k", lw=0.5)
+    title = f"verdict: {diag.verdict}"
     if gap_plain is not None and np.isfinite(gap_plain):
-        ax.axvline(gap_plain, color="tab:red", lw=1.2, label=f"plain model ({gap_plain:.3g})")
-        ax.legend(loc="lower right", fontsize=8)
+        ax.axvline(gap_plain, color="tab:red", lw=1.2)
+        title += f"   (red line: the plain model's gap, {gap_plain:.3g})"
     ax.axvline(0.0, color="k", lw=0.8)
     span = max([abs(v) for v in vals] + [abs(gap_plain) if gap_plain is not None and np.isfinite(gap_plain) else 0, 1e-9])
     for yy, v, n in zip(y, vals, notes):
@@ -260,7 +261,7 @@ def plot_heldout(diag, path):
     ax.set_yticks(y)
     ax.set_yticklabels(labels, fontsize=9)
     ax.set_xlabel("held-out gap after adding the effect (objective above the noise floor)")
-    ax.set_title(f"verdict: {diag.verdict}", fontsize=10)
+    ax.set_title(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
