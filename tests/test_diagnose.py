@@ -391,8 +391,11 @@ def test_estimate_of_another_object_exits_2(recordings, tmp_path):
 @pytest.mark.slow
 def test_latency_recovered_by_the_transform_path_with_the_estimator():
     """Fits of a 2-poke recording with a 2-sample tactile delay, its tactile streams
-    advanced by k = 0..3: the objective is lowest at k = 2 (or within the solver's
-    budget noise of it at a neighbour, which the held-out comparison then settles)."""
+    advanced by k = 0..3: the delay the diagnosis keeps (the smallest k within
+    LATENCY_TIE of the best fit) is 2; the plain minimum is 2 or 3 (a flag covers the
+    interval (t-1, t], so one sample too far costs almost nothing), and one sample too
+    few costs clearly more."""
+    from tacest.diagnosis.candidates import choose_transform_value
     from tacest.diagnosis.fitting import fit_local, weighted_objective
     from tacest.estimation.config import EstimatorConfig
 
@@ -403,8 +406,9 @@ def test_latency_recovered_by_the_transform_path_with_the_estimator():
     for k in (1, 2, 3):
         f = fit_local([undo_latency(run, k)], "box", cfg, warm=base.estimate, warm_runs=list(base.estimate.runs))
         objs[k] = weighted_objective(f.estimate, cfg)
-    best = min(objs, key=objs.get)
-    assert best == 2, objs
+    assert choose_transform_value("latency", objs) == 2, objs
+    assert min(objs, key=objs.get) in (2, 3), objs
+    assert objs[1] > objs[2] + 1.0, objs
     assert objs[0] - objs[2] > 3.0, objs  # the delay costs more than one parameter's penalty
 
 

@@ -159,6 +159,25 @@ def latency_mismatch(runs: list, estimate, sigma_gap: float, max_shift: int = No
     return out
 
 
+#: objective units (a negative log-likelihood): latency values whose fits to all data are
+#: within this of the best are indistinguishable (likelihood ratio e^-1), and the smallest
+#: of them is chosen.  A flag covers the interval (t-1, t], so a shift one sample too far
+#: costs almost nothing (the shape absorbs it) and the plain minimum is biased late.
+LATENCY_TIE = 1.0
+
+
+def choose_transform_value(name: str, objectives: dict):
+    """The grid value to keep among {value: objective of the fit to all data}: the
+    minimum, except for latency the smallest delay within LATENCY_TIE of it."""
+    ok = {v: o for v, o in objectives.items() if o is not None and np.isfinite(o)}
+    if not ok:
+        raise TacestError(f"{name}: no fit to choose from")
+    best = min(ok, key=ok.get)
+    if name == "latency":
+        return min(v for v, o in ok.items() if o <= ok[best] + LATENCY_TIE)
+    return best
+
+
 def transform_order(name: str, screening: dict = None) -> list:
     """Grid values of a transform candidate in the order to try them: latency by the
     screening mismatch (smallest first), time scale in grid order."""

@@ -482,7 +482,8 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
         if not tried:
             c.status, c.message = "failed", "every fit to all data failed"
             return
-        obj, value, cfit = min(tried, key=lambda x: x[0])
+        value = cands.choose_transform_value(spec.name, {v: o for o, v, _ in tried})
+        obj, _, cfit = next(t for t in tried if t[1] == value)
         c.value = value
         pname = spec.param_names[0]
         c.params = {pname: value}
