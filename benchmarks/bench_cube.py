@@ -151,7 +151,9 @@ def main(argv=None):
         log(f"  rollout {j + 1}/{len(held)} {path.name}: " + ", ".join(
             f"{k} {errs[k][-1][0]:.1f} %" for k in models))
     roll_time = time.perf_counter() - t0
-    out["rollout"] = {"tosses": len(held), "wall_time_s": roll_time}
+    steps = sum(read_run(p).n_samples - 1 for p in held)
+    out["rollout"] = {"tosses": len(held), "wall_time_s": roll_time,
+                      "unconverged_steps": {k: int(m.unconverged) for k, m in models.items()}, "steps": steps}
     print(f"\nrollouts on {len(held)} held-out tosses (toss_{args.heldout.start:03d}..{args.heldout.stop - 1:03d}), "
           f"{roll_time:.0f} s:")
     print(f"  {'model':<10} {'pos err mean':>13} {'median':>8} {'final':>8} {'angle err':>10}   (% of width, deg)")
@@ -168,6 +170,8 @@ def main(argv=None):
     better = np.mean(np.array(errs["estimated"])[:, 0] < np.array(errs["nominal"])[:, 0])
     out["rollout"]["fraction_estimated_better"] = float(better)
     print(f"  the estimated model tracks better on {100 * better:.0f} % of the held-out tosses")
+    print(f"  simulation steps that did not converge (kept their last iterate): "
+          + ", ".join(f"{k} {m.unconverged} of {steps}" for k, m in models.items()))
 
     targets = [
         ("edge within 2 % of 0.1048 m", abs(e["edge_rel_error"]) <= TARGET_EDGE_REL),

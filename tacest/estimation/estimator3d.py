@@ -85,7 +85,7 @@ def check_runs_3d(runs: list[Run]):
 
 def get_solver_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, echo=None) -> BuiltSolver:
     """The cached solver of this structure (built on first use)."""
-    key = (shape.name, layout, repr(config.solver))
+    key = (shape.name, layout, repr(config.solver), repr(config.solver3d))
     if key not in _CACHE:
         _CACHE.clear()  # one structure at a time: a problem holds large CasADi graphs
         _CACHE[key] = BuiltSolver(Problem3D(shape, layout, config, echo=echo), config)
@@ -193,7 +193,7 @@ class Estimator3D:
         pr = cfg.prior
         prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
                                  pr.shape_sigma, 1.0], self.s0 if s_ref is None else s_ref])
-        ridge = cfg.solver.hessian_ridge if ridge is None else ridge
+        ridge = cfg.solver3d.hessian_ridge if ridge is None else ridge
         p = np.concatenate([D.T.reshape(-1), g, w, prior, [ridge]])
         assert p.shape[0] == self.problem.n_p
         return p

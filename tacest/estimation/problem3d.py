@@ -510,7 +510,8 @@ class Problem3D(StageModel3D):
         #: thousands of whitened residuals whose gradient entries reach 1e4, so that
         #: IPOPT's gradient scaling of ~1e-2 turns the barrier's mu = 1e-5 into ~1e-3).
         #: One loss unit is half a squared sigma: negligible against the loss's spread.
-        self.nlpsol_options = {"ipopt": {"acceptable_compl_inf_tol": 1.0}}
+        self.nlpsol_options = {"ipopt": {"acceptable_compl_inf_tol": 1.0,
+                                         "acceptable_tol": float(self.config.solver3d.acceptable_tol)}}
 
         # Lagrangian Hessian models: lam_f Jᵀ J (+ Σ r_i ∇² r_i in "exact" mode) + ridge
         lam_f = ca.MX.sym("lam_f")
