@@ -341,6 +341,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         base_est = base.estimate
         echo(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
              f"{base.wall_time:.1f} s")
+        ctx.notes += [f"plain model, fit to all data: {n}" for n in base.notes]
         if not base_est.success:
             ctx.notes.append(f"the plain model's fit to all data stopped at its iteration budget "
                              f"({base_est.solver_status}); its last iterate is used")

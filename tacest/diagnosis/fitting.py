@@ -22,6 +22,7 @@ Both return :class:`tacest.io.estimate.Estimate` objects with per-sample residua
 
 from __future__ import annotations
 
+import copy
 import inspect
 import time
 from dataclasses import dataclass, field
@@ -40,6 +41,12 @@ from tacest.io.run import Run
 BUDGET_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded")
 
 
+#: IPOPT statuses of a final stage after which the stage is redone once from its last
+#: iterate with the Gauss–Newton Hessian and ridge RETRY_RIDGE (LocalEstimator.solve_from)
+RETRY_STATUSES = ("Error_In_Step_Computation", "Restoration_Failed")
+#: Levenberg–Marquardt ridge (scaled units) of that retry: the estimator's default before
+#: it was lowered to 0.05 for speed; it keeps the steps local where IPOPT failed to step
+RETRY_RIDGE = 1.0
 #: half-width (scaled units, relative to max(1, |value|)) of the interval that pins a
 #: parameter.  IPOPT removes variables whose bounds are equal; with the Gauss–Newton
 #: Hessian model some problems with pinned parameters then failed at iteration 0
@@ -109,10 +116,12 @@ def _local_estimator_class():
         """ImplicitEstimator with a warm start and optional pinned shared parameters."""
 
         def __init__(self, runs, shape_spec, config, echo, pinned_theta=None, pin="all"):
-            super().__init__(runs, shape_spec, config, echo)
+            # its own copy: solve_from may change the ridge of a retry
+            super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo)
             self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
             self.pin = pin
             self.z = None
+            self.retried = False
 
         def variable_bounds(self):
             lbx, ubx = super().variable_bounds()
@@ -171,11 +180,31 @@ def _local_estimator_class():
                 if mode == "gauss-newton-then-exact":
                     mode = "exact" if final and len(plan) > 2 else "gauss-newton"
                 max_iter = cfg.max_iter if final else cfg.stage_max_iter
-                sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x,
-                                             lam_g, label=label, echo=self.echo, hessian=mode, max_iter=max_iter)
-                infos.append(info)
+                p = self.params(eps, w, wd)
+                sol, info = self.built.solve(self.z, p, lbx, ubx, pr.lbg, pr.ubg, lam_x, lam_g, label=label,
+                                             echo=self.echo, hessian=mode, max_iter=max_iter)
                 self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
                           f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+                x_last = np.asarray(sol["x"]).reshape(-1)
+                if final and info.status in RETRY_STATUSES and np.all(np.isfinite(x_last)):
+                    # IPOPT could not compute a step (a KKT system it could not correct):
+                    # redo the stage once from its last iterate with the Gauss–Newton model
+                    # and a larger Levenberg–Marquardt ridge (shorter, safer steps), same
+                    # budget; the fit reports it in its notes
+                    infos.append(info)
+                    self.retried = True
+                    ridge0 = self.config.solver.hessian_ridge
+                    try:
+                        self.config.solver.hessian_ridge = max(RETRY_RIDGE, ridge0)
+                        p_retry = self.params(eps, w, wd)
+                    finally:
+                        self.config.solver.hessian_ridge = ridge0
+                    sol, info = self.built.solve(np.clip(x_last, lbx, ubx), p_retry, lbx, ubx, pr.lbg, pr.ubg, None,
+                                                 None, label=label + " (retry)", echo=self.echo,
+                                                 hessian="gauss-newton", max_iter=max_iter)
+                    self.echo(f"stage {label} (retry): {info.status}, {info.iterations} iterations, "
+                              f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+                infos.append(info)
                 budget_hit = final and accept_budget and info.status in BUDGET_STATUSES
                 if (final and not budget_hit) or which == "impulses" or info.status in FATAL_STATUSES:
                     check_success(info)
@@ -326,6 +355,8 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
         notes.append(f"warm start failed ({exc}); solved from the estimator's start")
         echo(notes[-1])
         out = _cold_solve(est, runs, pinned, pin, accept_budget)
+    if est.retried:
+        notes.append("IPOPT failed to step in a final stage, which was redone once with a larger ridge")
     estimate = _estimate_of(est, out, runs, [], information)
     estimate.wall_time = time.perf_counter() - t0
     theta = np.asarray(out.z[: est.problem.n_theta], float).copy()
