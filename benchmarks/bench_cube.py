@@ -170,7 +170,7 @@ def main(argv=None):
     better = np.mean(np.array(errs["estimated"])[:, 0] < np.array(errs["nominal"])[:, 0])
     out["rollout"]["fraction_estimated_better"] = float(better)
     print(f"  the estimated model tracks better on {100 * better:.0f} % of the held-out tosses")
-    print(f"  simulation steps that did not converge (kept their last iterate): "
+    print("  simulation steps that did not converge (kept their last iterate): "
           + ", ".join(f"{k} {m.unconverged} of {steps}" for k, m in models.items()))
 
     targets = [

@@ -1,9 +1,11 @@
 """``estimate_runs_3d(runs, shape, config)``: the implicit estimator for 3-D runs.
 
-Pipeline (as in 2-D): scales → starting shape → initial trajectory (the pose
-observations, or the prior's resting pose) → staged solve (contact impulses alone, then
-the homotopy stages of the config, IPOPT) → unscaled trajectories, per-sample
-residuals, observed information → a :class:`tacest.io.estimate.Estimate` with dim 3.
+Pipeline (as in 2-D): scales → starting shape (from where the observed object rests) →
+initial trajectory (the pose observations, or the prior's resting pose) → ground
+impulses by non-negative least squares → staged solve (with fingers the contact
+impulses alone, then the stages of ``[solver3d]``, IPOPT) → unscaled trajectories,
+per-sample residuals, observed information → a :class:`tacest.io.estimate.Estimate`
+with dim 3.  See docs/estimation3d.md.
 A failed IPOPT solve raises SolveFailedError; nothing is reported as an estimate then.
 
 Without a measured force (e.g. pose-only motion capture of a tossed object) the mass

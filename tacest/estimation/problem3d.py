@@ -341,7 +341,7 @@ class StageModel3D:
         """Terms of a run's first two samples: pose observations, penetration, finger gaps,
         the quaternion norms, and the rest term v[1] ≈ 0 where the run has no pose
         observation at its start (an unobserved object starts at rest)."""
-        K, F = self.K, self.F
+        F = self.F
         xa, xb = ca.SX.sym("x_0", NP), ca.SX.sym("x_1", NP)
         th = ca.SX.sym("theta", self.n_theta)
         da, db = ca.SX.sym("d_0", self.n_d), ca.SX.sym("d_1", self.n_d)
