@@ -215,8 +215,13 @@ class FloorModel:
         return float(total)
 
     def term_level(self, term: str) -> str:
-        """Short text of a term's levels (contact / free)."""
-        return f"{self.level(term, True):.3g}/{self.level(term, False):.3g}"
+        """Short text of a term's levels (contact / free; "–" where no window had
+        degrees of freedom)."""
+        def one(state):
+            r = self.robust.get(_key(term, state), float("nan"))
+            return f"{self.level(term, state):.3g}" if np.isfinite(r) else "–"
+
+        return f"{one(True)}/{one(False)}"
 
     def to_dict(self) -> dict:
         return {"mode": self.mode, "mu": dict(self.mu), "phi": dict(self.phi), "robust_level": dict(self.robust),

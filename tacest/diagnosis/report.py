@@ -114,7 +114,7 @@ def markdown(diag, figures: list) -> str:
     L.append("")
     L.append(f"Held-out design: {h.get('design', '–')}. The gap is the held-out objective above its noise floor; "
              f"a candidate counts if its improvement exceeds {_f(h.get('penalty_per_parameter'))} per added "
-             "parameter and it improves at least half of the folds.")
+             "parameter, in total and, by each fold's share of that penalty, in at least half of the folds.")
     L.append("")
     if "gap_plain" in h:
         L.append(f"Plain model: held-out objective {_f(h.get('objective_plain'))}, floor {_f(h.get('floor'))}, "
