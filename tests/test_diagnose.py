@@ -303,6 +303,31 @@ def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkey
     assert fb.status == "unavailable" and "effects=" in fb.message
 
 
+def test_nlp_candidates_go_through_the_estimator_when_it_offers_them(recordings, stand_in, monkeypatch):
+    """The estimator back end: every fit through fit_estimator (effects=, fixed=), the
+    effect's parameters and their std taken from the estimate (stand-in values)."""
+    calls = []
+
+    def fake_fit_estimator(runs, shape, config, effects=(), fixed=None, echo=None):
+        calls.append((tuple(effects), fixed is not None))
+        f = stand_in.fit_local(runs, shape, config)
+        if effects:
+            f.estimate.params["gain"] = 1.2
+            f.estimate.std = {"gain": 0.05}
+        return f
+
+    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: True)
+    monkeypatch.setattr(diag_mod, "fit_estimator", fake_fit_estimator)
+    run = _read(recordings["none"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_scale",)))
+    assert d.backend == "estimator"
+    fs = d.effects[0]
+    assert fs.status == "ok" and fs.params == {"gain": 1.2} and fs.params_std == {"gain": 0.05}
+    # plain fit, then per fold a training fit and a held-out fit with the training estimate fixed
+    assert ((), False) in calls and (("force_scale",), True) in calls and ((), True) in calls
+    assert d.verdict == "none"  # the stand-in's residuals do not change with the effect
+
+
 def test_json_schema_and_report_folder(recordings, stand_in, tmp_path):
     from click.testing import CliRunner
 
