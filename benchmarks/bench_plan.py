@@ -23,9 +23,11 @@ so several copies of this script can share one cache and split the jobs; a lock 
 process is gone is taken over.  ``--report-only`` prints what the cache holds.
 
 Printed: per case, for n = 1 .. pokes, the median Chamfer distance (mm) over the seeds of
-each policy, how many estimates failed at that n (a failed estimate has no Chamfer and is
-left out of the median; the count says how many), and the median relative errors of
-mass and ground friction; then the targets with PASS / FAIL:
+each policy, how many estimates failed at that n (a failed estimate has no Chamfer: it
+ranks last, as +inf, so the median reads ``fail`` when half or more failed), and the
+median relative errors of mass and ground friction (failures ranked last too); then the
+targets with PASS / FAIL (two medians that both read ``fail`` count as equal, and the
+line says so):
 
 1. EIG's median Chamfer after n pokes <= random's, for every n;
 2. EIG reaches random's median Chamfer after ``pokes`` pokes within 4 pokes;
@@ -165,7 +167,9 @@ def _nanmedian(a):
 
 
 def curves(results: list, pokes: int) -> dict:
-    """{metric: (n_seeds, pokes) array, NaN where the estimate failed or is missing}."""
+    """{metric: (n_seeds, pokes) array}: +inf where the estimate failed (no estimate is
+    worse than any estimate: it ranks last in the median), NaN where a value is missing
+    (left out), and ``failed`` (n_seeds, pokes) bool."""
     keys = ("chamfer", "mass_rel", "friction_ground_rel", "friction_finger_rel")
     out = {k: np.full((len(results), pokes), np.nan) for k in keys}
     out["failed"] = np.zeros((len(results), pokes), bool)
@@ -174,18 +178,34 @@ def curves(results: list, pokes: int) -> dict:
             n = st["pokes"]
             if n > pokes:
                 continue
+            failed = st.get("estimate_status") == "failed"
             for k in keys:
                 v = st.get(k)
-                out[k][i, n - 1] = math.nan if v is None else v
-            out["failed"][i, n - 1] = st.get("estimate_status") == "failed"
+                out[k][i, n - 1] = math.inf if failed else (math.nan if v is None else v)
+            out["failed"][i, n - 1] = failed
     return out
+
+
+def _json_num(v):
+    """A median for strict JSON: the number, "fail" for +inf, null for NaN."""
+    return "fail" if math.isinf(v) else (None if math.isnan(v) else float(v))
+
+
+def _fmt(v, width, digits):
+    """A table cell: the number, 'fail' for +inf (half or more of the estimates failed),
+    'n/a' for NaN."""
+    if math.isinf(v):
+        return f"{'fail':>{width}}"
+    if math.isnan(v):
+        return f"{'n/a':>{width}}"
+    return f"{v:{width}.{digits}f}"
 
 
 def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
     summary = {}
     lines = []
     for case in cases:
-        lines.append(f"\n== {case}: median over seeds (failed estimates left out, counted in [ ]) ==")
+        lines.append(f"\n== {case}: median over seeds (a failed estimate ranks last; failures counted in [ ]) ==")
         cv, plan_times, n_done, failed_jobs = {}, {}, {}, {}
         for pol in policies:
             res = [all_results.get((case, s, pol)) for s in seeds]
@@ -207,7 +227,7 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
                 nf = int(c["failed"][:, n - 1].sum())
                 mr = _nanmedian(c["mass_rel"][:, n - 1]) if n_done[pol] else math.nan
                 fr = _nanmedian(c["friction_ground_rel"][:, n - 1]) if n_done[pol] else math.nan
-                row += f"| {1e3 * ch:14.2f} [{nf}] {100 * mr:5.0f} {100 * fr:5.0f} "
+                row += f"| {_fmt(1e3 * ch, 14, 2)} [{nf}] {_fmt(100 * mr, 5, 0)} {_fmt(100 * fr, 5, 0)} "
             lines.append(row)
         for pol in policies:
             pt = plan_times[pol]
@@ -216,7 +236,7 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
                              f"over {len(pt)} plans")
             for f in failed_jobs[pol]:
                 lines.append(f"FAILED job {f}")
-        entry = {"medians_chamfer": {p: med[p] for p in policies}, "jobs_done": n_done,
+        entry = {"medians_chamfer": {p: [_json_num(v) for v in med[p]] for p in policies}, "jobs_done": n_done,
                  "plan_time": {p: {"median": float(np.median(v)) if v else None, "max": float(np.max(v)) if v else None,
                                    "count": len(v)} for p, v in plan_times.items()},
                  "failed_jobs": failed_jobs,
@@ -225,13 +245,21 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
             e, r = np.array(med["eig"]), np.array(med["random"])
             every = bool(np.all(e <= r))
             worse = [n + 1 for n in range(pokes) if not e[n] <= r[n]]
+            both_fail = [n + 1 for n in range(pokes) if math.isinf(e[n]) and math.isinf(r[n])]
             reach = next((n + 1 for n in range(pokes) if e[n] <= r[-1]), None)
             pt = plan_times["eig"]
             lines.append(f"target: EIG median chamfer <= random's at every n: {'PASS' if every else 'FAIL'}"
-                         + ("" if every else f" (worse at n = {worse})"))
-            lines.append(f"target: EIG reaches random's {pokes}-poke median ({1e3 * r[-1]:.2f} mm) within "
-                         f"{TARGET_REACH_POKES} pokes: {'PASS' if reach is not None and reach <= TARGET_REACH_POKES else 'FAIL'}"
-                         f" (EIG reaches it after {reach if reach else 'more than ' + str(pokes)} pokes)")
+                         + ("" if every else f" (worse at n = {worse})")
+                         + (f" (both medians failed at n = {both_fail})" if both_fail else ""))
+            if math.isinf(r[-1]) or math.isnan(r[-1]):
+                reach = None
+                lines.append(f"target: EIG reaches random's {pokes}-poke median within {TARGET_REACH_POKES} pokes: "
+                             f"UNDETERMINED (random's {pokes}-poke median is {_fmt(r[-1], 1, 0).strip()})")
+            else:
+                ok = reach is not None and reach <= TARGET_REACH_POKES
+                lines.append(f"target: EIG reaches random's {pokes}-poke median ({1e3 * r[-1]:.2f} mm) within "
+                             f"{TARGET_REACH_POKES} pokes: {'PASS' if ok else 'FAIL'}"
+                             f" (EIG reaches it after {reach if reach else 'more than ' + str(pokes)} pokes)")
             if pt:
                 lines.append(f"target: planning one poke <= {TARGET_PLAN_TIME:.0f} s: "
                              f"{'PASS' if max(pt) <= TARGET_PLAN_TIME else 'FAIL'} (max {max(pt):.1f} s)")
