@@ -239,7 +239,8 @@ def plot_learning_curve(path, summaries: list, labels=None) -> None:
     """Chamfer (mm) and relative parameter errors (%) against the number of pokes.
 
     summaries : explore summaries (one line each; with several per label, e.g. from a
-    benchmark, the median over them with the 25–75 % band); labels : one per summary
+    benchmark, the median over them with the 25–75 % band, over the estimates that
+    succeeded: a failed one leaves a gap); labels : one per summary
     (default: its policy).
     """
     import matplotlib
