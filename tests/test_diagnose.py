@@ -200,6 +200,31 @@ def test_undo_latency_and_time_scale(recordings):
     np.testing.assert_allclose(np.diff(s.time), run.dt / 1.04)
 
 
+def test_transform_line_search_walks_to_the_minimum():
+    from tacest.diagnosis.candidates import first_transform_values, next_transform_value
+
+    def walk(name, f, screening=None, budget=10):
+        objs = {0 if name == "latency" else 1.0: f(0 if name == "latency" else 1.0)}
+        queue = first_transform_values(name, screening)
+        fitted = []
+        while len(fitted) < budget:
+            v = queue.pop(0) if queue else next_transform_value(name, objs)
+            if v is None:
+                break
+            objs[v] = f(v)
+            fitted.append(v)
+        return fitted, min(objs, key=objs.get)
+
+    fitted, best = walk("latency", lambda k: (k - 4.0) ** 2, screening={1: 0.0, 2: 1.0, 3: 2.0})
+    assert fitted == [1, 2, 3, 4, 5] and best == 4  # stops once 4 is bracketed by 3 and 5
+    fitted, best = walk("latency", lambda k: (k - 4.0) ** 2, screening={1: 0.0}, budget=3)
+    assert best == 3  # the budget ends the walk on the way
+    fitted, best = walk("time_scale", lambda s: (s - 1.04) ** 2)
+    assert fitted[:2] == [0.965, 1.035] and best == 1.035 and 1.05 in fitted
+    fitted, best = walk("time_scale", lambda s: (s - 1.0) ** 2)
+    assert best == 1.0  # the plain model stays best (the walk goes on to its neighbours)
+
+
 def _truth_estimate(runs):
     """A stand-in estimate: the truth shape and poses of the runs."""
     tr = runs[0].truth
@@ -274,8 +299,7 @@ def stand_in(monkeypatch):
 
 def test_pipeline_blames_latency_and_recovers_it(recordings, stand_in):
     run = _read(recordings["latency"])
-    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale"),
-                                                                          fits_per_candidate=5))
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale")))
     assert d.verdict == "latency", d.reason
     lat = next(c for c in d.effects if c.name == "latency")
     assert lat.params == {"samples": 2}

@@ -3,8 +3,8 @@
 Each candidate is a model augmentation with a few parameters:
 
 - ``transform`` candidates (``latency``, ``time_scale``) change the data, not the NLP
-  (tacest.diagnosis.transforms); their parameter is chosen among a few values on a grid
-  by refitting, and counts as one parameter in the penalty;
+  (tacest.diagnosis.transforms); their parameter is chosen by a line search on a grid of
+  values, one fit to all data per value tried, and counts as one parameter;
 - ``nlp`` candidates (every other effect) are extra parameters inside the estimator's
   NLP (``estimate_runs(..., effects=(name,))``); they need an estimator that offers them.
 
@@ -12,7 +12,8 @@ Screening signatures.  Each effect leaves its mark on some loss terms first (e.g
 force bias on the force residual where the finger does not touch); :func:`signature_scores`
 ranks candidates by the share of the flagged excess on their terms.  This ranking is
 only used to choose which candidates to refit when their number is limited
-(``max_candidates``) and to order grid values (latency); it never decides the verdict.
+(``max_candidates``) and to choose the first latency value to fit; it never decides the
+verdict.
 """
 
 from __future__ import annotations
@@ -23,16 +24,16 @@ import numpy as np
 
 from tacest.errors import TacestError
 
-#: data-transform candidates and their grids (the values tried, in the order tried when
-#: no screening orders them).  Latency: whole samples, SPEC draws 1-4, one more for
-#: margin.  Time scale: SPEC draws 1 ± U(0.02, 0.05); the two values nearest its middle
-#: first, then the ends, then the inner ones.
+#: data-transform candidates: the values their parameter may take (sorted), and the
+#: value that means "no effect".  Latency: whole samples, SPEC draws 1-4, one more for
+#: margin.  Time scale: SPEC draws 1 ± U(0.02, 0.05); steps of about 1.5 %.
 TRANSFORM_GRIDS = {
     "latency": (1, 2, 3, 4, 5),
-    "time_scale": (0.965, 1.035, 0.95, 1.05, 0.98, 1.02),
+    "time_scale": (0.95, 0.965, 0.98, 1.02, 1.035, 1.05),
 }
-#: the value of a transform parameter that means "no effect"
 TRANSFORM_IDENTITY = {"latency": 0, "time_scale": 1.0}
+#: the first values fitted when no screening orders them (time scale: both sides of 1)
+TRANSFORM_START = {"latency": (1,), "time_scale": (0.965, 1.035)}
 
 #: loss terms where each effect shows first (screening, report)
 SIGNATURE_TERMS = {
@@ -178,10 +179,33 @@ def choose_transform_value(name: str, objectives: dict):
     return best
 
 
-def transform_order(name: str, screening: dict = None) -> list:
-    """Grid values of a transform candidate in the order to try them: latency by the
-    screening mismatch (smallest first), time scale in grid order."""
-    grid = list(TRANSFORM_GRIDS[name])
+def first_transform_values(name: str, screening: dict = None) -> list:
+    """The values to fit first: latency, the delay the screening signature ranks best
+    (k >= 1); time scale, both sides of 1."""
     if name == "latency" and screening:
-        grid.sort(key=lambda k: screening.get(k, np.inf))
-    return grid
+        ranked = sorted((k for k in TRANSFORM_GRIDS["latency"] if k in screening), key=lambda k: screening[k])
+        if ranked:
+            return [ranked[0]]
+    return list(TRANSFORM_START[name])
+
+
+def next_transform_value(name: str, objectives: dict):
+    """The next value to fit (a line search on the grid), or None when the best value
+    so far has both grid neighbours fitted (a bracketed minimum) or has none left.
+
+    objectives : {value: objective of the fit to all data}, the identity value (no
+    effect: the plain model) included.  From the best value, fit its unfitted neighbour;
+    when both are unfitted, the one farther from the identity (a fit of the plain model
+    pulls the screening toward small effects)."""
+    grid = sorted(set(TRANSFORM_GRIDS[name]) | {TRANSFORM_IDENTITY[name]})
+    ok = {v: o for v, o in objectives.items() if o is not None and np.isfinite(o)}
+    tried = set(objectives)
+    if not ok:
+        return None
+    best = min(ok, key=ok.get)
+    i = grid.index(best) if best in grid else int(np.argmin([abs(g - best) for g in grid]))
+    nbrs = [grid[j] for j in (i - 1, i + 1) if 0 <= j < len(grid) and grid[j] not in tried]
+    if not nbrs:
+        return None
+    ident = TRANSFORM_IDENTITY[name]
+    return max(nbrs, key=lambda v: abs(v - ident))

@@ -54,8 +54,9 @@ from tacest.io.estimate import CORE_PARAMS, Estimate
 #: IPOPT iterations per stage of every diagnosis fit (the fit budget; the plain model's
 #: fit to all data uses the configuration's own budget)
 FIT_ITERATIONS = 150
-#: fits to all data a candidate may use to choose its parameters (grid values)
-FITS_PER_CANDIDATE = 2
+#: fits to all data a candidate may use to choose its parameters (grid values of a
+#: transform, by line search: enough to walk from the screened latency to k + 2)
+FITS_PER_CANDIDATE = 3
 
 
 def _noop(*_a, **_k):
@@ -473,15 +474,21 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
         screening = None
         if spec.name == "latency":
             screening = cands.latency_mismatch(ctx.runs, base.estimate, ctx.config.noise.contact_gap)
-        grid = cands.transform_order(spec.name, screening)[: opts.fits_per_candidate]
         tried = []
-        for value in grid:
+        objectives = {cands.TRANSFORM_IDENTITY[spec.name]: base_full_obj}
+        queue = cands.first_transform_values(spec.name, screening)
+        while len(c.fits) < opts.fits_per_candidate:
+            value = queue.pop(0) if queue else cands.next_transform_value(spec.name, objectives)
+            if value is None:
+                break
+            objectives[value] = None
             try:
                 f = ctx.fit_all(spec.name, value, warm=base)
                 obj = weighted_objective(f.estimate, ctx.config)
                 c.fits.append({"value": value, "objective": obj, "status": f.estimate.solver_status,
                                "wall_time": f.wall_time})
                 tried.append((obj, value, f))
+                objectives[value] = obj
             except SolveFailedError as exc:
                 c.fits.append({"value": value, "objective": None, "status": f"failed: {exc}", "wall_time": None})
         if not tried:
