@@ -431,8 +431,9 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             c.status, c.message = "unavailable", str(exc)
         c.wall_time = time.perf_counter() - t0
         echo(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
-             + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ({c.reduction:.0%} closed), "
-                f"score {c.score:.3g}" if c.status == "ok" and np.isfinite(c.reduction) else "")
+             + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
+                + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
+                + f"), score {c.score:.3g}" if c.status == "ok" else "")
              + f", {c.wall_time:.0f} s")
 
     # 6. verdict ---------------------------------------------------------------------
