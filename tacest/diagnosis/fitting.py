@@ -33,7 +33,6 @@ import numpy as np
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import Estimate, RunEstimate
-from tacest.io.run import Run
 
 
 #: IPOPT statuses of a solve that ran out of its iteration or time budget: with
