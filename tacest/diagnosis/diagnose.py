@@ -462,6 +462,9 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         reason = ("no candidate improves the held-out fit by more than its parameter penalty, in total and in "
                   "at least half of the folds" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
                                     f"{best.penalty:.3g})" if best else ""))
+    missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
+    if missing:
+        reason += f"; not compared: {', '.join(missing)} (see their status)"
     return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
                      base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
                      wall_time=time.perf_counter() - t_start, options=options)
