@@ -14,6 +14,10 @@ JSON per recording in the cache folder (default ``$TMPDIR/tacest_bench_diagnose`
 an interrupted benchmark resumes where it stopped (delete the folder, or a file in it,
 to redo a recording).
 
+The summary re-derives every verdict from the cached held-out comparisons with the
+current rule (``tacest.diagnosis.diagnose.counts``), so a change of the decision rule
+does not need the fits again (the per-recording lines show the verdict as cached).
+
 Printed: one line per recording; the confusion matrix (rows: injected effect, columns:
 verdict); top-1 accuracy over all recordings and per effect; how often a clean
 recording is blamed on an effect; the median held-out gap reduction when the right
@@ -141,7 +145,27 @@ def _reduction(c: dict) -> float:
     return min(1.0, improvement / before)
 
 
+def rederive_verdict(r: dict) -> str:
+    """The verdict of a cached result under the current rule
+    (tacest.diagnosis.diagnose.counts) from its stored held-out comparisons: the fits
+    are the same, only the decision may have changed since the result was cached."""
+    from tacest.diagnosis.diagnose import counts
+
+    best, best_score = "none", -math.inf
+    for e in r.get("effects", []):
+        if e.get("status") != "ok":
+            continue
+        if counts(e.get("score"), e.get("folds_improved"), e.get("folds_compared"), e.get("gap_before"),
+                  e.get("reduction")) and e["score"] > best_score:
+            best, best_score = e["name"], e["score"]
+    return best
+
+
 def summarize(results: list) -> dict:
+    for r in results:
+        if r.get("ok"):
+            r["verdict_cached"] = r["verdict"]
+            r["verdict"] = rederive_verdict(r)
     ok = [r for r in results if r.get("ok")]
     names = list(SPEC_EFFECTS)
     conf = {t: {p: 0 for p in names + ["failed"]} for t in names}

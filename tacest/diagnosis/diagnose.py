@@ -19,8 +19,9 @@ where every fit succeeded) and penalty = 0.5 · ln(N) per parameter, N the numbe
 held-out samples (BIC's price in the objective's units, a negative log-likelihood
 under the configured noise model).  It counts only if its score is positive and, in at
 least half of the folds, it beats the plain model by more than the fold's share of the
-penalty (its share of the held-out samples); the verdict is the best such candidate,
-or ``none``.
+penalty (its share of the held-out samples), the plain model's held-out gap is above
+the floor, and the candidate closes at least MIN_REDUCTION (20 %) of it; the verdict is
+the best such candidate, or ``none``.
 
 Fairness.  Every candidate gets the same data, folds, iteration budget
 (``fit_iterations`` per IPOPT stage), warm start (from the plain model's fit to all
@@ -51,6 +52,8 @@ from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import CORE_PARAMS, Estimate
 
+#: smallest share of the plain model's held-out gap a candidate must close to be blamed
+MIN_REDUCTION = 0.2
 #: IPOPT iterations per stage of every diagnosis fit (the fit budget; the plain model's
 #: fit to all data uses the configuration's own budget)
 FIT_ITERATIONS = 150
@@ -460,7 +463,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         verdict = "none"
         best = ranked[0] if ok else None
         reason = ("no candidate improves the held-out fit by more than its parameter penalty, in total and in "
-                  "at least half of the folds" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
+                  f"at least half of the folds, closing at least {MIN_REDUCTION:.0%} of a gap above the floor" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
                                     f"{best.penalty:.3g})" if best else ""))
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
@@ -552,7 +555,19 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     c.folds_improved = sum(1 for j in common if base_fold[j] - c.heldout[j] > c.penalty * fold_share[j])
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
-    c.significant = bool(c.score > 0 and 2 * c.folds_improved >= c.folds_compared)
+    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.reduction)
+
+
+def counts(score, folds_improved, folds_compared, gap_before, reduction) -> bool:
+    """The verdict rule for one candidate (module doc): score > 0, better than the plain
+    model by its share of the penalty in at least half of the folds, a held-out gap above
+    the floor, at least MIN_REDUCTION of it closed (the candidate must close a real part
+    of the gap, not a sliver of a large misfit)."""
+    vals = [score, folds_improved, folds_compared, gap_before, reduction]
+    if any(v is None or not np.isfinite(float(v)) for v in vals):
+        return False
+    return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and gap_before > 0
+                and reduction >= MIN_REDUCTION)
 
 
 def _profile_std(profile, name, best):
