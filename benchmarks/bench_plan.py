@@ -22,12 +22,13 @@ result exists is not run again.  A job is claimed by creating ``<name>.lock`` ex
 so several copies of this script can share one cache and split the jobs; a lock whose
 process is gone is taken over.  ``--report-only`` prints what the cache holds.
 
-Printed: per case, for n = 1 .. pokes, the median Chamfer distance (mm) over the seeds of
-each policy, how many estimates failed at that n (a failed estimate has no Chamfer: it
-ranks last, as +inf, so the median reads ``fail`` when half or more failed), and the
-median relative errors of mass and ground friction (failures ranked last too); then the
-targets with PASS / FAIL (two medians that both read ``fail`` count as equal, and the
-line says so):
+Printed: per case, over the paired seeds (those whose loops finished for every policy),
+for n = 1 .. pokes and each policy: the median Chamfer distance (mm) with a failed
+estimate ranked last (it has no Chamfer; the median reads ``fail`` when half or more
+failed), the median over the successful estimates only, the number of failed estimates,
+and the median mass and ground-friction errors of the successful ones; then the targets
+with PASS / FAIL on the first median (two medians that both read ``fail`` count as
+equal, and the line says so; a target against a ``fail`` median is UNDETERMINED):
 
 1. EIG's median Chamfer after n pokes <= random's, for every n;
 2. EIG reaches random's median Chamfer after ``pokes`` pokes within 4 pokes;
@@ -202,32 +203,41 @@ def _fmt(v, width, digits):
 
 
 def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
+    """Print the tables and targets (module docstring) over the seeds for which every
+    policy's loop finished (paired seeds); return them as a dict."""
     summary = {}
     lines = []
     for case in cases:
-        lines.append(f"\n== {case}: median over seeds (a failed estimate ranks last; failures counted in [ ]) ==")
-        cv, plan_times, n_done, failed_jobs = {}, {}, {}, {}
+        done = {pol: {s for s in seeds if (all_results.get((case, s, pol)) or {}).get("ok")} for pol in policies}
+        paired = sorted(set.intersection(*done.values())) if done else []
+        lines.append(f"\n== {case}: {len(paired)} paired seeds {paired} ==")
+        lines.append("per policy and n: median Chamfer (mm) with a failed estimate ranked last ('fail': half or "
+                     "more failed) | median over the successful estimates only | failed estimates | median mass "
+                     "and ground-friction errors (%) of the successful ones")
+        cv, plan_times, failed_jobs = {}, {}, {}
         for pol in policies:
-            res = [all_results.get((case, s, pol)) for s in seeds]
-            ok = [r for r in res if r is not None and r.get("ok")]
-            failed_jobs[pol] = [f"{case}-{r['seed']}-{pol}: {r['error']}" for r in res if r is not None and not r.get("ok")]
-            n_done[pol] = len(ok)
-            cv[pol] = curves(ok, pokes)
-            plan_times[pol] = [st["plan_time"] for r in ok for st in r["summary"]["steps"] if "plan_time" in st]
-        head = "pokes " + "".join(f"| {pol + f' (n={n_done[pol]})':>29} " for pol in policies)
-        lines.append(head)
-        lines.append("      " + "".join(f"| {'chamfer mm [fail] mass% mu_g%':>29} " for _ in policies))
-        med = {pol: [] for pol in policies}
+            res = [all_results[(case, s, pol)] for s in paired]
+            failed_jobs[pol] = [f"{case}-{s}-{pol}: {all_results[(case, s, pol)]['error']}" for s in seeds
+                                if (case, s, pol) in all_results and not all_results[(case, s, pol)].get("ok")]
+            cv[pol] = curves(res, pokes)
+            plan_times[pol] = [st["plan_time"] for r in res for st in r["summary"]["steps"] if "plan_time" in st]
+        lines.append("pokes " + "".join(f"| {pol:>34} " for pol in policies))
+        lines.append("      " + "".join(f"| {'ranked  success  fail  mass  mu_g':>34} " for _ in policies))
+        med, med_ok = {pol: [] for pol in policies}, {pol: [] for pol in policies}
         for n in range(1, pokes + 1):
             row = f"{n:5d} "
             for pol in policies:
                 c = cv[pol]
-                ch = _nanmedian(c["chamfer"][:, n - 1]) if n_done[pol] else math.nan
+                col = c["chamfer"][:, n - 1]
+                ch = _nanmedian(col) if paired else math.nan
+                ch_ok = _nanmedian(col[np.isfinite(col)]) if paired else math.nan
                 med[pol].append(ch)
+                med_ok[pol].append(ch_ok)
                 nf = int(c["failed"][:, n - 1].sum())
-                mr = _nanmedian(c["mass_rel"][:, n - 1]) if n_done[pol] else math.nan
-                fr = _nanmedian(c["friction_ground_rel"][:, n - 1]) if n_done[pol] else math.nan
-                row += f"| {_fmt(1e3 * ch, 14, 2)} [{nf}] {_fmt(100 * mr, 5, 0)} {_fmt(100 * fr, 5, 0)} "
+                mr, fr = (_nanmedian(c[k][:, n - 1][np.isfinite(c[k][:, n - 1])]) if paired else math.nan
+                          for k in ("mass_rel", "friction_ground_rel"))
+                row += (f"| {_fmt(1e3 * ch, 7, 2)} {_fmt(1e3 * ch_ok, 8, 2)} {nf:4d}/{len(paired):<2d}"
+                        f"{_fmt(100 * mr, 5, 0)} {_fmt(100 * fr, 5, 0)} ")
             lines.append(row)
         for pol in policies:
             pt = plan_times[pol]
@@ -235,22 +245,23 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
                 lines.append(f"plan time {pol}: median {np.median(pt):.1f} s, max {np.max(pt):.1f} s "
                              f"over {len(pt)} plans")
             for f in failed_jobs[pol]:
-                lines.append(f"FAILED job {f}")
-        entry = {"medians_chamfer": {p: [_json_num(v) for v in med[p]] for p in policies}, "jobs_done": n_done,
+                lines.append(f"FAILED loop {f}")
+        entry = {"paired_seeds": paired,
+                 "medians_chamfer_failures_last": {p: [_json_num(v) for v in med[p]] for p in policies},
+                 "medians_chamfer_successes": {p: [_json_num(v) for v in med_ok[p]] for p in policies},
+                 "failed_estimates": {p: cv[p]["failed"].sum(0).astype(int).tolist() for p in policies},
                  "plan_time": {p: {"median": float(np.median(v)) if v else None, "max": float(np.max(v)) if v else None,
                                    "count": len(v)} for p, v in plan_times.items()},
-                 "failed_jobs": failed_jobs,
-                 "failed_estimates": {p: cv[p]["failed"].sum(0).astype(int).tolist() for p in policies}}
-        if "eig" in policies and "random" in policies and n_done["eig"] and n_done["random"]:
+                 "failed_loops": failed_jobs}
+        if "eig" in policies and "random" in policies and paired:
             e, r = np.array(med["eig"]), np.array(med["random"])
             every = bool(np.all(e <= r))
             worse = [n + 1 for n in range(pokes) if not e[n] <= r[n]]
             both_fail = [n + 1 for n in range(pokes) if math.isinf(e[n]) and math.isinf(r[n])]
             reach = next((n + 1 for n in range(pokes) if e[n] <= r[-1]), None)
-            pt = plan_times["eig"]
             lines.append(f"target: EIG median chamfer <= random's at every n: {'PASS' if every else 'FAIL'}"
                          + ("" if every else f" (worse at n = {worse})")
-                         + (f" (both medians failed at n = {both_fail})" if both_fail else ""))
+                         + (f" (both medians 'fail' at n = {both_fail})" if both_fail else ""))
             if math.isinf(r[-1]) or math.isnan(r[-1]):
                 reach = None
                 lines.append(f"target: EIG reaches random's {pokes}-poke median within {TARGET_REACH_POKES} pokes: "
@@ -260,12 +271,11 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
                 lines.append(f"target: EIG reaches random's {pokes}-poke median ({1e3 * r[-1]:.2f} mm) within "
                              f"{TARGET_REACH_POKES} pokes: {'PASS' if ok else 'FAIL'}"
                              f" (EIG reaches it after {reach if reach else 'more than ' + str(pokes)} pokes)")
+            pt = plan_times["eig"]
             if pt:
                 lines.append(f"target: planning one poke <= {TARGET_PLAN_TIME:.0f} s: "
                              f"{'PASS' if max(pt) <= TARGET_PLAN_TIME else 'FAIL'} (max {max(pt):.1f} s)")
             entry.update(every_n=every, reach_pokes=reach)
-            if n_done["eig"] < len(seeds) or n_done["random"] < len(seeds):
-                lines.append(f"(partial: {n_done['eig']} EIG and {n_done['random']} random loops of {len(seeds)} seeds)")
         summary[case] = entry
     print("\n".join(lines))
     return summary
