@@ -123,7 +123,13 @@ class BuiltSolver:
                 # valley (only mu·m·g is seen in steady sliding), which the information
                 # matrix reports; shape and trajectory have long settled by then.
                 "acceptable_constr_viol_tol": 1e-4,
-                "acceptable_compl_inf_tol": 1e-3,
+                # Complementarity of the bounds (lambda_n >= 0) is x_i z_i in objective
+                # units (unscaled: half a chi-square): with the monotone barrier held at
+                # mu_init it stays near mu / (IPOPT's objective scaling, ~1e-3..1e-2),
+                # ~3e-3.  0.1 of an objective unit is far below what the data resolve
+                # (one whitened residual of 0.45 sigma); 1e-3 kept converged fits
+                # iterating to the iteration limit.
+                "acceptable_compl_inf_tol": 0.1,
                 "acceptable_obj_change_tol": 1e-3,
                 "max_iter": sc.max_iter if max_iter is None else max_iter,
                 "max_cpu_time": sc.max_cpu_time,
