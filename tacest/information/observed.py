@@ -42,7 +42,9 @@ def residual_jacobian_function(problem):
         r = ca.vertcat(*parts)
         z = problem.z_sym
         J = ca.jacobian(r, z)
-        problem._rjac = ca.Function("r_jac", [z, problem.p_sym], [r, J]).expand()
+        # not expanded to SX: expanding the mapped per-sample functions costs ~6 s at
+        # T ~ 1000, evaluating the MX graph as it is ~0.2 s
+        problem._rjac = ca.Function("r_jac", [z, problem.p_sym], [r, J])
     return problem._rjac
 
 
@@ -74,15 +76,19 @@ def information_names(est):
         shape_names = ["width", "height"]
     else:
         shape_names = [f"vertex{k}_{c}" for k in range(shape.n_vertices) for c in "xy"]
-    return shape_names + ["mass", "inertia_log_ratio", "friction_ground", "friction_finger",
-                          "final_x", "final_y", "final_angle"]
+    from tacest.estimation.augment import effect_info_names
+
+    return shape_names + ["mass", "inertia_log_ratio", "friction_ground", "friction_finger"] \
+        + (effect_info_names(est.problem) if getattr(getattr(est, "problem", None), "n_eff", 0) else []) \
+        + ["final_x", "final_y", "final_angle"]
 
 
 def observed_information(est, z, lbx=None, ubx=None):
     """(I (n, n), names (n,), std {name: sigma}) at the solution z of an ImplicitEstimator.
 
     Parameters are in physical units: lengths m, mass kg, inertia as log ratio to the
-    uniform-density value, friction dimensionless, final pose m / rad.  Fixed variables
+    uniform-density value, friction dimensionless, effect parameters as in
+    tacest.estimation.augment, final pose m / rad.  Fixed variables
     (bounds equal) get zero information and infinite std.
     """
     pr = est.problem
@@ -119,6 +125,11 @@ def observed_information(est, z, lbx=None, ubx=None):
     d[: pr.n_shape] = 1.0 / L
     d[pr.n_shape] = 1.0 / mass  # d log m / d m
     d[n_theta: n_theta + 2] = 1.0 / L
+    if pr.n_eff:  # effect parameters (tacest.estimation.augment)
+        from tacest.estimation.augment import effect_info_factors
+
+        a = n_theta - pr.n_eff
+        d[a: n_theta] = effect_info_factors(pr, np.asarray(z, float)[:n_theta], L, est.scales.m0)
     I_phys = I_s * np.outer(d, d)
     kept_fixed = fixed[keep]
     I_phys[kept_fixed, :] = 0.0
