@@ -59,6 +59,7 @@ def main(argv=None):
     ap.add_argument("--train", type=_range, default=_range("0:30"), help="toss indices to estimate from (START:STOP)")
     ap.add_argument("--heldout", type=_range, default=_range("100:150"), help="toss indices to roll out (START:STOP)")
     ap.add_argument("--shape", default="box")
+    ap.add_argument("--config", type=Path, default=None, help="estimator config (TOML) passed to tacest estimate")
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     ap.add_argument("--quiet", action="store_true")
@@ -84,6 +85,8 @@ def main(argv=None):
     with tempfile.TemporaryDirectory(prefix="bench_cube_") as tmp:
         est_path = Path(tmp) / "est.h5"
         cmd = [tacest, "estimate", *map(str, train), "--shape", args.shape, "-o", str(est_path)]
+        if args.config is not None:
+            cmd += ["--config", str(args.config)]
         log(f"$ tacest estimate toss_{args.train.start:03d}.h5 ... toss_{args.train.stop - 1:03d}.h5 "
             f"--shape {args.shape} -o EST.h5")
         t0 = time.perf_counter()
@@ -104,13 +107,17 @@ def main(argv=None):
     I = np.asarray(est.params["inertia"], float)
     mass = float(est.params["mass"])
     mu = float(est.params["friction_ground"])
+    # augmentations (docs/estimation3d.md): rounded edges, ground offset (0 when not estimated)
+    edge_radius = float(est.params.get("edge_radius", 0.0))
+    ground_offset = float(est.params.get("ground_offset", 0.0))
     out["estimate"] = {
         "tosses": n, "solver_status": est.solver_status, "iterations": est.iterations,
         "cli_wall_time_s": cli_wall, "estimator_wall_time_s": est.wall_time,
         "seconds_per_toss": cli_wall / n, "extents_m": extents.tolist(), "edge_m": edge,
         "edge_rel_error": (edge - NOMINAL["edge"]) / NOMINAL["edge"],
         "extents_rel_error": ((extents - NOMINAL["edge"]) / NOMINAL["edge"]).tolist(),
-        "rest_height_edge_m": rest_edge, "friction_ground": mu,
+        "rest_height_edge_m": rest_edge, "friction_ground": mu, "model": list(est.model),
+        "edge_radius_m": edge_radius, "ground_offset_m": ground_offset,
         "inertia_over_mass_eig_m2": np.linalg.eigvalsh(I / mass).tolist(),
         "nominal_inertia_over_mass_m2": NOMINAL["inertia"] / NOMINAL["mass"],
         "mass_kg": mass, "mass_identifiable": bool(est.identifiable.get("mass", True)),
@@ -122,6 +129,8 @@ def main(argv=None):
     print(f"  box extents {np.round(extents * 1000, 2)} mm, mean {edge * 1000:.2f} mm: "
           f"{100 * e['edge_rel_error']:+.2f} % vs nominal {NOMINAL['edge'] * 1000:.1f} mm "
           f"(per axis {np.round(100 * np.array(e['extents_rel_error']), 2)} %)")
+    print(f"  augmentations {list(est.model)}: edge radius {edge_radius * 1000:.2f} mm, "
+          f"ground offset {ground_offset * 1000:.2f} mm")
     print(f"  edge implied by the resting height above z = 0: {rest_edge * 1000:.2f} mm "
           f"({100 * (rest_edge - NOMINAL['edge']) / NOMINAL['edge']:+.2f} %)")
     print(f"  friction (ground) {mu:.3f};  I/m eigenvalues {np.round(np.linalg.eigvalsh(I / mass) * 1e3, 3)} e-3 m² "
@@ -132,7 +141,7 @@ def main(argv=None):
     # rollouts
     models = {
         "estimated": TimeStepper3D(shape, sp if sp is not None else np.linalg.norm(est.vertices, axis=1), mass, I, mu,
-                                   dt=read_run(held[0]).dt),
+                                   dt=read_run(held[0]).dt, edge_radius=edge_radius, ground_height=ground_offset),
         "nominal": TimeStepper3D("box", [NOMINAL["edge"]] * 3, NOMINAL["mass"], NOMINAL["inertia"] * np.eye(3),
                                  NOMINAL["friction"], dt=read_run(held[0]).dt),
     }

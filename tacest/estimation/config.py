@@ -106,6 +106,15 @@ class Solver3D:
     hessian_ridge: float = 1.0
     #: IPOPT's acceptable tolerance (scaled KKT error), as solver.acceptable_tol
     acceptable_tol: float = 1.0
+    #: augmentation ``ground_offset``: sigma (m) of a zero-mean prior on the height of the
+    #: ground plane above the runs' /scene ground_height, estimated with the object; 0 holds
+    #: the ground where the runs put it (docs/estimation3d.md)
+    ground_offset_sigma: float = 0.0
+    #: augmentation ``edge_radius`` (box only): sigma (m) of a half-normal prior at 0 on the
+    #: radius of the box's rounded edges and corners; 0 keeps the edges sharp.  On by
+    #: default: the real tossed cube rocks on ~2 mm rounded edges, and a sharp box then
+    #: comes out 2 % small (docs/estimation3d.md); a sharp object gets a radius near 0
+    edge_radius_sigma: float = 0.005
 
 
 @dataclass

@@ -174,6 +174,16 @@ class Estimator3D:
             raise TacestError(f"size bound {self.size_bound:g} m is below the length scale {self.scales.L:g} m "
                               f"times {MIN_BOUND_OVER_SCALE}: no shape fits")
         self.s0 = self.shape.initial(np.full(3, 1.0))  # a cube of the length scale
+        #: augmentation ground_offset: prior sigma (m), 0 = the ground held at /scene's height
+        self.ground_offset_sigma = float(self.config.solver3d.ground_offset_sigma)
+        #: augmentation edge_radius (box only): prior sigma (m), 0 = sharp edges
+        self.edge_radius_sigma = float(self.config.solver3d.edge_radius_sigma)
+        for k in ("ground_offset_sigma", "edge_radius_sigma"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise TacestError(f"solver3d.{k} must be >= 0, got {v!r}")
+        if self.shape.name != "box":  # rounded edges are a box's augmentation only
+            self.edge_radius_sigma = 0.0
         t0 = time.perf_counter()
         self.built = get_solver_3d(self.shape, self.layout, self.config, self.echo)
         self.build_time = time.perf_counter() - t0
@@ -193,8 +203,11 @@ class Estimator3D:
         g = np.array([gvals[n] for n in G3_NAMES], float)
         w = np.array([getattr(cfg.weights, t) for t in TERMS3D], float)
         pr = cfg.prior
+        # augmentation priors in units of L (an augmentation that is off is held at 0)
+        go_sig = self.ground_offset_sigma / sc.L if self.ground_offset_sigma > 0 else 1.0
+        er_sig = self.edge_radius_sigma / sc.L if self.edge_radius_sigma > 0 else 1.0
         prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
-                                 pr.shape_sigma, 1.0], self.s0 if s_ref is None else s_ref])
+                                 pr.shape_sigma, 1.0, go_sig, er_sig], self.s0 if s_ref is None else s_ref])
         ridge = cfg.solver3d.hessian_ridge if ridge is None else ridge
         p = np.concatenate([D.T.reshape(-1), g, w, prior, [ridge]])
         assert p.shape[0] == self.problem.n_p
@@ -266,6 +279,17 @@ class Estimator3D:
         for name in ("friction_ground", "friction_finger"):
             j = pr.theta_index(name)
             lbx[j], ubx[j] = FRICTION_BOUNDS
+        j = pr.theta_index("ground_offset")
+        if self.ground_offset_sigma > 0:  # within 10 prior sigmas (and a length scale) of /scene's ground
+            lbx[j], ubx[j] = -min(10 * self.ground_offset_sigma / self.scales.L, 1.0), min(
+                10 * self.ground_offset_sigma / self.scales.L, 1.0)
+        else:
+            lbx[j] = ubx[j] = 0.0
+        j = pr.theta_index("edge_radius")
+        if self.edge_radius_sigma > 0:  # 0 .. 10 prior sigmas, and at most a quarter of the smallest extent
+            lbx[j], ubx[j] = 0.0, min(10 * self.edge_radius_sigma / self.scales.L, 0.25 * float(np.min(lbx[:ns])))
+        else:
+            lbx[j] = ubx[j] = 0.0
         if not self.F:  # no fingertip: its friction is not in the model; hold it at the prior
             j = pr.theta_index("friction_finger")
             lbx[j] = ubx[j] = z[j]
@@ -412,6 +436,14 @@ class Estimator3D:
                             wall_time=sum(s.wall_time for s in stages), objective=last.objective, stages=stages)
 
     # --------------------------------------------------------------------------------
+    def edge_radius(self, z) -> float:
+        """Estimated radius (m) of the box's rounded edges (0 when not estimated)."""
+        return float(np.asarray(z, float)[self.problem.theta_index("edge_radius")] * self.scales.L)
+
+    def ground_offset(self, z) -> float:
+        """Estimated ground offset (m) above /scene's ground_height (0 when not estimated)."""
+        return float(np.asarray(z, float)[self.problem.theta_index("ground_offset")] * self.scales.L)
+
     def physical(self, z):
         """(vertices (K, 3) m, mass kg, inertia (3, 3) kg·m², mu_g, mu_f)."""
         pr, sc = self.problem, self.scales
@@ -508,6 +540,15 @@ def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: Estimator
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
     identifiable = {"mass": est.has_force, "inertia": est.has_force, "friction_ground": True,
                     "friction_finger": est.F > 0}
+    model = []
+    if est.ground_offset_sigma > 0:  # augmentation: the ground plane's height, estimated
+        params["ground_offset"] = est.ground_offset(out.z)
+        identifiable["ground_offset"] = bool(std.get("ground_offset", np.inf) < est.ground_offset_sigma)
+        model.append("ground_offset")
+    if est.edge_radius_sigma > 0:  # augmentation: rounded edges and corners of the box
+        params["edge_radius"] = est.edge_radius(out.z)
+        identifiable["edge_radius"] = bool(std.get("edge_radius", np.inf) < est.edge_radius_sigma)
+        model.append("edge_radius")
     # a parameter the data leave (nearly) undetermined: one sigma above half its value
     for k in ("friction_ground", "friction_finger"):
         if not std.get(k, np.inf) <= 0.5 * max(params[k], 1e-3):
@@ -520,7 +561,7 @@ def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: Estimator
                      f"{est.scales.m0:g} kg); inertia is identified only relative to it (I/m)")
     wall = time.perf_counter() - t_start
     return Estimate(
-        dim=3, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=[],
+        dim=3, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=model,
         solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
         objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
         config=est.config.to_dict(), method="implicit",

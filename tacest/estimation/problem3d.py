@@ -21,7 +21,7 @@ mapped over all dynamic intervals of all runs, one start function over the runs.
 Decision vector z (all scaled to O(1); L length scale, m0 mass scale)::
 
     theta  = [s (n_s) shape, log(m / m0), c (6) log-Cholesky of Sigma / (m L²),
-              mu_ground, mu_finger]
+              mu_ground, mu_finger, ground_offset / L, edge_radius / L]
     P      (7, S):  per sample [p / L (3), q (4)]
     U      (K, M):  per dynamic interval, ground impulse variable of each vertex:
                     lambda_n = softplus(u) in units of m0 g dt (:func:`impulse_of`)
@@ -70,7 +70,8 @@ HESSIAN_MODES = ("gauss-newton", "exact")
 NP = 7  # pose size per sample
 #: physical parameters in theta after the shape block
 PHYS_NAMES_3D = ("log_mass", "inertia_a1", "inertia_a2", "inertia_a3", "inertia_b21", "inertia_b31",
-                 "inertia_b32", "friction_ground", "friction_finger")
+                 "inertia_b32", "friction_ground", "friction_finger", "ground_offset",
+                 "edge_radius")
 #: sigma of the residual |q|² - 1 that fixes the free scale of every quaternion variable
 #: (the model uses q / |q| only, so any value works; 1e-2 keeps it well conditioned)
 QUAT_NORM_SIGMA = 1e-2
@@ -96,8 +97,9 @@ DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", 
 G3_NAMES = ("L", "m0", "sig_proc", "sig_pen", "sig_gap", "sig_comp", "eps", "comp_mult", "dyn_mult",
             "sig_force", "sig_normal", "sig_diss", "sig_rest")
 G3 = {n: i for i, n in enumerate(G3_NAMES)}
-#: prior vector: lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma, on, then s_ref (n_s)
-N_PRIOR_FIXED = 6
+#: prior vector: lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma, on, ground_offset_sigma,
+#: edge_radius_sigma (both in units of L), then s_ref (n_s)
+N_PRIOR_FIXED = 8
 
 
 def impulse_of(u):
@@ -209,6 +211,32 @@ class StageModel3D:
     def theta_index(self, name):
         return self.n_shape + PHYS_NAMES_3D.index(name)
 
+    def ground_offset(self, th, L):
+        """Estimated height (m) of the ground plane along its normal above the run's
+        ``/scene ground_height``: the augmentation ``ground_offset`` (0 when not estimated)."""
+        return th[self.theta_index("ground_offset")] * L
+
+    def ground_geometry(self, p, q, v, w, th, d, L):
+        """Ground contact of every vertex: (phi (K) m, slip (K x (3,)) m/s world, levers
+        (K x (3,)) body-frame contact points m, R (3, 3)), with the augmentations: the ground
+        raised by ``ground_offset`` and, for a box, the edges and corners rounded with radius
+        ``edge_radius`` r (the box's extents are its outer size: the shape is the inner box
+        of half extents s L / 2 - r swept by a ball of radius r, so its lowest point is an
+        inner vertex minus r along the ground normal)."""
+        s = th[: self.n_shape]
+        n_g = d[DI["nx"]: DI["nz"] + 1]
+        V = self.shape.vertices(s, L)
+        r = th[self.theta_index("edge_radius")] * L
+        if self.shape.name == "box":
+            V = V - r * ca.DM(np.sign(np.array(ca.DM(self.shape.vertices(np.ones(3), 1.0)))))
+        phi, slip, levers, R = ground_contacts(p, q, v, w, V, n_g, d[DI["h"]] + self.ground_offset(th, L))
+        if self.shape.name != "box":
+            return phi, slip, levers, R
+        n_b = r * ca.mtimes(R.T, n_g)  # from an inner vertex to its contact point is -n_b
+        spin = ca.mtimes(R, cross(w, n_b))  # the contact point moves by -spin relative to the vertex
+        return ([ph - r for ph in phi], [sl - spin + ca.dot(n_g, spin) * n_g for sl in slip],
+                [lv - n_b for lv in levers], R)
+
     def unpack_theta(self, th, L, m0):
         """(s (n_s), mass kg, a (3, 3) = I / m in m², mu_g, mu_f) from theta."""
         ns = self.n_shape
@@ -218,10 +246,12 @@ class StageModel3D:
     def _prior_residual(self, th, pr):
         ns = self.n_shape
         s = th[:ns]
-        lm_sig, lI_sig, mu0, mu_sig, sh_sig, on = (pr[i] for i in range(N_PRIOR_FIXED))
+        lm_sig, lI_sig, mu0, mu_sig, sh_sig, on, go_sig, er_sig = (pr[i] for i in range(N_PRIOR_FIXED))
         c_ref = self.shape.uniform_cholesky_reference(s)
         r = ca.vertcat(th[ns] / lm_sig, (th[ns + 1: ns + 7] - c_ref) / lI_sig, (th[ns + 7] - mu0) / mu_sig,
-                       (th[ns + 8] - mu0) / mu_sig, (s - pr[N_PRIOR_FIXED:]) / sh_sig)
+                       (th[ns + 8] - mu0) / mu_sig, (s - pr[N_PRIOR_FIXED:]) / sh_sig,
+                       th[self.theta_index("ground_offset")] / go_sig,
+                       th[self.theta_index("edge_radius")] / er_sig)
         return ca.sqrt(on) * r
 
     @staticmethod
@@ -256,11 +286,10 @@ class StageModel3D:
         dt, Lam = d[DI["dt"]], d[DI["Lam"]]
         n_g = d[DI["nx"]: DI["nz"] + 1]
         s, mass, a_inertia, mu_g, mu_f = self.unpack_theta(th, L, m0)
-        V = self.shape.vertices(s, L)
         p, q = xc[0:3] * L, xc[3:7]
         v, w = pose_velocity(xb, xc, dt, L)
         v_prev, w_prev = pose_velocity(xa, xb, dt, L)
-        phi, slip, levers, R = ground_contacts(p, q, v, w, V, n_g, d[DI["h"]])
+        phi, slip, levers, R = self.ground_geometry(p, q, v, w, th, d, L)
         imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
         torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
         comp, pen, lt_out = [], [], []
@@ -348,13 +377,11 @@ class StageModel3D:
         g = ca.SX.sym("g", len(G3_NAMES))
         L, m0 = g[G3["L"]], g[G3["m0"]]
         s, *_ = self.unpack_theta(th, L, m0)
-        V = self.shape.vertices(s, L)
         sd_fun = shape_sd_and_normal_function(self.shape) if F else None
         pose, pen, contact, qn = [], [], [], []
         for x, d in ((xa, da), (xb, db)):
             p, q = x[0:3] * L, x[3:7]
-            phi, _, _, R = ground_contacts(p, q, ca.SX.zeros(3), ca.SX.zeros(3), V, d[DI["nx"]: DI["nz"] + 1],
-                                           d[DI["h"]])
+            phi, _, _, R = self.ground_geometry(p, q, ca.SX.zeros(3), ca.SX.zeros(3), th, d, L)
             pose.append(self.pose_residual(p, q, d))
             pen += [one_sided(ph, g[G3["sig_pen"]]) for ph in phi]
             for f in range(F):

@@ -60,11 +60,12 @@ class TimeStepper3D:
     shape_params : (n_s,) m, physical (box extents or polytope radii)
     mass : kg;  inertia : (3, 3) kg·m² about the COM, body frame;  friction : ground mu
     dt : s;  up : (3,) ground normal;  ground_height : m
+    edge_radius : m, radius of a box's rounded edges (the estimate's ``edge_radius``; 0: sharp)
     config : EstimatorConfig (noise levels and the final homotopy stage of [solver3d])
     """
 
     def __init__(self, shape, shape_params, mass, inertia, friction, dt, up=(0.0, 0.0, 1.0), ground_height=0.0,
-                 config: EstimatorConfig | None = None):
+                 config: EstimatorConfig | None = None, edge_radius=0.0):
         self.shape = make_shape_3d(shape) if isinstance(shape, str) else shape
         self.config = config or EstimatorConfig()
         self.dt = float(dt)
@@ -79,6 +80,7 @@ class TimeStepper3D:
             np.asarray(inertia, float) / (mass * self.L ** 2))
         theta[self.model.theta_index("friction_ground")] = float(friction)
         theta[self.model.theta_index("friction_finger")] = float(friction)
+        theta[self.model.theta_index("edge_radius")] = float(edge_radius) / self.L
         self.theta = theta
         nz = self.config.noise
         eps, comp_mult, dyn_mult = self.config.solver3d.homotopy[-1]
@@ -200,19 +202,24 @@ def initial_state(poses, dt, n_fit=4, gravity=(0.0, 0.0, -9.81)):
 
 
 def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0, T, dt=0.0068,
-                  sigma_position=1e-3, sigma_angle=1e-2, noise_seed=None, config=None):
+                  sigma_position=1e-3, sigma_angle=1e-2, noise_seed=None, config=None, edge_radius=0.0,
+                  ground_height=0.0):
     """A pose-only 3-D run (tacest.io.run.Run, with /truth) of an object tossed from
     ``pose0`` (7,) with ``velocity0`` (6,) [v world m/s, omega world rad/s], simulated
     for T samples by :class:`TimeStepper3D`.  The observed poses are the simulated ones,
     plus Gaussian noise of the given sigmas (position m; orientation rad, a random
     rotation vector) when ``noise_seed`` is an integer.  The run's extra attribute
-    ``simulation_unconverged_steps`` counts the steps that did not converge."""
+    ``simulation_unconverged_steps`` counts the steps that did not converge.  ``edge_radius``
+    (m) rounds a box's edges; ``ground_height`` (m) is where the simulated ground is (the
+    run file still says 0: a ground offset the estimator has to find)."""
     from tacest.geometry.transforms import quat_from_axis_angle
     from tacest.io.run import Run, Truth
 
-    sim = TimeStepper3D(shape, shape_params, mass, inertia, friction, dt, config=config)
+    sim = TimeStepper3D(shape, shape_params, mass, inertia, friction, dt, config=config, edge_radius=edge_radius,
+                        ground_height=ground_height)
     truth_pose = sim.rollout(pose0, velocity0, T)
-    attrs = {"simulation_unconverged_steps": int(sim.unconverged)}
+    attrs = {"simulation_unconverged_steps": int(sim.unconverged), "simulation_edge_radius": float(edge_radius),
+             "simulation_ground_height": float(ground_height)}
     obs = truth_pose.copy()
     if noise_seed is not None:
         rng = np.random.default_rng(noise_seed)

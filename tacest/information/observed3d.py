@@ -63,6 +63,8 @@ def observed_information_3d(problem, z, p, lbx, ubx, L, mass):
     d = np.ones(n_theta)
     d[: problem.n_shape] = 1.0 / L  # scaled shape = physical / L
     d[problem.n_shape] = 1.0 / mass  # d log m / d m
+    d[problem.theta_index("ground_offset")] = 1.0 / L  # scaled offsets = metres / L
+    d[problem.theta_index("edge_radius")] = 1.0 / L
     I_phys = I_s * np.outer(d, d)
     kept_fixed = fixed[keep]
     I_phys[kept_fixed, :] = 0.0
