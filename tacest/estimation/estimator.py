@@ -28,6 +28,13 @@ from tacest.io.run import Run
 LOG_INERTIA_BOUNDS = (-1.5, float(np.log(2.0)))
 LOG_MASS_BOUNDS = (-6.0, 6.0)
 FRICTION_BOUNDS = (0.01, 2.0)
+#: half-width (scaled units, relative to max(1, |value|)) of the interval that holds a
+#: parameter fixed (estimate_runs' fixed=).  IPOPT removes variables with equal bounds;
+#: with the Gauss–Newton Hessian model some such problems failed at iteration 0
+#: (Error_In_Step_Computation), while the same problems with the parameters kept as
+#: variables in an interval of 2e-9 solve (tacest.diagnosis.fitting.PIN_HALF_WIDTH).
+#: 1e-9 of a scaled parameter (O(1)) is far below anything the data resolve.
+PIN_HALF_WIDTH = 1e-9
 
 
 def _noop(*_a, **_k):
@@ -53,7 +60,7 @@ class ImplicitEstimator:
     """Implicit estimator for a set of runs of one object (2-D)."""
 
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 echo=None):
+                 echo=None, effects=()):
         check_runs(runs)
         self.runs = runs
         self.config = config or EstimatorConfig()
@@ -67,9 +74,13 @@ class ImplicitEstimator:
         w, h = initial_extents(runs, self.scales.L)
         self.s0 = self.shape.initial(w / self.scales.L, h / self.scales.L)
         t0 = time.perf_counter()
-        self.built = get_solver(self.shape, self.structures, self.config)
+        self.built = get_solver(self.shape, self.structures, self.config, effects)
         self.build_time = time.perf_counter() - t0
         self.problem = self.built.problem
+        #: scaled theta held fixed (estimate_runs' ``fixed=``), and the warm trajectories
+        #: {run index: (Q, V, LG, LF) scaled} that start the solve; None / empty: neither
+        self.fixed_theta = None
+        self.warm_blocks = {}
 
     # --------------------------------------------------------------------------------
     def variable_bounds(self):
@@ -85,6 +96,9 @@ class ImplicitEstimator:
         ubx[ns:ns + 4] = [LOG_MASS_BOUNDS[1], LOG_INERTIA_BOUNDS[1], FRICTION_BOUNDS[1], FRICTION_BOUNDS[1]]
         if not self.has_force:  # DESIGN: without a force stream mass is not identifiable
             lbx[ns] = ubx[ns] = 0.0
+        a = ns + 4  # effect parameters (problem.NLP_EFFECTS)
+        for j, (_, _, _, _, lo_e, hi_e) in enumerate(pr.effect_params):
+            lbx[a + j], ubx[a + j] = lo_e, hi_e
         for i, (run, st) in enumerate(zip(self.runs, self.structures)):
             off = pr.offsets[i]
             a, n = off["LG"]
@@ -97,7 +111,17 @@ class ImplicitEstimator:
                 off_rows = np.repeat(~on, 2, axis=1)  # (T-1, 2F): [x, y] per finger
                 lbx[a: a + n] = np.where(off_rows, 0.0, -np.inf).reshape(-1)
                 ubx[a: a + n] = np.where(off_rows, 0.0, np.inf).reshape(-1)
-        if self.shape.name != "box" and not any(r.pose_obs is not None for r in self.runs):
+        if self.fixed_theta is not None:
+            # held fixed (estimate_runs' fixed=): theta and the lifted quantities in an
+            # interval of ±PIN_HALF_WIDTH, not equal bounds (see PIN_HALF_WIDTH); a fixed
+            # shape has its orientation, so no gauge
+            th = self.fixed_theta
+            ph = np.asarray(pr.phys_sx(th, self.scales.L, self.scales.m0)).reshape(-1)
+            for a, vals in ((0, th), (pr.phys_offset, ph)):
+                half = PIN_HALF_WIDTH * np.maximum(1.0, np.abs(vals))
+                lbx[a: a + len(vals)] = vals - half
+                ubx[a: a + len(vals)] = vals + half
+        elif self.shape.name != "box" and not any(r.pose_obs is not None for r in self.runs):
             # gauge: a free polygon can rotate in its body frame; fix the start angle of run 0
             a = pr.offsets[0]["Q"][0] + 2
             lbx[a] = ubx[a] = self.z[a]
@@ -129,9 +153,18 @@ class ImplicitEstimator:
         """
         cfg = self.config.solver
         pr = self.problem
-        self.s0 = choose_start_shape(pr, self.runs, self.scales, self.s0)
+        if self.fixed_theta is not None:
+            self.s0 = self.fixed_theta[: pr.n_shape].copy()
+        else:
+            self.s0 = choose_start_shape(pr, self.runs, self.scales, self.s0)
         trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
         self.z = initial_guess(pr, self.runs, self.scales, self.s0, trajectories)
+        if self.fixed_theta is not None:
+            self.z[: pr.n_theta] = self.fixed_theta
+            self.z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
+                pr.phys_sx(self.fixed_theta, self.scales.L, self.scales.m0)).reshape(-1)
+        for i, (Q, Vv, LG, LF) in self.warm_blocks.items():
+            pr.set_run_blocks(self.z, i, Q=Q, V=Vv, LG=LG, LF=LF)
         stages = []
         hom = list(cfg.homotopy)
         plan = [("impulses", *hom[0], "impulses")]
@@ -241,13 +274,90 @@ class ImplicitEstimator:
         return pose, vel, imp
 
 
+def fixed_theta_of(est: "ImplicitEstimator", fixed: Estimate) -> np.ndarray:
+    """Scaled theta of the problem from an estimate's parameters (shape from its
+    vertices, mass, inertia, frictions, effect parameters): what ``fixed=`` holds."""
+    from tacest.estimation.augment import effect_theta
+    from tacest.geometry.shapes import polygon_area_centroid_j
+
+    pr = est.problem
+    L, m0 = est.scales.L, est.scales.m0
+    V = np.asarray(fixed.vertices, float)
+    if fixed.dim != 2 or V.ndim != 2 or V.shape[1] != 2:
+        raise TacestError("the fixed estimate is not a 2-D estimate")
+    if est.shape.name == "box":
+        s = np.array([np.ptp(V[:, 0]), np.ptp(V[:, 1])]) / L
+    else:
+        if V.shape[0] != pr.K:
+            raise TacestError(f"the fixed estimate has {V.shape[0]} vertices, the shape {est.shape.name} has {pr.K}")
+        s = V.reshape(-1) / L
+    try:
+        mass, inertia = float(fixed.params["mass"]), float(fixed.params["inertia"])
+        mu_g, mu_f = float(fixed.params["friction_ground"]), float(fixed.params["friction_finger"])
+    except KeyError as exc:
+        raise TacestError(f"the fixed estimate has no parameter {exc.args[0]!r}") from None
+    area, _, J = polygon_area_centroid_j(V)
+    theta = np.concatenate([s, [np.log(mass / m0), np.log(inertia / (mass * float(J) / float(area))), mu_g, mu_f],
+                            effect_theta(pr, fixed.params, L, m0, mu_g)])
+    if not np.all(np.isfinite(theta)):
+        raise TacestError("the fixed estimate has non-finite parameters")
+    return theta
+
+
+def warm_blocks_of(est: "ImplicitEstimator", fixed: Estimate) -> dict:
+    """{run index: scaled (Q, V, LG, LF)} from the trajectories of ``fixed`` for the runs
+    it estimated (same source file, or the same position in the list, and the same
+    number of samples); velocities re-derived from the poses (eq. D2 holds)."""
+    out = {}
+    pr = est.problem
+    scale = np.array([est.scales.L, est.scales.L, 1.0])
+    for i, run in enumerate(est.runs):
+        cands = [r for r in fixed.runs if run.filename and r.source_file == run.filename]
+        if not cands and len(fixed.runs) == len(est.runs):
+            cands = [fixed.runs[i]]
+        cands = [r for r in cands if np.asarray(r.pose).shape[0] == run.n_samples]
+        if not cands:
+            continue
+        wr = cands[0]
+        K, F, T = pr.K, run.n_fingers, run.n_samples
+        Lam = est.scales.m0 * GRAVITY * run.dt
+        Q = (np.asarray(wr.pose, float)[:, :3] / scale).T
+        Vv = np.zeros_like(Q)
+        Vv[:, 1:] = np.diff(Q, axis=1) / run.dt
+        imp = wr.impulses
+        LG = None
+        gn, gt = imp.get("ground_normal"), imp.get("ground_tangent")
+        if gn is not None and gt is not None and np.shape(gn) == (T, K) and np.shape(gt) == (T, K):
+            LG = np.vstack([np.maximum(np.asarray(gn, float)[1:] / Lam, 0.0).T, (np.asarray(gt, float)[1:] / Lam).T])
+        LF = None
+        if F and all(np.shape(imp.get(f"finger_{f}", ())) == (T, 2) for f in range(F)):
+            LFt = np.concatenate([np.asarray(imp[f"finger_{f}"], float)[1:] for f in range(F)], axis=1)
+            LF = (LFt * np.repeat(touching(run)[1:], 2, axis=1) / Lam).T  # off-contact impulses are 0
+        out[i] = (Q, Vv, LG, LF)
+    return out
+
+
 def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                  echo=None, method: str = "implicit") -> Estimate:
-    """Estimate one object's parameters and each run's trajectory.  See module docstring."""
+                  echo=None, method: str = "implicit", effects=(), fixed: Estimate | None = None) -> Estimate:
+    """Estimate one object's parameters and each run's trajectory.  See module docstring.
+
+    effects : SPEC effect names modelled as extra parameters inside the NLP
+        (problem.NLP_EFFECTS; docs/diagnosis.md gives each augmentation's equations);
+        their values appear in ``Estimate.params`` as ``effect.parameter``
+        (tacest.estimation.augment) and in the information matrix;
+    fixed : an Estimate whose parameters (shape, mass, inertia, frictions and the
+        effect parameters of ``effects``) are held fixed: only trajectories and
+        impulses are fitted (held-out evaluation); its trajectories start the runs it
+        estimated (same source file and length).
+    """
     from tacest.information.observed import observed_information
+    from tacest.estimation.problem import check_effects
 
     echo = echo or _noop
     t_start = time.perf_counter()
+    effects = check_effects(effects)
+    if (effects or fixed is not None) and method != "implicit":
+        raise TacestError("effects= and fixed= are offered by the implicit 2-D estimator only")
     if method == "shooting":
         from tacest.estimation.shooting import estimate_shooting
 
@@ -258,10 +368,15 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     if runs[0].dim == 3:  # the one place where 2-D and 3-D part
         from tacest.estimation.estimator3d import estimate_runs_3d
 
+        if effects or fixed is not None:
+            raise TacestError("effects= and fixed= are offered by the implicit 2-D estimator only")
         return estimate_runs_3d(runs, shape_spec, config, echo)
-    est = ImplicitEstimator(runs, shape_spec, config, echo)
+    est = ImplicitEstimator(runs, shape_spec, config, echo, effects=effects)
+    if fixed is not None:
+        est.fixed_theta = fixed_theta_of(est, fixed)
+        est.warm_blocks = warm_blocks_of(est, fixed)
     echo(f"built NLP: {est.problem.n_z} variables, {est.problem.g.shape[0]} constraints "
-         f"({est.build_time:.1f} s)")
+         f"({est.build_time:.1f} s)" + (f", effects: {', '.join(effects)}" if effects else ""))
     out = est.solve()
     V, mass, inertia, mu_g, mu_f = est.physical(out.z)
     run_ests = []
@@ -272,8 +387,13 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         sha = sha256_file(src) if src else ""
         run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res,
                                     source_file=src, source_sha256=sha))
-    info, names, std = observed_information(est, out.z)
+    # held fixed: no parameter is estimated, so there is no information to report
+    info, names, std = observed_information(est, out.z) if fixed is None else (None, [], {})
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
+    if effects:
+        from tacest.estimation.augment import effect_params
+
+        params.update(effect_params(est.problem, out.z, est.scales.L, est.scales.m0))
     identifiable = {
         "mass": est.has_force,
         "inertia": est.has_force,
@@ -284,9 +404,18 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     for k in ("friction_ground", "friction_finger", "mass"):
         if k in std and not std[k] <= 0.5 * max(params[k], 1e-3):
             identifiable[k] = False
+    for k in std:  # effect parameters: identifiable where the data bound them
+        if "." in k:
+            identifiable[k] = bool(np.isfinite(std[k]))
+    if "force_scale" in effects:
+        # every force in the model (weight, inertia, contacts) scales with the mass, the
+        # measured ones with the gain: only gain × mass is identifiable (docs/diagnosis.md)
+        identifiable["mass"] = identifiable["force_scale.gain"] = False
+    if fixed is not None:  # held fixed: nothing was estimated
+        identifiable = {k: False for k in identifiable}
     wall = time.perf_counter() - t_start
     return Estimate(
-        dim=2, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=[],
+        dim=2, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=list(effects),
         solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
         objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
         config=est.config.to_dict(), method="implicit",

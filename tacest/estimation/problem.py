@@ -80,6 +80,81 @@ HESSIAN_MODES = ("gauss-newton", "exact")
 #: names of the physical parameters in theta after the shape block
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
+#: Model augmentations (SPEC effect names) the NLP can include as extra parameters
+#: (docs/diagnosis.md, "NLP augmentations").  Per effect, its parameters in theta:
+#: (name, prior centre, prior sigma, lower bound, upper bound), all scaled (O(1)):
+#:
+#: - force_bias fx, fy: offset on every measured force sample, units of m0·g (N);
+#: - force_scale log_gain: measured force = exp(log_gain) × model force;
+#: - linear_drag b: force -b·v on the COM, units of m0 per second (N·s/m);
+#: - angular_damping c: torque -c·ω, units of m0·L² per second (N·m·s);
+#: - soft_contact compliance: the ground sinks by compliance × (total normal ground
+#:   impulse in units of m0·g·dt), compliance in units of COMPLIANCE_UNIT·L;
+#: - restitution e: after an impact a vertex leaves with -e × its approach velocity;
+#: - face_friction d0..d{K-1}: ground friction of face i is friction_ground + d_i;
+#: - com_offset dx, dy: the COM in the centroid frame (body axes), units of L.
+#:
+#: Priors are centred on "no effect"; their sigmas are weak (a few times the typical
+#: size of the effect) so that only the data decide.
+NLP_EFFECTS = {
+    "restitution": (("e", 0.0, 0.5, 0.0, 0.95),),
+    "angular_damping": (("c", 0.0, 5.0, 0.0, 200.0),),
+    "linear_drag": (("b", 0.0, 5.0, 0.0, 200.0),),
+    "soft_contact": (("compliance", 0.0, 5.0, 0.0, 100.0),),
+    "force_bias": (("fx", 0.0, 1.0, -10.0, 10.0), ("fy", 0.0, 1.0, -10.0, 10.0)),
+    "force_scale": (("log_gain", 0.0, 0.5, float(np.log(0.1)), float(np.log(10.0))),),
+    "face_friction": (),  # one parameter per face, see effect_parameters
+    "com_offset": (("dx", 0.0, 0.3, -0.5, 0.5), ("dy", 0.0, 0.3, -0.5, 0.5)),
+}
+#: face_friction: prior sigma and bounds of the per-face friction offsets d_i
+FACE_FRICTION_PRIOR = (0.0, 0.5, -1.5, 1.5)
+#: soft_contact: the compliance parameter's unit, as a fraction of the length scale L
+#: (a 1 kg box on a 3000 N/m ground with L = 0.1 m sinks 3.3 mm: compliance ≈ 3)
+COMPLIANCE_UNIT = 0.01
+#: m/s: restitution's impact gate a / (a + IMPACT_SPEED) on the approach speed a of a
+#: vertex: 0 for a vertex that rests or lifts off, ~0.9 for impacts of ~0.2 m/s
+IMPACT_SPEED = 0.02
+#: face_friction: sharpness of the softmax that picks the face facing the ground most
+#: (weights exp(-FACE_SHARPNESS · n_face·up)): between the faces of a box resting flat
+#: (n·up = -1 vs 0) the ratio is e^-20; at 45° the two lower faces share equally
+FACE_SHARPNESS = 20.0
+
+
+def effect_parameters(effects, n_vertices):
+    """[(effect, parameter, prior centre, prior sigma, lower, upper)] of the NLP's
+    effect block, in the order of ``effects`` (see NLP_EFFECTS)."""
+    out = []
+    for e in effects:
+        if e == "face_friction":
+            out += [(e, f"d{i}", *FACE_FRICTION_PRIOR) for i in range(n_vertices)]
+        else:
+            out += [(e, *p) for p in NLP_EFFECTS[e]]
+    return out
+
+
+def check_effects(effects) -> tuple:
+    """The effects as a canonical tuple (NLP_EFFECTS order, no repeats); a TacestError
+    (one line) for an unknown name or an effect the NLP does not model."""
+    from tacest.errors import TacestError
+
+    if isinstance(effects, str):
+        effects = (effects,)
+    names = []
+    for e in effects or ():
+        e = str(e).strip()
+        if e in ("", "none"):
+            continue
+        if e not in NLP_EFFECTS:
+            from tacest.sim.effects import EFFECTS
+
+            if e in EFFECTS:
+                raise TacestError(f"effect {e!r} is not modelled inside the estimator's NLP (it is a data "
+                                  f"transform); NLP effects: {', '.join(NLP_EFFECTS)}")
+            raise TacestError(f"unknown effect {e!r}; NLP effects: {', '.join(NLP_EFFECTS)}")
+        if e not in names:
+            names.append(e)
+    return tuple(n for n in NLP_EFFECTS if n in names)
+
 
 @dataclass(frozen=True)
 class RunStructure:
@@ -163,15 +238,24 @@ class Problem2D:
     shape : Shape parameterization (box, polygon:K)
     structures : list of RunStructure, one per run
     config : EstimatorConfig
+    effects : SPEC effect names modelled as extra parameters (NLP_EFFECTS); their
+        parameters follow PHYS_NAMES in theta and are appended to phys unchanged
     """
 
-    def __init__(self, shape: Shape, structures: list[RunStructure], config: EstimatorConfig):
+    def __init__(self, shape: Shape, structures: list[RunStructure], config: EstimatorConfig, effects=()):
         self.shape = shape
         self.structures = list(structures)
         self.config = config
         self.K = shape.n_vertices
         self.n_shape = shape.n_params
-        self.n_theta = self.n_shape + len(PHYS_NAMES)
+        self.effects = check_effects(effects)
+        #: [(effect, parameter, prior centre, prior sigma, lower, upper)] of the effect block
+        self.effect_params = effect_parameters(self.effects, self.K)
+        self.n_eff = len(self.effect_params)
+        #: "effect.parameter" -> index within the effect block (theta after PHYS_NAMES,
+        #: phys after the 2K + 4 physical entries)
+        self.eff_index = {f"{e}.{n}": j for j, (e, n, *_) in enumerate(self.effect_params)}
+        self.n_theta = self.n_shape + len(PHYS_NAMES) + self.n_eff
         self._build()
 
     # ------------------------------------------------------------------------------
@@ -180,7 +264,7 @@ class Problem2D:
     def _layout(self):
         K = self.K
         self.offsets = []
-        self.n_phys = 2 * K + 4
+        self.n_phys = 2 * K + 4 + self.n_eff
         self.phys_offset = self.n_theta
         n = self.n_theta + self.n_phys
         for st in self.structures:
@@ -370,17 +454,26 @@ class Problem2D:
         area, _, J = polygon_area_centroid_j(V)
         mass = m0 * ca.exp(lm)
         inertia = mass * (J / area) * ca.exp(lI)
+        u = th[self.n_shape + len(PHYS_NAMES):]
+        if "com_offset" in self.effects:
+            # the body frame's origin is the COM: the vertices move by -(dx, dy); the
+            # inertia about the COM stays the shape's about its centroid (as simulated)
+            d = ca.horzcat(u[self.eff_index["com_offset.dx"]], u[self.eff_index["com_offset.dy"]]) * L
+            V = V - ca.repmat(d, self.K, 1)
         return ca.Function("phys_of_theta", [th, L, m0],
-                           [ca.vertcat(ca.vec(V) / L, mass / m0, inertia / (m0 * L * L), mu_g, mu_f)])
+                           [ca.vertcat(ca.vec(V) / L, mass / m0, inertia / (m0 * L * L), mu_g, mu_f, u)])
 
     def _prior_expression(self, theta, prior):
         s = theta[: self.n_shape]
         lm, lI, mu_g, mu_f = (theta[self.n_shape + i] for i in range(4))
         lm_sig, lI_sig, mu0, mu_sig, sh_sig = (prior[i] for i in range(5))
         s_ref = prior[6:]
-        return 0.5 * (lm / lm_sig) ** 2 + 0.5 * (lI / lI_sig) ** 2 \
+        f = 0.5 * (lm / lm_sig) ** 2 + 0.5 * (lI / lI_sig) ** 2 \
             + 0.5 * ((mu_g - mu0) / mu_sig) ** 2 + 0.5 * ((mu_f - mu0) / mu_sig) ** 2 \
             + 0.5 * ca.sumsqr((s - s_ref) / sh_sig)
+        for j, (_, _, centre, sigma, _, _) in enumerate(self.effect_params):
+            f = f + 0.5 * ((theta[self.n_shape + len(PHYS_NAMES) + j] - centre) / sigma) ** 2
+        return f
 
     def _stage_hessian_function(self, stage, mode):
         """SX Function: dense Hessian of one sample's Lagrangian contribution with respect
@@ -507,6 +600,35 @@ class Problem2D:
         V = ca.reshape(phys[: 2 * K], K, 2) * L
         return V, phys[2 * K] * m0, phys[2 * K + 1] * m0 * L * L, phys[2 * K + 2], phys[2 * K + 3]
 
+    def _measured_force(self, force, ev, m0):
+        """The force sensor's reading (2,) N of a model force (2,) N: gain × force + bias
+        (force_scale, force_bias; the plain model reads the force itself)."""
+        if "force_scale" in self.effects:
+            force = ca.exp(ev["force_scale.log_gain"]) * force
+        if "force_bias" in self.effects:
+            force = force + ca.vertcat(ev["force_bias.fx"], ev["force_bias.fy"]) * m0 * 9.81
+        return force
+
+    def _face_friction_offset(self, q, V, n_g, ev):
+        """Ground friction offset Σ_i w_i d_i of the face that faces the ground most:
+        softmax weights w_i ∝ exp(-FACE_SHARPNESS · n_i·n_g), n_i the outward normal
+        (world) of face i, from vertex i to i+1 of the CCW polygon V (K, 2) m."""
+        K = self.K
+        R = rot2(q[2])
+        scores, d = [], []
+        for i in range(K):
+            e = V[(i + 1) % K, :] - V[i, :]
+            n_body = ca.vertcat(e[1], -e[0]) / ca.sqrt(e[0] * e[0] + e[1] * e[1])
+            scores.append(-FACE_SHARPNESS * ca.dot(n_g, R @ n_body))
+            d.append(ev[f"face_friction.d{i}"])
+        w = ca.exp(ca.vertcat(*scores))
+        return ca.dot(w, ca.vertcat(*d)) / ca.sum1(w)
+
+    def _effect_values(self, phys):
+        """{"effect.parameter": scaled value} of the effect block of a phys vector."""
+        a = 2 * self.K + 4
+        return {k: phys[a + j] for k, j in self.eff_index.items()}
+
     def _unpack_data(self, d, F):
         take = consecutive_slices(d)
 
@@ -540,7 +662,7 @@ class Problem2D:
         vs = ca.SX.sym("v", 3)
         lg = ca.SX.sym("lam_ground", 2 * K)
         lf = ca.SX.sym("lam_finger", 2 * F)
-        phys = ca.SX.sym("phys", 2 * K + 4)
+        phys = ca.SX.sym("phys", self.n_phys)
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
         dt, L, Lam = g[G["dt"]], g[G["L"]], g[G["Lam"]]
@@ -559,6 +681,30 @@ class Problem2D:
         pen = []
         cone, diss = [], []
         eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
+        ev = self._effect_values(phys)
+        # gaps (m) seen by the ground contact laws (penetration, complementarity): the
+        # geometric ones unless an effect relaxes them
+        phi_c = list(phi)
+        r_rest = []
+        if "soft_contact" in self.effects:
+            # a compliant ground (a plate on a spring): it sinks by compliance × the total
+            # normal ground impulse of the sample, so a vertex may penetrate that far
+            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * ca.sum1(lg[:K])
+            phi_c = [p + sink for p in phi_c]
+        if "face_friction" in self.effects:
+            mu_g = mu_g + self._face_friction_offset(q, V, n_g, ev)
+        if "restitution" in self.effects:
+            # Newton's impact law on each vertex: where it arrives at the ground with
+            # approach speed a (normal velocity -a at the previous sample) it leaves with
+            # +e·a; the contact laws see the gap before the rebound's travel dt·e·a
+            e_r = ev["restitution.e"]
+            sig_v = g[G["sig_proc"]] * 9.81 * dt
+            for k in range(K):
+                a = smooth_pos(-ca.dot(n_g, point_velocity(v_prev, levers[k])), 1e-3)  # m/s, approach
+                vn = ca.dot(n_g, point_velocity(v, levers[k]))
+                phi_c[k] = phi_c[k] - dt * e_r * a
+                touch = 1 / (1 + smooth_pos(phi_c[k] / g[G["sig_gap"]] - 1, eps))
+                r_rest.append(touch * a / (a + IMPACT_SPEED) * (vn - e_r * a) / sig_v)
         for k in range(K):
             ln, lt = lg[k], lg[K + k]
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
@@ -574,11 +720,11 @@ class Problem2D:
                         * g[G["sig_diss"]] / g[G["sig_diss_g"]])
             # smoothed gap in units of sig_gap, shifted by one: within about one sig_gap of
             # the ground a vertex counts as touching (at phi = 0 the indicator is ~eps²/4)
-            gap = smooth_pos(phi[k] / g[G["sig_gap"]] - 1, eps)
+            gap = smooth_pos(phi_c[k] / g[G["sig_gap"]] - 1, eps)
             # saturating (bounded curvature far from the ground); in units of the
             # reference weight m0·g·dt, like every impulse (see the cone above)
             comp.append(ln * gap / (1 + gap))
-            pen.append(one_sided(phi[k], g[G["sig_pen"]]))
+            pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
         for f in range(F):
@@ -599,18 +745,27 @@ class Problem2D:
                      one_sided(mu_f * ln + lt, CONE_TOLERANCE) * CONE_TOLERANCE]
             imp_finger.append(imp)
             gen += generalized_impulse(lever, imp)
-            r_force.append(w_force[f] * (imp / dt - F_meas[:, f]) / g[G["sig_force"]])
+            r_force.append(w_force[f] * (self._measured_force(imp / dt, ev, g[G["m0"]]) - F_meas[:, f])
+                           / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
             r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
         # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
         # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, gravity along -n_g.  (Whitening
         # the impulse form by a fixed scale would let a light object move for free.)
+        if "linear_drag" in self.effects:  # force -b·v on the COM over the interval (implicit)
+            b = ev["linear_drag.b"] * g[G["m0"]]  # N·s/m
+            gen += ca.vertcat(-b * v[0] * dt, -b * v[1] * dt, 0)
+        if "angular_damping" in self.effects:  # torque -c·ω
+            c_ang = ev["angular_damping.c"] * g[G["m0"]] * L * L  # N·m·s
+            gen += ca.vertcat(0, 0, -c_ang * v[2] * dt)
         M = mass_matrix_diag(mass, inertia)
         M_ref = ca.vertcat(g[G["m_ref"]], g[G["m_ref"]], g[G["I_ref"]])
         grav = ca.vertcat(-9.81 * n_g * dt, 0)
         r_dyn_raw = (M * ((v - v_prev) - grav) - gen) / M_ref
         sig_v = g[G["sig_proc"]] * 9.81 * dt
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
+        if r_rest:
+            r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {
@@ -639,7 +794,7 @@ class Problem2D:
         K = self.K
         qs = ca.SX.sym("q", 3)
         vs = ca.SX.sym("v", 3)
-        phys = ca.SX.sym("phys", 2 * K + 4)
+        phys = ca.SX.sym("phys", self.n_phys)
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
         L = g[G["L"]]
@@ -649,6 +804,9 @@ class Problem2D:
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         phi, _, _ = ground_contacts(q, v, V, n_g, g[G["h"]])
+        if "soft_contact" in self.effects:  # at rest on a compliant ground: sunk by its weight
+            sink = self._effect_values(phys)["soft_contact.compliance"] * COMPLIANCE_UNIT * L * phys[2 * K]
+            phi = [p + sink for p in phi]
         pen = ca.vertcat(*[one_sided(p, g[G["sig_pen"]]) for p in phi])
         rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])

@@ -177,11 +177,15 @@ class BuiltSolver:
                               objective=float(sol["f"]))
 
 
-def get_solver(shape, structures: list[RunStructure], config: EstimatorConfig) -> BuiltSolver:
-    """The cached solver for this structure (built on first use)."""
-    key = (shape.name, tuple(structures), repr(config.solver))
+def get_solver(shape, structures: list[RunStructure], config: EstimatorConfig, effects=()) -> BuiltSolver:
+    """The cached solver for this structure and model (built on first use); effects:
+    the NLP augmentations (problem.NLP_EFFECTS) included as extra parameters."""
+    from tacest.estimation.problem import check_effects
+
+    effects = check_effects(effects)
+    key = (shape.name, tuple(structures), repr(config.solver)) + ((effects,) if effects else ())
     if key not in _CACHE:
-        _CACHE[key] = BuiltSolver(Problem2D(shape, structures, config), config)
+        _CACHE[key] = BuiltSolver(Problem2D(shape, structures, config, effects=effects), config)
     return _CACHE[key]
 
 

@@ -1,0 +1,150 @@
+"""Model augmentations inside the 2-D estimator's NLP (effects=) and fixed-parameter fits
+(fixed=): derivatives, structure, "no effect" equals the plain model, bad names."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import choose_scales, parameter_vector
+from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
+from tacest.estimation.initial import initial_guess
+from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, Problem2D, RunStructure
+from tacest.geometry.shapes import make_shape
+from tests.test_estimator import pushed_box_run
+
+ALL = tuple(NLP_EFFECTS)
+
+
+def _point(shape, effects, seed=0):
+    """A generic point (z, p) of the NLP with effects, near the start; effect parameters
+    set away from "no effect" (0.1 scaled, inside every bound)."""
+    run = pushed_box_run()
+    est = ImplicitEstimator([run], shape, effects=effects)
+    pr = est.problem
+    rng = np.random.default_rng(seed)
+    z = initial_guess(pr, [run], est.scales, est.s0)
+    a = pr.n_shape + len(PHYS_NAMES)
+    z[a: a + pr.n_eff] = 0.1
+    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
+        pr.phys_sx(z[: pr.n_theta], est.scales.L, est.scales.m0)).reshape(-1)
+    # perturbation 0.02 (scaled): inside every smooth region, away from symmetric values
+    z = z + rng.normal(size=pr.n_z) * 0.02
+    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0)
+    return est, pr, z, p
+
+
+@pytest.mark.parametrize("shape", ["box", "polygon:5"])
+def test_gradient_and_jacobian_with_every_effect_match_finite_differences(shape):
+    est, pr, z, p = _point(shape, ALL)
+    f = ca.Function("f", [pr.z_sym, pr.p_sym], [pr.f])
+    grad = np.asarray(ca.Function("g", [pr.z_sym, pr.p_sym], [ca.gradient(pr.f, pr.z_sym)])(z, p)).ravel()
+    gfun = ca.Function("c", [pr.z_sym, pr.p_sym], [pr.g])
+    jac = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(pr.g, pr.z_sym)])(z, p)))
+    rng = np.random.default_rng(1)
+    idx = list(range(pr.n_theta + pr.n_phys)) + rng.choice(pr.n_z, 40, replace=False).tolist()
+    # central differences, h = 1e-6 (scaled): truncation ~1e-8 relative (as in
+    # tests/test_estimator.py), so 1e-5 relative leaves a wide margin; plus the rounding
+    # of f itself, ~eps·|f| / h (f is large here: the effects move the generic point far
+    # from the data), with a factor 10 of margin
+    h = 1e-6
+    f0 = abs(float(f(z, p)))
+    for i in idx:
+        e = np.zeros(pr.n_z)
+        e[i] = h
+        fd = (float(f(z + e, p)) - float(f(z - e, p))) / (2 * h)
+        tol = 1e-5 * max(1.0, abs(grad[i])) + 10 * np.finfo(float).eps * f0 / h
+        assert abs(fd - grad[i]) <= tol, (i, fd, grad[i])
+        gd = (np.asarray(gfun(z + e, p)).ravel() - np.asarray(gfun(z - e, p)).ravel()) / (2 * h)
+        np.testing.assert_allclose(gd, jac[:, i], rtol=1e-5, atol=1e-5)
+
+
+def test_exact_hessian_blocks_with_every_effect_match_casadi():
+    """The per-sample block Hessian stays exact with the effect parameters in phys."""
+    est, pr, z, p = _point("box", ALL)
+    lam_g = np.random.default_rng(2).normal(size=pr.g.shape[0])
+    mine = np.asarray(ca.DM(pr.hess_lag["exact"](z, p, 0.7, lam_g)))
+    lag = 0.7 * pr.f + ca.dot(ca.DM(lam_g), pr.g)
+    ref = np.asarray(ca.DM(ca.Function("h", [pr.z_sym, pr.p_sym],
+                                       [ca.triu(ca.hessian(lag, pr.z_sym)[0])])(z, p)))
+    # both exact symbolic derivatives: they differ by rounding only
+    np.testing.assert_allclose(mine, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_no_effects_leaves_the_nlp_as_it_is():
+    shape = make_shape("box", dim=2)
+    st = [RunStructure(T=24, F=1)]
+    plain = Problem2D(shape, st, EstimatorConfig())
+    none = Problem2D(shape, st, EstimatorConfig(), effects=())
+    assert (none.n_z, none.g.shape[0], none.n_p_total, none.n_theta) == \
+        (plain.n_z, plain.g.shape[0], plain.n_p_total, plain.n_theta)
+    # the size the plain layout has: theta (2 + 4), phys (2K + 4), per sample q, v (6),
+    # per interval ground (2K) and finger (2F) impulses
+    K, T, F = 4, 24, 1
+    assert plain.n_z == 6 + (2 * K + 4) + 6 * T + (2 * K + 2 * F) * (T - 1)
+    with_drag = Problem2D(shape, st, EstimatorConfig(), effects=("linear_drag", "force_bias"))
+    assert with_drag.n_z == plain.n_z + 2 * 3  # 3 parameters, in theta and in phys
+    assert with_drag.g.shape[0] == plain.g.shape[0] + 3  # their lifting constraints
+
+
+@pytest.mark.parametrize("effect", [e for e in ALL if e != "restitution"])
+def test_an_effect_at_no_effect_reproduces_the_plain_objective(effect):
+    """Each augmentation at its "no effect" value (every effect parameter 0: gain 1, no
+    bias, no drag, a rigid ground, equal face frictions, COM at the centroid) gives the
+    plain model's objective at the same trajectories (restitution adds an impact residual
+    that is not 0 at e = 0: a plastic impact, the plain model's implicit assumption)."""
+    run = pushed_box_run()
+    cfg = EstimatorConfig()
+    plain = ImplicitEstimator([run], "box", cfg)
+    aug = ImplicitEstimator([run], "box", cfg, effects=(effect,))
+    pp, pa = plain.problem, aug.problem
+    z_p = initial_guess(pp, [run], plain.scales, plain.s0) + np.random.default_rng(3).normal(size=pp.n_z) * 0.02
+    z_p[pp.phys_offset: pp.phys_offset + pp.n_phys] = np.asarray(
+        pp.phys_sx(z_p[: pp.n_theta], plain.scales.L, plain.scales.m0)).reshape(-1)
+    n_eff = pa.n_eff
+    # the augmented z: theta + zeros, phys + zeros, the same run blocks
+    z_a = np.concatenate([z_p[: pp.n_theta], np.zeros(n_eff), z_p[pp.n_theta: pp.n_theta + pp.n_phys],
+                          np.zeros(n_eff), z_p[pp.n_theta + pp.n_phys:]])
+    assert z_a.size == pa.n_z
+    p_p = parameter_vector(pp, [run], plain.scales, cfg, 0.5, 2.0, plain.s0)
+    p_a = parameter_vector(pa, [run], aug.scales, cfg, 0.5, 2.0, aug.s0)
+    f_p = float(ca.Function("f", [pp.z_sym, pp.p_sym], [pp.f])(z_p, p_p))
+    f_a = float(ca.Function("f", [pa.z_sym, pa.p_sym], [pa.f])(z_a, p_a))
+    # the same arithmetic up to the order of operations: rounding only
+    assert f_a == pytest.approx(f_p, rel=1e-10)
+    assert f_p > 1.0  # a generic point: the comparison is not between two zeros
+
+
+def test_unknown_or_transform_effect_is_one_clear_error():
+    run = pushed_box_run()
+    with pytest.raises(TacestError) as exc:
+        estimate_runs([run], "box", effects=("bouncyness",))
+    msg = str(exc.value)
+    assert "bouncyness" in msg and "\n" not in msg and "restitution" in msg
+    with pytest.raises(TacestError) as exc:
+        estimate_runs([run], "box", effects=("latency",))
+    assert "data transform" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_fixed_holds_every_parameter_and_fits_the_trajectories():
+    """A fit with an effect, then the same data with everything of it held fixed: the
+    parameters come back unchanged (to the pinning interval, 1e-9 scaled) and the fit
+    is at least as good as the free one's (its trajectories start the solve)."""
+    run = pushed_box_run()
+    free = estimate_runs([run], "box", effects=("linear_drag",))
+    assert free.success, free.solver_status
+    assert "linear_drag.b" in free.params and "linear_drag.b" in free.info_names
+    assert free.model == ["linear_drag"]
+    held = estimate_runs([run], "box", effects=("linear_drag",), fixed=free)
+    assert held.success, held.solver_status
+    sc = choose_scales([run], EstimatorConfig())
+    for k in ("mass", "inertia", "friction_ground", "friction_finger", "linear_drag.b"):
+        # 1e-9 scaled half-width; b's unit is m0 (kg/s), mass is exp(scaled): relative 1e-8 is ample
+        assert held.params[k] == pytest.approx(free.params[k], rel=1e-8, abs=1e-8 * sc.m0), k
+    np.testing.assert_allclose(held.vertices, free.vertices, atol=1e-8 * sc.L)
+    # the objective includes the priors, which are equal; IPOPT's acceptable tolerance
+    # allows the objective to change by 1e-3 of itself (solver.py)
+    assert held.objective <= free.objective * (1 + 1e-3) + 1e-6
