@@ -56,6 +56,23 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     names = parse_effect_list(effects)
     config = load_config(config_path)
     loaded = [read_run(p) for p in runs]
+    if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
+        from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
+
+        if estimate_path or effects:
+            raise TacestError("--estimate and --effects are for 2-D runs; 3-D runs compare the 3-D augmentations")
+        opts3 = Options3D(fit_iterations=fit_iterations)
+        for key, val in (("window", window), ("alpha", alpha)):
+            if val is not None:
+                setattr(opts3, key, val)
+        diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, echo=echo)
+        obj = diag.to_json()
+        written = write_report_3d(diag, out, obj)
+        if as_json:
+            click.echo(json.dumps(obj))
+        if not quiet:
+            click.echo(f"verdict: {diag.verdict} ({diag.reason}); wrote {out}/ ({', '.join(written)})", err=True)
+        return
     est = read_estimate(estimate_path) if estimate_path else None
     shape = shape or (est.shape if est is not None else "box")
     opts = DiagnoseOptions(effects=names, floor=floor_mode)

@@ -338,3 +338,30 @@ def test_a_3d_run_without_observations_or_fingers_is_refused():
     run = Run(dim=3, dt=0.01, time=np.arange(5) * 0.01, gravity=np.array([0.0, 0.0, -9.81]))
     with pytest.raises(TacestError, match="neither pose observations nor fingertip"):
         check_runs_3d([run])
+
+
+# ---------------------------------------------------------------------------------
+# diagnose on 3-D runs
+
+
+def test_diagnose_3d_finds_rounded_edges_on_held_out_tosses(tmp_path):
+    """Tosses of a box with 6 mm rounded edges: the plain (sharp) model leaves a held-out
+    gap that the edge_radius augmentation closes, and the verdict says so."""
+    runs = _augmented_tosses(0.006, 0.0)
+    paths = []
+    for i, run in enumerate(runs + runs[::-1]):  # training: tosses 0, 1; held out: the same two
+        p = tmp_path / f"toss{i}.h5"
+        write_run(run, p)
+        paths.append(p)
+    out = _tacest("diagnose", *paths, "--shape", "box", "-o", tmp_path / "diag", "--json", "--quiet")
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert {"verdict", "effects", "where"} <= set(d)
+    eff = {e["name"]: e for e in d["effects"]}
+    assert set(eff) == {"edge_radius", "ground_offset"}
+    # the sharp model misses the rounded contacts: a gap above the floor that the rounded
+    # model closes by at least the blaming rule's 20 %
+    assert eff["edge_radius"]["gap_before"] > 0
+    assert eff["edge_radius"]["reduction"] >= 0.2
+    assert d["verdict"] == "edge_radius"
+    assert (tmp_path / "diag" / "report.md").is_file() and (tmp_path / "diag" / "residuals_3d.png").is_file()

@@ -87,7 +87,11 @@ def check_runs_3d(runs: list[Run]):
 
 def get_solver_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, echo=None) -> BuiltSolver:
     """The cached solver of this structure (built on first use)."""
-    key = (shape.name, layout, repr(config.solver), repr(config.solver3d))
+    import dataclasses
+
+    # the augmentations' prior sigmas are NLP parameters, not structure
+    s3 = dataclasses.replace(config.solver3d, ground_offset_sigma=0.0, edge_radius_sigma=0.0)
+    key = (shape.name, layout, repr(config.solver), repr(s3))
     if key not in _CACHE:
         _CACHE.clear()  # one structure at a time: a problem holds large CasADi graphs
         _CACHE[key] = BuiltSolver(Problem3D(shape, layout, config, echo=echo), config)
@@ -157,8 +161,11 @@ class Estimator3D:
     """Implicit estimator for a set of 3-D runs of one object."""
 
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 echo=None):
+                 echo=None, fixed_theta=None):
         check_runs_3d(runs)
+        #: (n_theta,) scaled parameters to hold (the trajectories alone are fitted: a
+        #: held-out evaluation of a model), or None
+        self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
         self.runs = runs
         self.config = config or EstimatorConfig()
         self.echo = echo or _noop
@@ -293,6 +300,8 @@ class Estimator3D:
         if not self.F:  # no fingertip: its friction is not in the model; hold it at the prior
             j = pr.theta_index("friction_finger")
             lbx[j] = ubx[j] = z[j]
+        if self.fixed_theta is not None:
+            lbx[: pr.n_theta] = ubx[: pr.n_theta] = self.fixed_theta
         if self.F:
             for i, run in enumerate(self.runs):
                 on = np.zeros((run.n_samples - 2, self.F), bool)
@@ -394,9 +403,14 @@ class Estimator3D:
         cfg, cfg3 = self.config.solver, self.config.solver3d
         pr = self.problem
         t0 = time.perf_counter()
-        self.s0 = self.choose_start_shape()
+        if self.fixed_theta is None:
+            self.s0 = self.choose_start_shape()
+        else:
+            self.s0 = self.fixed_theta[: pr.n_shape].copy()
         self.echo(f"starting shape {np.round(self.s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
         self.z = self.initial_guess()
+        if self.fixed_theta is not None:
+            self.z[: pr.n_theta] = self.fixed_theta
         hom = list(cfg3.homotopy)
         plan = [("impulses", *hom[0], "impulses")] if self.F else []
         for k, (eps, w, wd) in enumerate(hom):

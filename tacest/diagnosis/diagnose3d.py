@@ -1,0 +1,315 @@
+"""``tacest diagnose`` for 3-D pose-observed runs (e.g. tossed objects seen by motion
+capture): where the model disagrees with the recordings, and which of the 3-D model's
+augmentations closes the gap on runs the fit did not see.
+
+1. Split.  The runs (in the order given) are split into a training half (the first
+   ceil(n / 2)) and a held-out half.
+2. Plain fit.  The 3-D estimator (estimator3d) with no augmentation (sharp box, ground
+   where the runs' /scene puts it) on the training runs.
+3. Where.  The per-sample loss 0.5 |r|² of every term against the noise floor.  The
+   floor is calibrated on the data: the mean loss per sample of the training runs' samples
+   in free flight (every vertex more than FLIGHT_GAP above the ground), where the model
+   (gravity, rigid body) has nothing unmodelled to miss; it is capped at the nominal floor
+   (half the rows: pose 6, dynamics 6, so 6 per sample) when the configured sigmas are
+   right.  Windows of ``window`` samples whose summed loss exceeds the floor by the
+   chi-square quantile of 12 degrees of freedom per sample, scaled to the floor, at the
+   false-alarm rate ``alpha`` (Bonferroni over all windows) are flagged; overlapping
+   flagged windows merge.  Each flagged stretch names the term with the most excess, and its
+   share of all runs' excess.
+4. Candidates.  Each augmentation of AUGMENTATIONS is fitted on the training runs; the
+   plain and every augmented model are then evaluated on the held-out runs with their
+   parameters held (the trajectories alone fitted).  gap = held-out loss per sample -
+   FLOOR; reduction = 1 - gap_after / gap_before.  A candidate is blamed if the plain
+   model's gap is above the floor and it closes at least MIN_REDUCTION of it (the 2-D
+   rule, docs/diagnosis.md); the verdict is the largest such reduction, else ``none``.
+
+Restitution and the other SPEC effects have no 3-D model yet: they are listed as not
+compared (docs/estimation3d.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacest.errors import TacestError
+
+#: the 3-D augmentations a diagnosis compares: name -> [solver3d] overrides (prior sigmas,
+#: m): weak priors at 0 (a few times the millimetre effects they are meant to find)
+AUGMENTATIONS = {
+    "edge_radius": {"edge_radius_sigma": 0.005, "ground_offset_sigma": 0.0},
+    "ground_offset": {"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.005},
+}
+PLAIN = {"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.0}
+#: SPEC effects without a 3-D model (reported as not compared)
+NOT_MODELLED_3D = ("restitution", "angular_damping", "linear_drag", "soft_contact", "face_friction", "com_offset",
+                   "time_scale")
+#: expected per-sample loss of the pose (6 rows) and dynamics (6 rows) terms: half the rows
+FLOOR_PER_SAMPLE = {"pose": 3.0, "dynamics": 3.0}
+TERMS = ("pose", "dynamics", "penetration", "complementarity")
+#: a sample is in free flight when every vertex is this far above the ground (m)
+FLIGHT_GAP = 0.005
+#: a candidate must close this fraction of the plain model's held-out gap (as in 2-D)
+MIN_REDUCTION = 0.2
+
+
+@dataclass
+class Options3D:
+    window: int = 20
+    alpha: float = 0.01
+    fit_iterations: int | None = None
+
+
+@dataclass
+class Fit3D:
+    name: str
+    params: dict
+    status: str
+    seconds: float
+    train_loss_per_sample: float = float("nan")
+    heldout_loss_per_sample: float = float("nan")
+    heldout_status: str = ""
+
+
+@dataclass
+class Diagnosis3D:
+    runs: list
+    train: list
+    heldout: list
+    residuals: list  # per training run {term: (T,)} of the plain fit
+    flags: list  # per training run (T,) bool: inside a flagged window
+    where: list
+    fits: dict
+    effects: list
+    verdict: str
+    reason: str
+    floor: float
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        def num(v):
+            v = float(v)
+            return v if math.isfinite(v) else None
+
+        return {
+            "verdict": self.verdict, "reason": self.reason, "dim": 3,
+            "effects": self.effects, "where": self.where,
+            "not_compared": list(NOT_MODELLED_3D),
+            "floor_per_sample": self.floor,
+            "train": self.train, "heldout": self.heldout,
+            "fits": {k: {"params": {n: num(x) for n, x in f.params.items()}, "status": f.status,
+                         "seconds": num(f.seconds), "train_loss_per_sample": num(f.train_loss_per_sample),
+                         "heldout_loss_per_sample": num(f.heldout_loss_per_sample),
+                         "heldout_status": f.heldout_status} for k, f in self.fits.items()},
+            **self.extra,
+        }
+
+
+def _config(config, overrides, fit_iterations):
+    s3 = dataclasses.replace(config.solver3d, **overrides)
+    cfg = dataclasses.replace(config, solver3d=s3)
+    if fit_iterations:
+        cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, max_iter=int(fit_iterations)))
+    return cfg
+
+
+def _losses(est, z):
+    """Per run {term: (T,)} per-sample loss 0.5 |r|² (weights not applied) and the total
+    loss per sample over all runs."""
+    res = [r[3] for r in est.run_results(z)]
+    total = sum(float(sum(np.sum(r[t]) for t in TERMS if t in r)) for r in res)
+    n = sum(len(next(iter(r.values()))) for r in res)
+    return res, total / max(n, 1)
+
+
+def _fit(runs, shape, cfg, fixed_theta=None, echo=None):
+    from tacest.estimation.estimator3d import Estimator3D
+    from tacest.estimation.solver import SUCCESS_STATUSES
+
+    est = Estimator3D(runs, shape, cfg, echo=echo, fixed_theta=fixed_theta)
+    out = est.solve()
+    if out.status not in SUCCESS_STATUSES:
+        raise TacestError(f"diagnose: a 3-D fit failed ({out.status})")
+    return est, out
+
+
+def _params(est, z):
+    V, mass, inertia, mu_g, _ = est.physical(z)
+    p = {"extent_x": float(np.ptp(V[:, 0])), "extent_y": float(np.ptp(V[:, 1])), "extent_z": float(np.ptp(V[:, 2])),
+         "friction_ground": mu_g, "edge_radius": est.edge_radius(z), "ground_offset": est.ground_offset(z)}
+    return p
+
+
+def flight_floor(est, z, res_runs):
+    """Mean loss per sample over the samples in free flight (floored at 1e-3, capped at
+    the nominal floor) and the number of such samples."""
+    st, _ = est.stage_outputs(z)
+    vals = []
+    for i, r in enumerate(res_runs):
+        phi = st["phi_ground"][:, est.layout.run_intervals(i)]  # (K, T-2) m
+        fly = np.r_[False, False, np.min(phi, axis=0) > FLIGHT_GAP]
+        tot = np.sum([r[t] for t in TERMS if t in r], axis=0)
+        vals.append(tot[fly])
+    v = np.concatenate(vals) if vals else np.zeros(0)
+    nominal = sum(FLOOR_PER_SAMPLE.values())
+    if v.size < 10:
+        return nominal, int(v.size)
+    return float(np.clip(np.mean(v), 1e-3, nominal)), int(v.size)
+
+
+def flag_windows(res_runs, window, alpha, floor):
+    """(flags per run (T,) bool, where list): windows whose summed loss exceeds
+    floor · chi2.ppf(1 - alpha / n_windows, 12 w) / 12 (the chi-square quantile of the
+    pose and dynamics rows, scaled to the calibrated floor)."""
+    from scipy.stats import chi2
+
+    n_win = sum(max(len(r["pose"]) - window + 1, 1) for r in res_runs)
+    thr = floor * chi2.ppf(1 - alpha / max(n_win, 1), 12 * window) / 12.0
+    flags, stretches = [], []
+    excess_total = 0.0
+    for i, r in enumerate(res_runs):
+        T = len(r["pose"])
+        tot = np.sum([r[t] for t in TERMS if t in r], axis=0)
+        excess_total += float(np.sum(np.maximum(tot - floor, 0)))
+        c = np.concatenate([[0.0], np.cumsum(tot)])
+        f = np.zeros(T, bool)
+        for a in range(max(T - window + 1, 1)):
+            b = min(a + window, T)
+            if c[b] - c[a] > thr:
+                f[a:b] = True
+        flags.append(f)
+        edges = np.flatnonzero(np.diff(np.r_[0, f.astype(int), 0]))
+        for a, b in zip(edges[::2], edges[1::2]):
+            ex = {t: float(np.sum(r[t][a:b])) for t in TERMS if t in r}
+            term = max(ex, key=ex.get)
+            stretches.append({"run": i, "start": int(a), "stop": int(b), "term": term,
+                              "excess": float(np.sum(np.maximum(tot[a:b] - floor, 0)))})
+    for s in stretches:
+        s["share"] = s.pop("excess") / excess_total if excess_total > 0 else 0.0
+    stretches.sort(key=lambda s: -s["share"])
+    return flags, stretches
+
+
+def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None, echo=None) -> Diagnosis3D:
+    """Diagnose 3-D pose-observed runs (see the module docstring)."""
+    from tacest.estimation.config import EstimatorConfig
+
+    echo = echo or (lambda *_: None)
+    config = config or EstimatorConfig()
+    opts = options or Options3D()
+    if len(runs) < 2:
+        raise TacestError("diagnose: 3-D runs need at least 2 runs (a training and a held-out half)")
+    if any(r.dim != 3 for r in runs):
+        raise TacestError("diagnose: 3-D and 2-D runs cannot be mixed")
+    if any(r.pose_obs is None for r in runs):
+        raise TacestError("diagnose: 3-D diagnosis needs pose observations in every run")
+    n_train = (len(runs) + 1) // 2
+    train, held = runs[:n_train], runs[n_train:]
+    names = [r.filename or f"run{i}" for i, r in enumerate(runs)]
+    fits, held_theta = {}, {}
+    res_plain = None
+    for name, ov in [("none", PLAIN)] + list(AUGMENTATIONS.items()):
+        t0 = time.perf_counter()
+        cfg = _config(config, ov, opts.fit_iterations)
+        echo(f"fit {name} on {len(train)} training runs ...")
+        est, out = _fit(train, shape, cfg)
+        res, per = _losses(est, out.z)
+        if name == "none":
+            res_plain = res
+            floor, n_flight = flight_floor(est, out.z, res)
+        fits[name] = Fit3D(name=name, params=_params(est, out.z), status=out.status,
+                           seconds=time.perf_counter() - t0, train_loss_per_sample=per)
+        held_theta[name] = (cfg, out.z[: est.problem.n_theta].copy(), est.scales)
+    for name, (cfg, theta, sc) in held_theta.items():
+        t0 = time.perf_counter()
+        echo(f"held-out evaluation of {name} on {len(held)} runs ...")
+        from tacest.estimation.data import choose_scales
+
+        sh = choose_scales(held, cfg)
+        if not (np.isclose(sh.L, sc.L) and np.isclose(sh.m0, sc.m0)):
+            raise TacestError("diagnose: the held-out runs have other length or mass scales (/prior) than the "
+                              "training runs; give runs of one object with one prior")
+        est, out = _fit(held, shape, cfg, fixed_theta=theta)
+        fits[name].heldout_loss_per_sample = _losses(est, out.z)[1]
+        fits[name].heldout_status = out.status
+        fits[name].seconds += time.perf_counter() - t0
+    flags, where = flag_windows(res_plain, opts.window, opts.alpha, floor)
+    for w in where:
+        w["run"] = names[w["run"]]
+    gap_before = fits["none"].heldout_loss_per_sample - floor
+    effects = []
+    for name in AUGMENTATIONS:
+        gap_after = fits[name].heldout_loss_per_sample - floor
+        red = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
+        # (reduction < 0: the augmented model does worse on the held-out runs)
+        effects.append({"name": name, "gap_before": gap_before, "gap_after": gap_after, "reduction": red,
+                        "params": {k: fits[name].params[k] for k in (name, "extent_x", "extent_y", "extent_z",
+                                                                   "friction_ground")}})
+    effects.sort(key=lambda e: -e["reduction"])
+    blamed = [e for e in effects if gap_before > 0 and e["reduction"] >= MIN_REDUCTION]
+    if blamed:
+        verdict = blamed[0]["name"]
+        reason = (f"{verdict} closes {blamed[0]['reduction']:.0%} of the plain model's held-out gap "
+                  f"({gap_before:.3g} above the floor {floor:g} per sample)")
+    else:
+        verdict = "none"
+        reason = (f"no 3-D augmentation closes {MIN_REDUCTION:.0%} of the held-out gap ({gap_before:.3g} per sample "
+                  f"above the floor {floor:g})" if gap_before > 0 else "the held-out loss is within the noise floor")
+    reason += "; not compared (no 3-D model): " + ", ".join(NOT_MODELLED_3D)
+    return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
+                       where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
+                       extra={"floor_flight_samples": n_flight,
+                              "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values())})
+
+
+def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
+    """report.md, residuals_3d.png and diagnosis.json into ``folder`` (atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tacest.diagnosis.report import atomic_dir
+
+    obj = json_obj if json_obj is not None else diag.to_json()
+    with atomic_dir(folder) as tmp:
+        n = len(diag.residuals)
+        fig, axes = plt.subplots(n, 1, figsize=(8, 1.6 * n + 0.6), sharex=False, squeeze=False)
+        for i, (ax, r, f) in enumerate(zip(axes[:, 0], diag.residuals, diag.flags)):
+            t = np.arange(len(r["pose"]))
+            for term in TERMS:
+                ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term)
+            ax.axhline(diag.floor, color="k", ls="--", lw=0.8, label="floor")
+            for a in np.flatnonzero(f):
+                ax.axvspan(a - 0.5, a + 0.5, color="r", alpha=0.12, lw=0)
+            ax.set_ylabel(str(diag.runs[i]).split("/")[-1], fontsize=7)
+        axes[0, 0].legend(fontsize=6, ncol=5)
+        axes[-1, 0].set_xlabel("sample")
+        fig.suptitle("plain model: per-sample loss by term (flagged windows shaded)", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(tmp / "residuals_3d.png", dpi=90)
+        plt.close(fig)
+        (tmp / "diagnosis.json").write_text(json.dumps(obj, indent=1) + "\n")
+        lines = [f"# Diagnosis (3-D)\n", f"verdict: **{diag.verdict}** ({diag.reason})\n",
+                 f"training runs: {len(diag.train)}, held-out runs: {len(diag.heldout)}; "
+                 f"noise floor {diag.floor:g} per sample\n",
+                 "| model | held-out loss / sample | gap | reduction | parameters |", "|---|---|---|---|---|"]
+        gb = diag.fits["none"].heldout_loss_per_sample - diag.floor
+        lines.append(f"| none | {diag.fits['none'].heldout_loss_per_sample:.4g} | {gb:.4g} | – | "
+                     + ", ".join(f"{k} {v:.4g}" for k, v in diag.fits["none"].params.items()) + " |")
+        for e in diag.effects:
+            f = diag.fits[e["name"]]
+            lines.append(f"| {e['name']} | {f.heldout_loss_per_sample:.4g} | {e['gap_after']:.4g} | "
+                         f"{e['reduction']:.1%} | " + ", ".join(f"{k} {v:.4g}" for k, v in f.params.items()) + " |")
+        lines += ["", "## Where (plain model, training runs)", "", "| run | start | stop | term | share |",
+                  "|---|---|---|---|---|"]
+        for w in diag.where[:30]:
+            lines.append(f"| {w['run']} | {w['start']} | {w['stop']} | {w['term']} | {w['share']:.1%} |")
+        lines += ["", "![residuals](residuals_3d.png)", ""]
+        (tmp / "report.md").write_text("\n".join(lines))
+    return ["report.md", "residuals_3d.png", "diagnosis.json"]
