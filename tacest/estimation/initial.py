@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from tacest.estimation.data import GRAVITY, Scales, touching
-from tacest.geometry.shapes import numeric_vertices, polygon_sd_and_normal_function
+from tacest.geometry.polygon import convex_signed_distance
+from tacest.geometry.shapes import numeric_vertices
 from tacest.io.run import Run
 
 #: |n·up| above which a measured normal counts as "from above" (a top-face touch): 45°
@@ -77,44 +78,58 @@ def initial_pose(run: Run, width: float, height: float) -> np.ndarray:
 def push_tracker(run: Run, V_body: np.ndarray, pose0: np.ndarray) -> np.ndarray:
     """(T, 3) poses: the object at rest at pose0, translated along the ground whenever a
     finger in contact would be inside it, just enough to clear it (no rotation)."""
+    return push_tracker_batch(run, V_body[None], pose0[None])[0]
+
+
+def _rotations(angles):
+    """(..., 2, 2) rotation matrices of angles (...,) rad."""
+    c, s = np.cos(angles), np.sin(angles)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np.ndarray:
+    """:func:`push_tracker` for N shapes at once: V_bodies (N, K, 2) m, poses0 (N, 3)
+    -> (N, T, 3) poses (vectorized over the shapes, sequential in time)."""
     T = run.n_samples
-    sd_fun = polygon_sd_and_normal_function(V_body.shape[0])
-    poses = np.repeat(pose0[None, :], T, 0)
+    N = V_bodies.shape[0]
+    poses = np.repeat(poses0[:, None, :], T, 1)
     if run.contact is None:
         return poses
     up = run.up
     horiz = np.array([up[1], -up[0]])
-    cur = pose0.copy()
+    cur = poses0.astype(float).copy()
+    R = _rotations(cur[:, 2])  # the tracker never rotates
+    on = run.contact.astype(bool) & np.all(np.isfinite(run.normal), axis=-1)
     for t in range(T):
-        for f in range(run.n_fingers):
-            if not run.contact[t, f] or not np.all(np.isfinite(run.normal[t, f])):
-                continue
+        for f in np.nonzero(on[t])[0]:
             c = run.finger_position[t, f]
-            rad = run.finger_radius[f]
-            R = np.array([[np.cos(cur[2]), -np.sin(cur[2])], [np.sin(cur[2]), np.cos(cur[2])]])
-            sd = float(sd_fun((c - cur[:2]) @ R, V_body)[0])
-            gap = sd - rad
-            if gap < 0:
-                n = run.normal[t, f]
-                push = -(n @ horiz)
-                if abs(push) > 0.2:  # mostly sideways: slide the object along the ground
-                    cur[:2] += horiz * np.sign(push) * min(-gap / max(abs(push), 1e-6), 0.05)
-        poses[t] = cur
+            push = -(run.normal[t, f] @ horiz)
+            if abs(push) <= 0.2:  # mostly from above: the tracker does not slide the object
+                continue
+            p_body = np.einsum("nji,nj->ni", R, c[None] - cur[:, :2])
+            gap = convex_signed_distance(p_body, V_bodies) - run.finger_radius[f]
+            step = np.where(gap < 0, np.minimum(-gap / max(abs(push), 1e-6), 0.05), 0.0)
+            cur[:, :2] += step[:, None] * np.sign(push) * horiz[None]
+        poses[:, t] = cur
     return poses
 
 
 def finger_gaps(run: Run, V_body: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(T, F) gap between each fingertip sphere and the shape placed at poses (T, 3), m."""
+    return finger_gaps_batch(run, V_body[None], poses[None])[0]
+
+
+def finger_gaps_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """:func:`finger_gaps` for N shapes (N, K, 2) along their poses (N, T, 3) -> (N, T, F)."""
     T, F = run.n_samples, run.n_fingers
+    N = V_bodies.shape[0]
     if not F:
-        return np.zeros((T, 0))
-    sd_fun = polygon_sd_and_normal_function(V_body.shape[0]).map(T * F)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    rel = run.finger_position - poses[:, None, :2]  # (T, F, 2) world
-    p_body = np.stack([c[:, None] * rel[..., 0] + s[:, None] * rel[..., 1],
-                       -s[:, None] * rel[..., 0] + c[:, None] * rel[..., 1]], -1)
-    sd = np.asarray(sd_fun(p_body.reshape(-1, 2).T, V_body)[0]).reshape(T, F)
-    return sd - run.finger_radius[None, :]
+        return np.zeros((N, T, 0))
+    R = _rotations(poses[..., 2])  # (N, T, 2, 2)
+    rel = run.finger_position[None, :, :, :] - poses[:, :, None, :2]  # (N, T, F, 2) world
+    p_body = np.einsum("ntji,ntfj->ntfi", R, rel)
+    sd = convex_signed_distance(p_body, V_bodies[:, None, None])
+    return sd - run.finger_radius[None, None, :]
 
 
 #: candidate extents of the starting shape, as factors of the length scale L (geometric grid)
@@ -125,14 +140,20 @@ def touch_inconsistency(run: Run, V_body: np.ndarray, poses: np.ndarray) -> floa
     """m²: how badly a shape moved along poses (T, 3) disagrees with the contact flags:
     sum over samples of max(gap, 0)² where a finger touched and min(gap, 0)² where it
     did not."""
+    return float(touch_inconsistency_batch(run, V_body[None], poses[None])[0])
+
+
+def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """:func:`touch_inconsistency` of N shapes (N, K, 2) along poses (N, T, 3) -> (N,)."""
     if not run.n_fingers:
-        return 0.0
-    gaps = finger_gaps(run, V_body, poses)
+        return np.zeros(V_bodies.shape[0])
+    gaps = finger_gaps_batch(run, V_bodies, poses)
     on = touching(run)
     off = ~run.contact.astype(bool)
     if run.missing is not None:
         off &= ~run.missing.astype(bool)[:, None]
-    return float(np.sum(np.maximum(gaps[on], 0) ** 2) + np.sum(np.minimum(gaps[off], 0) ** 2))
+    return np.sum(np.where(on[None], np.maximum(gaps, 0), 0) ** 2, axis=(1, 2)) \
+        + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
 
 
 def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray) -> np.ndarray:
@@ -143,15 +164,13 @@ def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.nda
     if not any(r.n_fingers for r in runs):
         return np.asarray(s_guess, float)
     L = scales.L
-    best, best_cost = np.asarray(s_guess, float), np.inf
     candidates = [np.asarray(s_guess, float)] + [problem.shape.initial(w, h) for w in EXTENT_GRID
                                                    for h in EXTENT_GRID]
-    for s in candidates:
-        V = numeric_vertices(problem.shape, s, L)
-        cost = sum(touch_inconsistency(run, V, _tracked(run, V)) for run in runs)
-        if cost < best_cost - 1e-12:
-            best, best_cost = s, cost
-    return best
+    Vs = np.stack([numeric_vertices(problem.shape, s, L) for s in candidates])
+    cost = sum(touch_inconsistency_batch(run, Vs, _tracked_batch(run, Vs)) for run in runs)
+    # the first of the cheapest (the guess wins ties)
+    best = int(np.argmin(cost - 1e-12 * (np.arange(len(candidates)) == 0)))
+    return candidates[best]
 
 
 def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
@@ -161,14 +180,22 @@ def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray)
 
 
 def _tracked(run: Run, V: np.ndarray) -> np.ndarray:
-    w = V[:, 0].max() - V[:, 0].min()
-    h = V[:, 1].max() - V[:, 1].min()
-    pose0 = initial_pose(run, w, h)
-    # put the lowest vertex exactly on the ground at the start
-    R0 = np.array([[np.cos(pose0[2]), -np.sin(pose0[2])], [np.sin(pose0[2]), np.cos(pose0[2])]])
-    lowest = np.min((V @ R0.T + pose0[:2]) @ run.up) - run.ground_height
-    pose0[:2] -= lowest * run.up
-    return push_tracker(run, V, pose0)
+    return _tracked_batch(run, V[None])[0]
+
+
+def _tracked_batch(run: Run, Vs: np.ndarray) -> np.ndarray:
+    """(N, T, 3) push-tracker trajectories of N shapes (N, K, 2), each starting at its
+    :func:`initial_pose` with its lowest vertex exactly on the ground."""
+    poses0 = []
+    for V in Vs:
+        w = V[:, 0].max() - V[:, 0].min()
+        h = V[:, 1].max() - V[:, 1].min()
+        pose0 = initial_pose(run, w, h)
+        R0 = _rotations(pose0[2])
+        lowest = np.min((V @ R0.T + pose0[:2]) @ run.up) - run.ground_height
+        pose0[:2] -= lowest * run.up
+        poses0.append(pose0)
+    return push_tracker_batch(run, Vs, np.array(poses0))
 
 
 def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, trajectories=None):

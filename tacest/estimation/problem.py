@@ -204,6 +204,18 @@ def one_sided(x, sigma):
     return smooth_neg(x + sigma, sigma / SOFT_SHIFT) / sigma
 
 
+def ground_gap_indicator(phi, sigma_gap, eps):
+    """Smoothed (phi / sigma_gap - 1)⁺, a softplus of width eps / SOFT_SHIFT (in units of
+    sigma_gap): ≈ 0 for a vertex within one sigma_gap of the ground, ≈ phi / sigma_gap - 1
+    above.  Its tail is exponential: at phi = 0 it is (eps/3)·exp(-3/eps) (5e-6 at eps =
+    0.3), so a resting vertex that carries a large load (a heavy object, a finger pressing
+    down) costs nothing in the complementarity residual lambda_n·psi.  The algebraic tail
+    of 0.5 (x + sqrt(x² + eps²)) (eps²/4 = 0.02 at phi = 0) made that residual grow with
+    the load and pulled the mass estimate down (~3x on pressed boxes)."""
+    w = eps / SOFT_SHIFT
+    return -smooth_neg(-(phi / sigma_gap - 1), w)
+
+
 def contact_residual(phi_f, contact, weight, sigma_gap):
     """Whitened contact-flag residual of one fingertip: its gap phi_f (m) where the flag is
     1, its (smoothed) penetration where the flag is 0."""
@@ -341,27 +353,36 @@ class Problem2D:
             start = self._start_function(F)
             self.stage_funs.append(stage)
             self.start_funs.append(start)
+            # the loss and its gradient run through compiled copies (kernels.py); the SX
+            # functions stay for the Hessian builders and the residual stack (information)
+            kern = self._compiled([stage, start], f"F{F}", derivatives=(stage.name(), start.name()))
+            stage_k, start_k = kern[stage.name()], kern[start.name()]
             off = self.offsets[i]
             Q = ca.reshape(z[off["Q"][0]: off["Q"][0] + off["Q"][1]], 3, T)
             Vv = ca.reshape(z[off["V"][0]: off["V"][0] + off["V"][1]], 3, T)
             LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], 2 * K, T - 1)
             LF = ca.reshape(z[off["LF"][0]: off["LF"][0] + off["LF"][1]], 2 * F, T - 1)
-            out = stage.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
-                                             dsym[:, 1:], gsym)
-            res = dict(zip(stage.name_out(), out))
+            stage_args = (Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, dsym[:, 1:], gsym)
+            res = dict(zip(stage.name_out(), stage_k.map(T - 1, "serial")(*stage_args)))
+            res_sx = dict(zip(stage.name_out(), stage.map(T - 1, "serial")(*stage_args)))
             for t in SQUARED_TERMS:
                 obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(res[t])
-                r_stack[t].append(ca.vec(res[t]))
-            r_stack["kinematics"].append(ca.vec(res["g_kin"]))
+                r_stack[t].append(ca.vec(res_sx[t]))
+            # eq. D2 (linear) directly in MX: its Jacobian is then not taken through the
+            # per-sample functions (the stage's g_kin output is the same expression)
+            g_kin = (Q[:, 1:] - Q[:, :-1]) / gsym[G["dt"]] - Vv[:, 1:]
+            r_stack["kinematics"].append(ca.vec(g_kin))
             for t in PENALTY_TERMS:
                 obj_terms[t] = obj_terms[t] + ca.sum2(res[t])
             # sample 0: the object starts at rest and above the ground
-            o0 = dict(zip(start.name_out(), start(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)))
+            start_args = (Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)
+            o0 = dict(zip(start.name_out(), start_k(*start_args)))
+            o0_sx = dict(zip(start.name_out(), start(*start_args)))
             for t, name in (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
                             ("contact", "contact")):
                 obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(o0[name])
-                r_stack[t].append(ca.vec(o0[name]))
-            g_list.append(ca.vec(res["g_kin"]))
+                r_stack[t].append(ca.vec(o0_sx[name]))
+            g_list.append(ca.vec(g_kin))
             lbg.append(np.zeros(3 * (T - 1)))
             ubg.append(np.zeros(3 * (T - 1)))
             lam_kin = ca.MX.sym("lam_kin", 3, T - 1)
@@ -370,11 +391,13 @@ class Problem2D:
             # Hessian blocks of the Lagrangian, one small dense block per sample
             for mode in HESSIAN_MODES:
                 hs = self._stage_hessian_function(stage, mode)
-                Hs = hs.map(T - 1, "serial")(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys,
-                                             dsym[:, 1:], gsym, w_sym, lam_f, lam_kin)
-                hess_blocks[mode].append((Hs, self._stage_indices(i)))
                 h0 = self._start_hessian_function(start, mode)
-                H0 = h0(Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym, w_sym, lam_f)
+                if mode == "gauss-newton":  # the default model: compiled (the exact one on demand only)
+                    kh = self._compiled([hs, h0], f"F{F}_hess_gn")
+                    hs, h0 = kh[hs.name()], kh[h0.name()]
+                Hs = hs.map(T - 1, "serial")(*stage_args, w_sym, lam_f, lam_kin)
+                hess_blocks[mode].append((Hs, self._stage_indices(i)))
+                H0 = h0(*start_args, w_sym, lam_f)
                 hess_blocks[mode].append((H0, self._start_indices(i)))
         # shape validity constraints and priors (theta only)
         theta_sx = ca.SX.sym("theta", self.n_theta)
@@ -415,6 +438,12 @@ class Problem2D:
             f = f + w_sym[k] * obj_terms[t]
         f_prior = self.prior_fun(theta, prior_sym)
         f = f + prior_sym[5] * f_prior
+        #: the same objective through the SX per-sample functions (not compiled): CasADi
+        #: differentiates it to any order, so tests check the Hessian models against it
+        #: (compiled kernels carry first derivatives only)
+        self.f_reference = prior_sym[5] * f_prior
+        for k, t in enumerate(SQUARED_TERMS):
+            self.f_reference = self.f_reference + w_sym[TERMS.index(t)] * 0.5 * ca.sumsqr(ca.vertcat(*r_stack[t]))
         self.z_sym, self.p_sym = z, p_all
         V, mass, inertia, mu_g, mu_f = self._unpack_phys(self.phys_sx(theta, L_sym, m0_sym), L_sym, m0_sym)
         area, _, _ = polygon_area_centroid_j(V)
@@ -438,6 +467,15 @@ class Problem2D:
         #: "kinematics" holds the eq. D2 constraint values
         self.residual_stack = {t: ca.vertcat(*v) if v else ca.MX.zeros(0) for t, v in r_stack.items()}
         self.weight_sym = w_sym
+
+    def _compiled(self, funs, part, derivatives=()):
+        """{name: Function}: the SX functions funs compiled to C (tacest.estimation.kernels;
+        as given without a compiler).  The tag names the shape, effects and part, so that
+        every structure's kernels are compiled once per machine and cached."""
+        from tacest.estimation.kernels import compile_functions
+
+        tag = f"tacest2d_{self.shape.name.replace(':', '')}_{'_'.join(self.effects) or 'plain'}_{part}"
+        return compile_functions(funs, tag, derivatives=derivatives, echo=getattr(self, "echo", None))
 
     # ------------------------------------------------------------------------------
     # exact Lagrangian Hessian from small per-sample blocks (built in O(T))
@@ -719,8 +757,8 @@ class Problem2D:
             diss.append(dissipation_shortfall(mu_g, ln, lt, slip[k] / L, eps_slip / L)
                         * g[G["sig_diss"]] / g[G["sig_diss_g"]])
             # smoothed gap in units of sig_gap, shifted by one: within about one sig_gap of
-            # the ground a vertex counts as touching (at phi = 0 the indicator is ~eps²/4)
-            gap = smooth_pos(phi_c[k] / g[G["sig_gap"]] - 1, eps)
+            # the ground a vertex counts as touching (see ground_gap_indicator)
+            gap = ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps)
             # saturating (bounded curvature far from the ground); in units of the
             # reference weight m0·g·dt, like every impulse (see the cone above)
             comp.append(ln * gap / (1 + gap))

@@ -166,3 +166,21 @@ def polygon_boundary_distance(points, vertices) -> np.ndarray:
     for i in range(0, P.shape[0], chunk):
         out[i:i + chunk] = point_segment_distance(P[i:i + chunk], V, np.roll(V, -1, axis=0)).min(axis=1)
     return out
+
+
+def convex_signed_distance(points, vertices) -> np.ndarray:
+    """Signed distance (...,) m of points (..., 2) to convex CCW polygons (..., K, 2),
+    broadcast over the leading axes (e.g. N points against N polygons): > 0 outside (the
+    distance to the nearest edge segment), < 0 inside (the largest edge-line distance).
+    The numeric twin of :func:`tacest.geometry.shapes.signed_distance_polygon`."""
+    P = np.asarray(points, float)[..., None, :]  # (..., 1, 2)
+    A = np.asarray(vertices, float)
+    E = np.roll(A, -1, axis=-2) - A  # (..., K, 2) edges
+    le = np.linalg.norm(E, axis=-1)
+    nrm = np.stack([E[..., 1], -E[..., 0]], -1) / np.where(le > 0, le, 1.0)[..., None]  # outward (CCW)
+    W = P - A
+    d_face = np.sum(W * nrm, axis=-1)
+    u = np.clip(np.sum(W * E, axis=-1) / np.where(le > 0, le * le, 1.0), 0.0, 1.0)
+    d_seg = np.linalg.norm(W - u[..., None] * E, axis=-1)
+    inside = np.all(d_face <= 0, axis=-1)
+    return np.where(inside, d_face.max(axis=-1), d_seg.min(axis=-1))

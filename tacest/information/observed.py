@@ -33,18 +33,83 @@ KINEMATICS_SIGMA = 1e-4
 RIDGE = 1e-10
 
 
+#: loss terms of a run's first sample and the start-function outputs holding them
+START_TERMS = (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"), ("contact", "contact"))
+
+
+class _ResidualJacobian:
+    """(z, p) -> (r (m,) DM, J (m, n_z) sparse DM) of the stacked whitened residuals
+    (each squared term times the square root of its weight, then eq. D2 over
+    KINEMATICS_SIGMA), assembled from per-sample Jacobians of the stage and start
+    functions (SX, evaluated numerically): O(T), no symbolic Jacobian of the whole NLP.
+    Rows are grouped per sample; JᵀJ does not depend on their order."""
+
+    def __init__(self, problem):
+        self.pr = problem
+        self.stage_jac, self.start_jac = [], []
+        for stage, start in zip(problem.stage_funs, problem.start_funs):
+            qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
+            w = ca.SX.sym("w", len(TERMS))
+            out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+            r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS],
+                           out["g_kin"] / KINEMATICS_SIGMA)
+            y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
+            self.stage_jac.append(ca.Function("r_jac_stage", [qp, vp, q, v, lg, lf, phys, d, g, w],
+                                              [r, ca.densify(ca.jacobian(r, y))]))
+            q0, v0, phys0, d0, g0 = start.sx_in()
+            out0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
+            r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERMS])
+            y0 = ca.vertcat(q0, v0, phys0)
+            self.start_jac.append(ca.Function("r_jac_start", [q0, v0, phys0, d0, g0, w],
+                                              [r0, ca.densify(ca.jacobian(r0, y0))]))
+
+    def __call__(self, z, p):
+        pr = self.pr
+        z = np.asarray(z, float).reshape(-1)
+        p = np.asarray(p, float).reshape(-1)
+        w = p[pr.n_p: pr.n_p + len(TERMS)]
+        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
+        r_parts, rows, cols, vals = [], [], [], []
+        m = 0
+        for i, st in enumerate(pr.structures):
+            off, n_g, n_d = pr.p_offsets[i]
+            g = p[off: off + n_g]
+            D = p[off + n_g: off + n_g + n_d].reshape(st.T, -1).T
+            Q, V, LG, LF = pr.run_blocks(z, i)
+            r, J = self.stage_jac[i].map(st.T - 1)(Q[:, :-1], V[:, :-1], Q[:, 1:], V[:, 1:], LG, LF, phys,
+                                                   D[:, 1:], g, w)
+            r = np.asarray(r)  # (n_r, T-1)
+            J = np.asarray(J).reshape(r.shape[0], -1, st.T - 1, order="F")  # (n_r, n_y, T-1)
+            idx = pr._stage_indices(i)  # (T-1, n_y)
+            n_r, n_y = J.shape[0], J.shape[1]
+            row = m + np.arange(st.T - 1)[None, None, :] * n_r + np.arange(n_r)[:, None, None]
+            rows.append(np.broadcast_to(row, J.shape).ravel())
+            cols.append(np.broadcast_to(idx.T[None, :, :], J.shape).ravel())
+            vals.append(J.ravel())
+            r_parts.append(r.T.ravel())
+            m += n_r * (st.T - 1)
+            r0, J0 = self.start_jac[i](Q[:, 0], V[:, 0], phys, D[:, 0], g, w)
+            r0, J0 = np.asarray(r0).ravel(), np.asarray(J0)
+            idx0 = pr._start_indices(i)[0]
+            rows.append(np.repeat(m + np.arange(len(r0)), len(idx0)))
+            cols.append(np.tile(idx0, len(r0)))
+            vals.append(J0.ravel())
+            r_parts.append(r0)
+            m += len(r0)
+        rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+        keep = vals != 0
+        Jm = sp.csc_matrix((vals[keep], (rows[keep], cols[keep])), shape=(m, pr.n_z))
+        Jm.sum_duplicates()
+        Jm.sort_indices()
+        J_dm = ca.DM(ca.Sparsity(m, pr.n_z, Jm.indptr.tolist(), Jm.indices.tolist()), Jm.data)
+        return ca.DM(np.concatenate(r_parts)), J_dm
+
+
 def residual_jacobian_function(problem):
-    """CasADi Function (z, p) -> (r, J) of the stacked whitened residuals; cached per problem."""
+    """Callable (z, p) -> (r, J) of the stacked whitened residuals (see
+    :class:`_ResidualJacobian`); cached per problem."""
     if getattr(problem, "_rjac", None) is None:
-        w = problem.weight_sym
-        parts = [ca.sqrt(w[TERMS.index(t)]) * problem.residual_stack[t] for t in SQUARED_TERMS]
-        parts.append(problem.residual_stack["kinematics"] / KINEMATICS_SIGMA)
-        r = ca.vertcat(*parts)
-        z = problem.z_sym
-        J = ca.jacobian(r, z)
-        # not expanded to SX: expanding the mapped per-sample functions costs ~6 s at
-        # T ~ 1000, evaluating the MX graph as it is ~0.2 s
-        problem._rjac = ca.Function("r_jac", [z, problem.p_sym], [r, J])
+        problem._rjac = _ResidualJacobian(problem)
     return problem._rjac
 
 
