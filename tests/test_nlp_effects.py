@@ -148,3 +148,8 @@ def test_fixed_holds_every_parameter_and_fits_the_trajectories():
     # the objective includes the priors, which are equal; IPOPT's acceptable tolerance
     # allows the objective to change by 1e-3 of itself (solver.py)
     assert held.objective <= free.objective * (1 + 1e-3) + 1e-6
+    # refit_shape: everything but the shape held; the shape may move from the fixed one
+    refit = estimate_runs([run], "box", effects=("linear_drag",), fixed=free, refit_shape=True)
+    assert refit.success, refit.solver_status
+    for k in ("mass", "friction_ground", "linear_drag.b"):
+        assert refit.params[k] == pytest.approx(free.params[k], rel=1e-8, abs=1e-8 * sc.m0), k

@@ -80,6 +80,7 @@ class ImplicitEstimator:
         #: scaled theta held fixed (estimate_runs' ``fixed=``), and the warm trajectories
         #: {run index: (Q, V, LG, LF) scaled} that start the solve; None / empty: neither
         self.fixed_theta = None
+        self.refit_shape = False
         self.warm_blocks = {}
 
     # --------------------------------------------------------------------------------
@@ -114,14 +115,19 @@ class ImplicitEstimator:
         if self.fixed_theta is not None:
             # held fixed (estimate_runs' fixed=): theta and the lifted quantities in an
             # interval of ±PIN_HALF_WIDTH, not equal bounds (see PIN_HALF_WIDTH); a fixed
-            # shape has its orientation, so no gauge
+            # shape has its orientation, so no gauge.  With refit_shape only the
+            # parameters after the shape are held (the lifted ones follow theta)
             th = self.fixed_theta
-            ph = np.asarray(pr.phys_sx(th, self.scales.L, self.scales.m0)).reshape(-1)
-            for a, vals in ((0, th), (pr.phys_offset, ph)):
+            if self.refit_shape:
+                pins = ((pr.n_shape, th[pr.n_shape:]),)
+            else:
+                pins = ((0, th), (pr.phys_offset, np.asarray(pr.phys_sx(th, self.scales.L, self.scales.m0)).ravel()))
+            for a, vals in pins:
                 half = PIN_HALF_WIDTH * np.maximum(1.0, np.abs(vals))
                 lbx[a: a + len(vals)] = vals - half
                 ubx[a: a + len(vals)] = vals + half
-        elif self.shape.name != "box" and not any(r.pose_obs is not None for r in self.runs):
+        if (self.fixed_theta is None or self.refit_shape) and self.shape.name != "box" \
+                and not any(r.pose_obs is not None for r in self.runs):
             # gauge: a free polygon can rotate in its body frame; fix the start angle of run 0
             a = pr.offsets[0]["Q"][0] + 2
             lbx[a] = ubx[a] = self.z[a]
@@ -338,7 +344,8 @@ def warm_blocks_of(est: "ImplicitEstimator", fixed: Estimate) -> dict:
 
 
 def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                  echo=None, method: str = "implicit", effects=(), fixed: Estimate | None = None) -> Estimate:
+                  echo=None, method: str = "implicit", effects=(), fixed: Estimate | None = None,
+                  refit_shape: bool = False) -> Estimate:
     """Estimate one object's parameters and each run's trajectory.  See module docstring.
 
     effects : SPEC effect names modelled as extra parameters inside the NLP
@@ -348,7 +355,9 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     fixed : an Estimate whose parameters (shape, mass, inertia, frictions and the
         effect parameters of ``effects``) are held fixed: only trajectories and
         impulses are fitted (held-out evaluation); its trajectories start the runs it
-        estimated (same source file and length).
+        estimated (same source file and length);
+    refit_shape : with ``fixed``, hold everything but the shape, which is refitted from
+        the fixed estimate's (a held-out piece may touch faces the fixed fit never saw).
     """
     from tacest.information.observed import observed_information
     from tacest.estimation.problem import check_effects
@@ -374,6 +383,7 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     est = ImplicitEstimator(runs, shape_spec, config, echo, effects=effects)
     if fixed is not None:
         est.fixed_theta = fixed_theta_of(est, fixed)
+        est.refit_shape = bool(refit_shape)
         est.warm_blocks = warm_blocks_of(est, fixed)
     echo(f"built NLP: {est.problem.n_z} variables, {est.problem.g.shape[0]} constraints "
          f"({est.build_time:.1f} s)" + (f", effects: {', '.join(effects)}" if effects else ""))
