@@ -562,3 +562,31 @@ def test_nlp_augmentation_recovers_its_parameter(name):
     std = est.std.get(key, float("nan"))
     assert name in ("linear_drag", "angular_damping"), (value, truth, std)
     assert std > rel * abs(truth) and abs(value - truth) <= 3 * std, (value, truth, std)
+
+
+def _down_face(vertices, angle):
+    """Index of the face (vertex i to i+1, CCW) whose outward normal points most down."""
+    V = np.asarray(vertices, float)
+    e = np.roll(V, -1, axis=0) - V
+    n = np.stack([e[:, 1], -e[:, 0]], 1) / np.linalg.norm(e, axis=1, keepdims=True)
+    ny = n[:, 0] * np.sin(angle) + n[:, 1] * np.cos(angle)  # world y of the rotated normals
+    return int(np.argmin(ny))
+
+
+@pytest.mark.slow
+def test_face_friction_augmentation_recovers_the_face_on_the_ground():
+    """face_friction on a poked box: the coefficient of the face the box slides on (the
+    face facing the ground at the start, in the truth and in the estimate) is recovered
+    within 15 % (measured: 0.387 for 0.377); faces that never touched the ground keep
+    their prior value."""
+    from tacest.estimation.estimator import estimate_runs
+    from tacest.sim.effects import effects_from_json
+
+    run = record_sim(SimOptions(seed=4, pokes=6, effects=["face_friction"]))
+    values = effects_from_json(run.truth.effects)[0].params["values"]
+    truth = values[_down_face(run.truth.vertices, run.truth.pose[0, 2])]
+    est = estimate_runs([run], "box", effects=("face_friction",))
+    k = _down_face(est.vertices, est.runs[0].pose[0, 2])
+    got = est.params["face_friction.values"][k]
+    assert abs(got - truth) <= 0.15 * truth, (got, truth, est.params["face_friction.values"], values)
+    assert est.identifiable[f"face_friction.d{k}"]
