@@ -24,10 +24,12 @@ so that a Gauss–Newton Hessian models the whole loss)::
     penetration    min~(phi_ground) with tolerance sigma_pen
     cone           min~(mu lambda_n ∓ lambda_t) / sigma_comp, ground vertices and fingertips (eq. C2)
                    (min~ is a one-sided smooth penalty, ≈ 0 at the limit: see one_sided)
-    complementarity  lambda_n psi(phi) / sigma_comp (eq. C1, relaxed): psi = phi⁺ / (phi⁺ + 1),
-                   phi⁺ a smoothed max(phi / sigma_gap - 1, 0); psi saturates at 1 so that a
-                   vertex far above the ground costs lambda_n, not lambda_n · phi (the unbounded
-                   bilinear form makes IPOPT's Hessian badly indefinite)
+    complementarity  lambda_n psi / sigma_comp (eq. C1, relaxed): psi = x / (x + 1) with
+                   x = phi⁺ + vn⁺, phi⁺ a softplus of (phi / sigma_gap - 1) (gap beyond one
+                   tolerance), vn⁺ one of (vn / sigma_v - 1) (the vertex separating faster than
+                   one process sigma: velocity-level complementarity); psi saturates at 1 so
+                   that a vertex far above the ground costs lambda_n, not lambda_n · phi (the
+                   unbounded bilinear form makes IPOPT's Hessian badly indefinite)
     dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss (eq. C3, maximal dissipation:
                    0 when friction opposes the slip s at the cone's limit, or when sticking);
                    sigma_diss at the fingertips (slip from filtered positions), the tighter
