@@ -177,6 +177,26 @@ def test_identity_information_matches_finite_differences():
         assert mine[names.index(k), names.index(k)] == 0.0  # only dynamics connects these to data
 
 
+def test_a_sticking_poke_adds_no_ground_friction_information():
+    """A finger pressing a resting box from above (it sticks: nothing slides) says nothing
+    about the ground friction; a poke that slides the box does.  The ground impulses of
+    the prediction are fitted inside the friction cone, not on its edge, where the cone
+    penalty's slope would pass for information about mu_ground."""
+    model = _box_model()
+    info = _info("box")
+    k = info.names.index("friction_ground")
+    slide = predict_poke(model, _poke(model, 20))
+    assert abs(slide.pose[-1, 0] - slide.pose[0, 0]) > 0.005  # it slides (~19 mm)
+    F_slide = info.fisher(model, slide)[k, k]
+    assert F_slide > 0
+    for angle in (60, 90):
+        press = predict_poke(model, _poke(model, angle))
+        assert np.abs(press.pose[-1, :2] - press.pose[0, :2]).max() < 1e-4  # it sticks
+        # 1e-6 of a sliding poke's: the fit on the cone's edge gave ~2e-2 of it (100-200
+        # against ~5e3), the fit inside the cone ~1e-11
+        assert info.fisher(model, press)[k, k] <= 1e-6 * F_slide, angle
+
+
 # ---------------------------------------------------------------------------------
 # scores and the discount by past information
 

@@ -71,6 +71,20 @@ HOLD_TIME = 0.2
 #: penalties; 3 steps bring the fitted residual to within 1e-5 (relative) of 10 steps on the
 #: test pokes of tests/test_planning.py
 GROUND_FIT_ITERATIONS = 3
+#: weight (relative to the largest column norm of a sample's impulse Jacobian) of the
+#: tangential ground impulses in the ground-impulse fit.  The fit is degenerate: a
+#: sticking object's friction can be split among its resting vertices in many ways, and
+#: non-negative least squares returns a basic solution, with vertices on an edge of their
+#: friction cone.  There the cone penalty's slope is that of a limit being reached, and
+#: its derivative with respect to mu_ground (∝ the normal impulse) is information about
+#: the ground friction that a sticking contact does not hold (a finger pressing a resting
+#: box from above was predicted to pin the ground friction down ten-fold; the recorded
+#: pokes then showed none, and the planner asked for the same poke again and again).
+#: The small penalty picks the fit with the least tangential impulse (friction split
+#: evenly, inside the cone); 1e-3 changes the fitted residual by ~1e-6 relative (its
+#: square), far below the noise, and a sliding contact, which the dynamics hold on the
+#: cone's edge, stays there
+GROUND_FIT_TANGENTIAL_WEIGHT = 1e-3
 #: measurement terms used by the identity-Jacobian approximation
 MEASUREMENT_TERMS = ("force", "normal", "contact", "pose")
 
@@ -499,8 +513,10 @@ class ExpectedInformation:
         if self.n_lg == 2 * K:
             I_K = np.eye(K)
             M = np.block([[I_K, I_K], [mu_ground * I_K, -mu_ground * I_K]])
+            T_rows = M[K:]  # C -> tangential impulses
         else:
             M = np.eye(self.n_lg)
+            T_rows = np.zeros((0, M.shape[1]))
         C = np.zeros((M.shape[1], N))
         for _ in range(iterations):
             args[4] = M @ C
@@ -511,7 +527,14 @@ class ExpectedInformation:
                 A = J_lg[:, t, :] @ M
                 if not np.any(A):
                     continue
-                C[:, t] = nnls(A, A @ C[:, t] - r[:, t], maxiter=50 * M.shape[1])[0]
+                b = A @ C[:, t] - r[:, t]
+                if len(T_rows) and GROUND_FIT_TANGENTIAL_WEIGHT > 0:
+                    # the least tangential impulse among (near-)equal fits: a sticking
+                    # contact is fitted inside its cone, not on an edge of it
+                    wt = GROUND_FIT_TANGENTIAL_WEIGHT * float(np.linalg.norm(A, axis=0).max())
+                    A = np.vstack([A, wt * T_rows])
+                    b = np.concatenate([b, np.zeros(len(T_rows))])
+                C[:, t] = nnls(A, b, maxiter=50 * M.shape[1])[0]
         return M @ C
 
     def _assemble(self, J, r, J0, r0, dphys, T, run):
