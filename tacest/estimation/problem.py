@@ -750,7 +750,7 @@ class Problem2D:
                 vn = ca.dot(n_g, point_velocity(v, levers[k]))
                 phi_c[k] = phi_c[k] - dt * e_r * a
                 vn_c[k] = vn - e_r * a
-                touch = 1 / (1 + smooth_pos(phi_c[k] / g[G["sig_gap"]] - 1, eps))
+                touch = 1 / (1 + ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps))  # as the contact laws
                 r_rest.append(touch * a / (a + IMPACT_SPEED) * (vn - e_r * a) / sig_v)
         for k in range(K):
             ln, lt = lg[k], lg[K + k]
