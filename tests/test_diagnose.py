@@ -317,6 +317,19 @@ def test_pipeline_on_a_clean_recording_says_none(recordings, stand_in):
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale")))
     assert d.verdict == "none", d.reason
     assert all(not c.significant for c in d.effects)
+    # force_scale was not a candidate here: no caveat about it
+    assert "force_scale" not in d.reason
+
+
+def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, monkeypatch):
+    """A sensor gain is the same data as a scaled mass: a "none" verdict with force_scale
+    among the candidates says that it cannot be excluded (here the stand-in cannot fit
+    NLP candidates: force_scale is "unavailable", the caveat holds all the same)."""
+    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
+    run = _read(recordings["none"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
+    assert d.verdict == "none", d.reason
+    assert diag_mod.FORCE_SCALE_CAVEAT in d.reason
 
 
 def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkeypatch):

@@ -54,6 +54,12 @@ from tacest.io.estimate import CORE_PARAMS, Estimate
 
 #: smallest share of the plain model's held-out gap a candidate must close to be blamed
 MIN_REDUCTION = 0.2
+#: appended to a "none" verdict when force_scale was a candidate: a sensor gain is not
+#: identifiable from force-sensing pokes unless the mass is known (every force of the
+#: model scales with the mass, every measured force with the gain: the plain model fits
+#: a gain g exactly with the mass g·m, so it leaves no held-out gap to close)
+FORCE_SCALE_CAVEAT = ("force_scale cannot be excluded: a force-sensor gain g is the same data as a mass g times "
+                      "the true one (only gain x mass is identifiable; check the fitted mass against a known one)")
 #: IPOPT iterations per stage of every diagnosis fit (the fit budget; the plain model's
 #: fit to all data uses the configuration's own budget)
 FIT_ITERATIONS = 150
@@ -468,6 +474,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
         reason += f"; not compared: {', '.join(missing)} (see their status)"
+    if verdict == "none" and any(c.name == "force_scale" for c in cres):
+        reason += f"; {FORCE_SCALE_CAVEAT}"
     return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
                      base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
                      wall_time=time.perf_counter() - t_start, options=options)
