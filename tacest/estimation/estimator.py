@@ -96,7 +96,9 @@ class ImplicitEstimator:
         lbx[ns:ns + 4] = [LOG_MASS_BOUNDS[0], LOG_INERTIA_BOUNDS[0], FRICTION_BOUNDS[0], FRICTION_BOUNDS[0]]
         ubx[ns:ns + 4] = [LOG_MASS_BOUNDS[1], LOG_INERTIA_BOUNDS[1], FRICTION_BOUNDS[1], FRICTION_BOUNDS[1]]
         if not self.has_force:  # DESIGN: without a force stream mass is not identifiable
-            lbx[ns] = ubx[ns] = 0.0
+            # held at the prior's value in a tiny interval, not by equal bounds (see
+            # PIN_HALF_WIDTH: equal bounds made some final stages fail at iteration 0)
+            lbx[ns], ubx[ns] = -PIN_HALF_WIDTH, PIN_HALF_WIDTH
         a = ns + 4  # effect parameters (problem.NLP_EFFECTS)
         for j, (_, _, _, _, lo_e, hi_e) in enumerate(pr.effect_params):
             lbx[a + j], ubx[a + j] = lo_e, hi_e

@@ -167,7 +167,8 @@ def observed_information(est, z, lbx=None, ubx=None):
     keep = list(range(n_theta)) + [qa, qa + 1, qa + 2]
     if lbx is None:
         lbx, ubx = est.variable_bounds()
-    fixed = np.asarray(lbx) == np.asarray(ubx)
+    # held: equal bounds, or an interval of a few PIN_HALF_WIDTH (estimator.py) around a value
+    fixed = np.asarray(ubx) - np.asarray(lbx) <= 1e-8
     n = pr.n_z
     is_keep = np.zeros(n, bool)
     is_keep[keep] = True
