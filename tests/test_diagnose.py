@@ -345,8 +345,12 @@ def test_nlp_candidates_go_through_the_estimator_when_it_offers_them(recordings,
     effect's parameters and their std taken from the estimate (stand-in values)."""
     calls = []
 
-    def fake_fit_estimator(runs, shape, config, effects=(), fixed=None, echo=None):
+    def fake_fit_estimator(runs, shape, config, effects=(), fixed=None, echo=None, refit_shape=False):
         calls.append((tuple(effects), fixed is not None))
+        if fixed is not None:
+            # held out: the shape refitted, the warm trajectories one per held-out piece
+            assert refit_shape and len(fixed.runs) == len(runs)
+            assert all(len(w.pose) == r.n_samples for w, r in zip(fixed.runs, runs))
         f = stand_in.fit_local(runs, shape, config)
         if effects:
             f.estimate.params["gain"] = 1.2
@@ -365,8 +369,11 @@ def test_nlp_candidates_go_through_the_estimator_when_it_offers_them(recordings,
     assert d.verdict == "none"  # the stand-in's residuals do not change with the effect
 
 
-def test_json_schema_and_report_folder(recordings, stand_in, tmp_path):
+def test_json_schema_and_report_folder(recordings, stand_in, tmp_path, monkeypatch):
     from click.testing import CliRunner
+
+    # the stand-in fits through the local back end only: force_bias is then "unavailable"
+    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
 
     from tacest.cli.diagnose import diagnose as cmd
 

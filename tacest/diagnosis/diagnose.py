@@ -33,6 +33,7 @@ penalty per parameter.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -293,7 +294,14 @@ class _Context:
         held = [p.cut(tr_runs) for p in fold.heldout]
         if self.backend == "estimator":
             tf = fit_estimator(train, self.shape, self.budget_config, effects=effects, echo=_noop)
-            hf = fit_estimator(held, self.shape, self.budget_config, effects=effects, fixed=tf.estimate, echo=_noop)
+            # held out: the trained parameters held, the shape refitted (as in the local
+            # back end: a held-out poke may touch a face the training pokes never did, and
+            # a training fit that missed the shape made held-out objectives of ~2000 for a
+            # plain level of ~4), trajectories started from this candidate's fit to all
+            # data (matched by position: the pieces share their run's file name)
+            warm = [dataclasses.replace(p.cut_estimate(cfit.estimate), source_file="") for p in fold.heldout]
+            hf = fit_estimator(held, self.shape, self.budget_config, effects=effects,
+                               fixed=dataclasses.replace(tf.estimate, runs=warm), echo=_noop, refit_shape=True)
         else:
             tf = fit_local(train, self.shape, self.budget_config, warm=cfit.estimate,
                            warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True)

@@ -399,8 +399,9 @@ def _cold_solve(est, runs, pinned, pin, accept_budget):
 
 
 def fit_estimator(runs: list, shape: str, config: EstimatorConfig, effects=(), fixed: Estimate = None,
-                  echo=None) -> FitResult:
-    """Fit with ``estimate_runs(..., effects=..., fixed=...)`` (the NLP augmentations).
+                  echo=None, refit_shape: bool = False) -> FitResult:
+    """Fit with ``estimate_runs(..., effects=..., fixed=..., refit_shape=...)`` (the NLP
+    augmentations; with ``fixed``, ``refit_shape`` holds everything but the shape).
 
     Raises CandidateUnavailable with a clear message when the estimator does not offer
     them (TypeError / NotImplementedError from the call)."""
@@ -412,6 +413,8 @@ def fit_estimator(runs: list, shape: str, config: EstimatorConfig, effects=(), f
         kwargs["effects"] = tuple(effects)
     if fixed is not None:
         kwargs["fixed"] = fixed
+        if refit_shape:
+            kwargs["refit_shape"] = True
     try:
         est = estimate_runs(runs, shape, config, echo=echo or _noop, method="implicit", **kwargs)
     except (TypeError, NotImplementedError) as exc:
