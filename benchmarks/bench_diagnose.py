@@ -1,12 +1,15 @@
 """Benchmark ``tacest diagnose`` on simulated recordings whose effect is hidden from it.
 
     nice -n 5 .venv/bin/python benchmarks/bench_diagnose.py [--seeds 2] [--effects none,latency,...]
-                                                             [--pokes 3] [--cache DIR] [--timeout 1800]
+                                                             [--pokes 3] [--tip-pokes 0] [--cache DIR] [--timeout 1800]
                                                              [--fit-iterations 150] [--quiet] [--json OUT.json]
 
 For every effect named in SPEC (and ``none``) and seeds 0..N-1 it records a 2-D box with
 tacest's simulator (``record_sim``: ``--pokes`` random pokes, the effect at a random
-strength drawn from its typical range, docs/effects.md), writes it twice (with /truth
+strength drawn from its typical range, docs/effects.md; with ``--tip-pokes N`` the last
+N pokes push high on the object to tip it, the same for every effect: random pokes aim
+at the centroid and rarely tip a box, which hides restitution, com_offset, angular
+damping and face friction), writes it twice (with /truth
 for the benchmark, without it for the diagnosis), and runs ``diagnose`` on the copy
 without truth, every SPEC effect a candidate.  Every diagnosis runs in its own
 subprocess (this script with ``--worker``) under a time limit; its result is cached as
@@ -49,6 +52,8 @@ SPEC_EFFECTS = ("none", "restitution", "angular_damping", "linear_drag", "soft_c
 #: effects no diagnosis can tell from "none" on these recordings: a force-sensor gain g
 #: is the same data as a mass g × the true one (docs/diagnosis.md, "Identifiability")
 NOT_IDENTIFIABLE = ("force_scale",)
+#: random stream of the tipping pokes (apart from the simulator's own streams)
+TIP_STREAM = 7071
 TARGET_ACCURACY = 0.90
 TARGET_NONE_BLAMED = 0.10
 TARGET_REDUCTION = 0.50
@@ -101,17 +106,49 @@ def run_job(run_path: Path, fit_iterations: int, timeout: float) -> dict:
 # recordings
 
 
-def record(effect: str, seed: int, pokes: int, folder: Path) -> tuple[Path, dict]:
-    """Record (or reuse) the recording of ``effect`` and ``seed``: returns the path of the
-    copy without truth and the injected effect ({"name": ..., params...})."""
-    from tacest.io.run import read_run, write_run
-    from tacest.sim.record import SimOptions, record_sim
+#: tipping pokes (--tip-pokes): aimed this fraction of the object's height above its
+#: centroid, this many degrees above the horizontal, this far (m) past the first touch;
+#: they tip a box on a grippy ground by 25-40 deg (seeds 0 and 2, ground friction 0.77)
+#: and slide a slippery one (seeds 1 and 3: 0-4 deg), measured on the truth
+TIP_HEIGHT = (0.30, 0.45)
+TIP_ANGLE_DEG = (0.0, 10.0)
+TIP_DEPTH = (0.03, 0.06)
 
-    full = folder / f"{effect}_{seed}_truth.h5"
-    bare = folder / f"{effect}_{seed}.h5"
+
+def tip_poke(rng: np.random.Generator, state) -> np.ndarray:
+    """A tipping poke (POKE_NAMES vector) at the object of a WorldState, from a random side."""
+    from tacest.sim.pokes import APPROACH_TIME, CLEARANCE
+
+    world = state.world()
+    c, verts = world.centroid__world(), world.vertices__world()
+    height = float(np.ptp(verts[:, 1]))
+    angle = math.radians(rng.uniform(*TIP_ANGLE_DEG))
+    if rng.random() < 0.5:
+        angle = math.pi - angle
+    target = c + np.array([0.0, rng.uniform(*TIP_HEIGHT) * height])
+    depth = float(rng.uniform(*TIP_DEPTH))
+    return np.array([0.0, angle, target[0], target[1], depth, (CLEARANCE + depth) / APPROACH_TIME])
+
+
+def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> tuple[Path, dict]:
+    """Record (or reuse) the recording of ``effect`` and ``seed``: returns the path of the
+    copy without truth and the injected effect ({"name": ..., params...}).  With ``tip``
+    > 0 the last ``tip`` of the ``pokes`` are tipping pokes (tip_poke), the first ones the
+    random pokes of ``tacest record``; the files are named ``..._tip<N>``."""
+    from tacest.io.run import read_run, write_run
+    from tacest.sim.record import SimOptions, append_run, record_sim, simulate_pokes, state_from_run
+
+    tag = f"_tip{tip}" if tip else ""
+    full = folder / f"{effect}_{seed}{tag}_truth.h5"
+    bare = folder / f"{effect}_{seed}{tag}.h5"
     if not (full.exists() and bare.exists()):
-        run = record_sim(SimOptions(object_spec="box", seed=seed, pokes=pokes,
-                                    effects=[] if effect == "none" else [effect]))
+        opts = SimOptions(object_spec="box", seed=seed, pokes=pokes - tip,
+                          effects=[] if effect == "none" else [effect])
+        run = record_sim(opts)
+        rng = np.random.default_rng([seed, TIP_STREAM])
+        for i in range(tip):
+            state = state_from_run(run)
+            run = append_run(run, simulate_pokes(state, tip_poke(rng, state)[None], opts, noise_key=i + 1))
         write_run(run, full)
         write_run(run, bare, include_truth=False)
     truth = read_run(full).truth.effects
@@ -119,7 +156,7 @@ def record(effect: str, seed: int, pokes: int, folder: Path) -> tuple[Path, dict
     return bare, injected
 
 
-def truth_motion(folder: Path, effect: str, seed: int) -> dict:
+def truth_motion(folder: Path, effect: str, seed: int, tag: str = "") -> dict:
     """What the object did in the recording (from its /truth, never shown to the
     diagnosis): the largest tilt from its start angle (deg) and the fastest approach of a
     vertex arriving at the ground (m/s; an impact, where restitution could show).  Where
@@ -127,7 +164,7 @@ def truth_motion(folder: Path, effect: str, seed: int) -> dict:
     trace in the data."""
     from tacest.io.run import read_run
 
-    run = read_run(folder / f"{effect}_{seed}_truth.h5")
+    run = read_run(folder / f"{effect}_{seed}{tag}_truth.h5")
     tr = run.truth
     P, V = np.asarray(tr.pose, float), np.asarray(tr.vertices, float)
     c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
@@ -273,6 +310,8 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--effects", default=",".join(SPEC_EFFECTS), help="effects to record (default: all of SPEC)")
     ap.add_argument("--pokes", type=int, default=3, help="pokes per recording (default 3)")
+    ap.add_argument("--tip-pokes", type=int, default=0,
+                    help="how many of the pokes (the last ones) push high to tip the object (default 0)")
     ap.add_argument("--cache", default=None, help="folder of recordings and cached results")
     ap.add_argument("--timeout", type=float, default=1800.0, help="s per diagnosis (default 1800)")
     ap.add_argument("--fit-iterations", type=int, default=150, help="IPOPT iterations per stage (default 150)")
@@ -284,19 +323,21 @@ def main(argv=None):
         return 0
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in effects if e not in SPEC_EFFECTS]
-    if bad or args.seeds < 1 or args.pokes < 2:
-        print(f"bad arguments: effects {bad}, seeds {args.seeds}, pokes {args.pokes} (>= 2)", file=sys.stderr)
+    if bad or args.seeds < 1 or args.pokes < 2 or not 0 <= args.tip_pokes < args.pokes:
+        print(f"bad arguments: effects {bad}, seeds {args.seeds}, pokes {args.pokes} (>= 2), "
+              f"tip pokes {args.tip_pokes} (0 <= tip < pokes)", file=sys.stderr)
         return 1
     echo = _echo(args.quiet)
     cache = Path(args.cache or Path(tempfile.gettempdir()) / "tacest_bench_diagnose")
     cache.mkdir(parents=True, exist_ok=True)
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}; {len(effects)} effects x {args.seeds} seeds, "
-          f"{args.pokes} pokes each; estimator {estimator_fingerprint()}", flush=True)
+          f"{args.pokes} pokes each ({args.tip_pokes} tipping); estimator {estimator_fingerprint()}", flush=True)
     results = []
     for seed in range(args.seeds):
         for effect in effects:
-            path, injected = record(effect, seed, args.pokes, cache)
-            out = cache / f"{effect}_{seed}.json"
+            path, injected = record(effect, seed, args.pokes, cache, args.tip_pokes)
+            tag = f"_tip{args.tip_pokes}" if args.tip_pokes else ""
+            out = cache / f"{effect}_{seed}{tag}.json"
             if out.exists():
                 res = json.loads(out.read_text())
             else:
@@ -312,7 +353,7 @@ def main(argv=None):
                 extra = f", {effect}: reduction {_reduction(right):.0%}, params {right['params']}"
             elif right is not None:
                 extra = f", {effect}: {right.get('status')}"
-            mot = truth_motion(cache, effect, seed)
+            mot = truth_motion(cache, effect, seed, tag)
             res["motion"] = mot
             extra += f", truth: tilt {mot['tilt_deg']:.1f} deg, impacts up to {mot['impact_speed']:.2f} m/s"
             print(f"{effect:>16} seed {seed}: verdict {verdict:<16} ({res.get('wall', math.nan):.0f} s{extra})"
