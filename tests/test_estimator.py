@@ -177,6 +177,30 @@ def test_known_answer_box_from_six_pokes(tmp_path):
 
 
 @pytest.mark.slow
+def test_noiseless_known_answer_box():
+    """Noiseless recording (no force, position or normal noise; seed 7, a 12.2 × 6.9 cm
+    box pushed from the side and pressed from above): shape, mass and both frictions
+    come back close to the truth.  Tolerances: the model is not the simulator's (pymunk's
+    contact solver, finite substeps, the model's smoothing: complementarity tolerance of
+    0.5 mm, |slip| smoothed below 3 mm/s), so even without noise the answer is not exact.
+    1 mm of Chamfer is a third of the issue's target for noisy data; frictions within
+    10 %, two thirds of its 15 %; the mass within the issue's 15 %: it is seen mostly in
+    the force transients at contact onset, which a time-stepping model resolves to one
+    sample.  Measured: 0.3 mm, mass 8.8 %, ground friction 2.7 %, finger friction 0.7 %."""
+    from tacest.evaluation.metrics import evaluate
+    from tacest.sim.record import SimOptions, record_sim
+
+    run = record_sim(SimOptions(object_spec="box", seed=7, pokes=6, noise_force=0.0, noise_position=0.0,
+                                noise_normal=0.0))
+    est = estimate_runs([run], "box")
+    assert est.success
+    m = evaluate(est, run)
+    assert m["chamfer"] <= 1e-3, m
+    for key, tol in (("mass_rel", 0.15), ("friction_ground_rel", 0.10), ("friction_finger_rel", 0.10)):
+        assert m[key] <= tol, (key, m)
+
+
+@pytest.mark.slow
 def test_horizontal_shift_of_the_scene_shifts_the_estimate(tmp_path):
     """Invariance: the same recording moved 0.25 m along the ground gives the same shape
     and the trajectory moved by 0.25 m."""
