@@ -35,7 +35,7 @@ weight) plus the priors.  Terms (names as in estimate files)::
     dynamics        [Δv - g dt - Σ λ / m,  Δω - I⁻¹(Σ r × Rᵀλ - dt ω × I ω)] / (process · g dt · [1, 2 / L])
                     (at a run's start without a pose observation: the rest term v[1] / sigma_rest)
     penetration     one_sided(phi_k, sigma_penetration) (problem.py: ≈ 0 for phi >= 0, ≈ phi / sigma below)
-    complementarity lambda_n (m0 / m) psi(phi_k) / sigma_complementarity, psi = g / (1 + g),
+    complementarity lambda_n psi(phi_k) / sigma_complementarity, psi = g / (1 + g),
                     g = (phi / sigma_gap - 1)⁺ smoothed: a vertex within ~sigma_gap counts as touching
     force, normal, contact, cone, dissipation   fingertip terms, as in 2-D (problem.py)
 
@@ -304,7 +304,11 @@ class StageModel3D:
             # sig_gap of the ground a vertex counts as touching; saturating, and relative
             # to the object's own weight (lambda_n is in units of m0 g dt)
             gap = smooth_pos(phi[k] / g[G3["sig_gap"]] - 1, g[G3["eps"]])
-            comp.append(ln[k] * (m0 / mass) * gap / (1 + gap))
+            # in units of the reference weight m0 g dt, like the impulses (as in 2-D):
+            # relative to the object's own weight (a factor m0 / m), a heavy fit made every
+            # violation cheap (a poked box came out 5x too heavy, its ground friction 76 %
+            # off; with the reference weight 3.6 % and 3.2 %)
+            comp.append(ln[k] * gap / (1 + gap))
             # penetration: the shifted one-sided penalty of 2-D (≈ 0 at phi = 0, so that
             # resting contacts are not pushed off the ground)
             pen.append(one_sided(phi[k], g[G3["sig_pen"]]))
