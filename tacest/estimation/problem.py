@@ -116,6 +116,11 @@ COMPLIANCE_UNIT = 0.01
 #: m/s: restitution's impact gate a / (a + IMPACT_SPEED) on the approach speed a of a
 #: vertex: 0 for a vertex that rests or lifts off, ~0.9 for impacts of ~0.2 m/s
 IMPACT_SPEED = 0.02
+#: restitution: per-impact scatter of the coefficient of restitution; the impact law's
+#: residual is whitened by process·g·dt + RESTITUTION_SCATTER × the approach speed (a
+#: bounce at 1 m/s off by 0.5 in e costs 0.5·(0.5/0.1)² ≈ 12, not 0.5·(0.5/0.005)² ≈ 5000
+#: with the process noise alone, which made every fit avoid touching the ground)
+RESTITUTION_SCATTER = 0.1
 #: face_friction: sharpness of the softmax that picks the face facing the ground most
 #: (weights exp(-FACE_SHARPNESS · n_face·up)): between the faces of a box resting flat
 #: (n·up = -1 vs 0) the ratio is e^-20; at 45° the two lower faces share equally
@@ -751,7 +756,7 @@ class Problem2D:
                 phi_c[k] = phi_c[k] - dt * e_r * a
                 vn_c[k] = vn - e_r * a
                 touch = 1 / (1 + ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps))  # as the contact laws
-                r_rest.append(touch * a / (a + IMPACT_SPEED) * (vn - e_r * a) / sig_v)
+                r_rest.append(touch * a / (a + IMPACT_SPEED) * (vn - e_r * a) / (sig_v + RESTITUTION_SCATTER * a))
         for k in range(K):
             ln, lt = lg[k], lg[K + k]
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
