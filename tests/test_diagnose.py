@@ -600,8 +600,9 @@ NLP_NOT_RECOVERED = {
                    "force with the gain, so only gain x mass is determined (the split is the priors')",
     "restitution": "the bounces are not in the data: the box tips 5-7 deg and lands at up to 0.49 m/s, but "
                    "after the finger has left (tactile data only); the plain fit's objective (56.9) equals "
-                   "the clean recording's (57.0) and the augmented fit ends at e = 0.07 (truth 0.6) in a "
-                   "worse minimum (59.4, mass 8 g for 0.23 kg)",
+                   "the clean recording's (57.0) and the augmented fit ends at e = 0.15 (truth 0.6) in a "
+                   "worse minimum (59.5, mass 7 g for 0.23 kg); where a bounce is observed the "
+                   "augmentation recovers e (test_restitution_augmentation_recovers_e_from_an_observed_bounce)",
     "com_offset": "dx 0.009 m for 0.015 m but dy 0.036 m for 0.003 m, objective 56.5 -> 53.5 (less than two "
                   "parameters' penalty): the COM is seen only while the box tilts (<= 7 deg here)",
     "soft_contact": "stiffness 7000 N/m for 3000: the finger presses the box 10 mm into the soft ground (its "
