@@ -32,6 +32,7 @@ import numpy as np
 
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.estimator import PIN_HALF_WIDTH  # the interval that pins a parameter
 from tacest.io.estimate import Estimate, RunEstimate
 
 
@@ -46,13 +47,6 @@ RETRY_STATUSES = ("Error_In_Step_Computation", "Restoration_Failed")
 #: Levenberg–Marquardt ridge (scaled units) of that retry: the estimator's default before
 #: it was lowered to 0.05 for speed; it keeps the steps local where IPOPT failed to step
 RETRY_RIDGE = 1.0
-#: half-width (scaled units, relative to max(1, |value|)) of the interval that pins a
-#: parameter.  IPOPT removes variables whose bounds are equal; with the Gauss–Newton
-#: Hessian model some problems with pinned parameters then failed at iteration 0
-#: (Error_In_Step_Computation), while the same problems with the parameters kept as
-#: variables in an interval of 2e-9 solve.  1e-9 of a scaled parameter (O(1)) is far
-#: below anything the data resolve.
-PIN_HALF_WIDTH = 1e-9
 #: what a local fit can hold fixed (see fit_local)
 PIN_MODES = ("all", "shape", "physics")
 

@@ -32,7 +32,7 @@ FRICTION_BOUNDS = (0.01, 2.0)
 #: parameter fixed (estimate_runs' fixed=).  IPOPT removes variables with equal bounds;
 #: with the Gauss–Newton Hessian model some such problems failed at iteration 0
 #: (Error_In_Step_Computation), while the same problems with the parameters kept as
-#: variables in an interval of 2e-9 solve (tacest.diagnosis.fitting.PIN_HALF_WIDTH).
+#: variables in an interval of 2e-9 solve (the diagnosis pins parameters the same way).
 #: 1e-9 of a scaled parameter (O(1)) is far below anything the data resolve.
 PIN_HALF_WIDTH = 1e-9
 

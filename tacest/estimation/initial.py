@@ -75,12 +75,6 @@ def initial_pose(run: Run, width: float, height: float) -> np.ndarray:
     return np.array([centre[0], centre[1], 0.0])
 
 
-def push_tracker(run: Run, V_body: np.ndarray, pose0: np.ndarray) -> np.ndarray:
-    """(T, 3) poses: the object at rest at pose0, translated along the ground whenever a
-    finger in contact would be inside it, just enough to clear it (no rotation)."""
-    return push_tracker_batch(run, V_body[None], pose0[None])[0]
-
-
 def _rotations(angles):
     """(..., 2, 2) rotation matrices of angles (...,) rad."""
     c, s = np.cos(angles), np.sin(angles)
@@ -88,8 +82,9 @@ def _rotations(angles):
 
 
 def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np.ndarray:
-    """:func:`push_tracker` for N shapes at once: V_bodies (N, K, 2) m, poses0 (N, 3)
-    -> (N, T, 3) poses (vectorized over the shapes, sequential in time)."""
+    """(N, T, 3) poses of N shapes V_bodies (N, K, 2) m, each at rest at its pose0 (N, 3)
+    and translated along the ground whenever a finger in contact would be inside it,
+    just enough to clear it (no rotation); vectorized over the shapes, sequential in time."""
     T = run.n_samples
     N = V_bodies.shape[0]
     poses = np.repeat(poses0[:, None, :], T, 1)
@@ -136,15 +131,10 @@ def finger_gaps_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.n
 EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
 
 
-def touch_inconsistency(run: Run, V_body: np.ndarray, poses: np.ndarray) -> float:
-    """m²: how badly a shape moved along poses (T, 3) disagrees with the contact flags:
-    sum over samples of max(gap, 0)² where a finger touched and min(gap, 0)² where it
-    did not."""
-    return float(touch_inconsistency_batch(run, V_body[None], poses[None])[0])
-
-
 def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """:func:`touch_inconsistency` of N shapes (N, K, 2) along poses (N, T, 3) -> (N,)."""
+    """(N,) m²: how badly each of N shapes (N, K, 2) moved along its poses (N, T, 3)
+    disagrees with the contact flags: the sum over samples of max(gap, 0)² where a finger
+    touched and min(gap, 0)² where it did not."""
     if not run.n_fingers:
         return np.zeros(V_bodies.shape[0])
     gaps = finger_gaps_batch(run, V_bodies, poses)
@@ -159,7 +149,7 @@ def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray)
 def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray) -> np.ndarray:
     """Starting shape parameters: among shapes of width × height on :data:`EXTENT_GRID`
     (and the given guess), the one whose push-tracker trajectories agree best with the
-    contact flags (:func:`touch_inconsistency`).  Touches from both sides of a resting
+    contact flags (:func:`touch_inconsistency_batch`).  Touches from both sides of a resting
     object fix its width; top touches its height."""
     if not any(r.n_fingers for r in runs):
         return np.asarray(s_guess, float)

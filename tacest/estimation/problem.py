@@ -67,6 +67,9 @@ from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_an
 #: squared-residual terms, in the order the stage function returns them
 SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration", "complementarity",
                  "dissipation", "cone")
+#: loss terms of a run's first sample (rest, penetration, pose, finger gap) and the
+#: start-function outputs holding them
+START_TERM_OUTPUTS = (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"), ("contact", "contact"))
 #: penalty terms (non-negative, not squared); none at present: every term is a
 #: whitened residual, so the Gauss–Newton Hessian covers the whole loss
 PENALTY_TERMS = ()
@@ -388,8 +391,7 @@ class Problem2D:
             start_args = (Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)
             o0 = dict(zip(start.name_out(), start_k(*start_args)))
             o0_sx = dict(zip(start.name_out(), start(*start_args)))
-            for t, name in (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
-                            ("contact", "contact")):
+            for t, name in START_TERM_OUTPUTS:
                 obj_terms[t] = obj_terms[t] + 0.5 * ca.sumsqr(o0[name])
                 r_stack[t].append(ca.vec(o0_sx[name]))
             g_list.append(ca.vec(g_kin))
@@ -573,8 +575,7 @@ class Problem2D:
         lam_f = ca.SX.sym("lam_f")
         out = dict(zip(start.name_out(), start(q, v, phys, d, g)))
         y = ca.vertcat(q, v, phys)
-        H = self._local_hessian(out, y, w, lam_f, mode, names={"dynamics": "rest", "penetration": "penetration",
-                                                          "pose": "pose", "contact": "contact"})
+        H = self._local_hessian(out, y, w, lam_f, mode, names=dict(START_TERM_OUTPUTS))
         return ca.Function("hess_start", [q, v, phys, d, g, w, lam_f], [H])
 
     def _stage_indices(self, i):

@@ -50,7 +50,7 @@ import scipy.sparse.linalg as spla
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
+from tacest.estimation.problem import SQUARED_TERMS, START_TERM_OUTPUTS, TERMS, Problem2D, RunStructure
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
 from tacest.information.observed import KINEMATICS_SIGMA, RIDGE
@@ -437,9 +437,7 @@ class ExpectedInformation:
                                       [ca.densify(ca.jacobian(rm, ca.vertcat(q, phys)))])
         q0, v0, phys0, d0, g0 = start.sx_in()
         o0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
-        r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(o0[n]) for t, n in
-                          (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"),
-                           ("contact", "contact"))])
+        r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(o0[n]) for t, n in START_TERM_OUTPUTS])
         self.start_rj = ca.Function("start_rj", [q0, v0, phys0, d0, g0, w],
                                     [ca.densify(r0), ca.densify(ca.jacobian(r0, ca.vertcat(q0, v0, phys0)))])
         th = ca.SX.sym("theta", self.n_theta)

@@ -24,17 +24,13 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from tacest.estimation.problem import SQUARED_TERMS, TERMS
+from tacest.estimation.problem import SQUARED_TERMS, START_TERM_OUTPUTS, TERMS
 
 #: scaled units (L per second) of the stand-in residual for eq. D2; 1e-4 is far tighter
 #: than any measurement, so it acts as the constraint without dominating the conditioning
 KINEMATICS_SIGMA = 1e-4
 #: relative ridge on the nuisance block (times its largest diagonal entry)
 RIDGE = 1e-10
-
-
-#: loss terms of a run's first sample and the start-function outputs holding them
-START_TERMS = (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"), ("contact", "contact"))
 
 
 class _ResidualJacobian:
@@ -58,7 +54,7 @@ class _ResidualJacobian:
                                               [r, ca.densify(ca.jacobian(r, y))]))
             q0, v0, phys0, d0, g0 = start.sx_in()
             out0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
-            r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERMS])
+            r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERM_OUTPUTS])
             y0 = ca.vertcat(q0, v0, phys0)
             self.start_jac.append(ca.Function("r_jac_start", [q0, v0, phys0, d0, g0, w],
                                               [r0, ca.densify(ca.jacobian(r0, y0))]))
