@@ -18,6 +18,7 @@ from tacest.estimation.initial import initial_guess
 from tacest.estimation.problem import SQUARED_TERMS, TERMS
 from tacest.geometry.shapes import polygon_sd_and_normal_function
 from tacest.io.run import Run
+from tests.nlp_checks import assert_derivatives_match_finite_differences
 
 TACEST = str(Path(sys.executable).parent / "tacest")
 
@@ -57,22 +58,7 @@ def _problem_point(shape, seed=0):
 @pytest.mark.parametrize("shape", ["box", "polygon:5"])
 def test_gradient_and_constraint_jacobian_match_finite_differences(shape):
     est, pr, z, p = _problem_point(shape)
-    f = ca.Function("f", [pr.z_sym, pr.p_sym], [pr.f])
-    grad = np.asarray(ca.Function("g", [pr.z_sym, pr.p_sym], [ca.gradient(pr.f, pr.z_sym)])(z, p)).ravel()
-    gfun = ca.Function("c", [pr.z_sym, pr.p_sym], [pr.g])
-    jac = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(pr.g, pr.z_sym)])(z, p)))
-    rng = np.random.default_rng(1)
-    idx = list(range(pr.n_theta + pr.n_phys)) + rng.choice(pr.n_z, 40, replace=False).tolist()
-    # central differences with h = 1e-6 (scaled units): truncation O(h²·f''') and
-    # rounding O(eps·|f|/h) are both ~1e-8 relative here; 1e-5 leaves a wide margin
-    h = 1e-6
-    for i in idx:
-        e = np.zeros(pr.n_z)
-        e[i] = h
-        fd = (float(f(z + e, p)) - float(f(z - e, p))) / (2 * h)
-        assert abs(fd - grad[i]) <= 1e-5 * max(1.0, abs(grad[i])), (i, fd, grad[i])
-        gd = (np.asarray(gfun(z + e, p)).ravel() - np.asarray(gfun(z - e, p)).ravel()) / (2 * h)
-        np.testing.assert_allclose(gd, jac[:, i], rtol=1e-5, atol=1e-5)
+    assert_derivatives_match_finite_differences(pr, z, p)
 
 
 @pytest.mark.parametrize("shape", ["box", "polygon:5"])

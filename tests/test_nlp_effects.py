@@ -14,6 +14,7 @@ from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
 from tacest.estimation.initial import initial_guess
 from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, Problem2D, RunStructure
 from tacest.geometry.shapes import make_shape
+from tests.nlp_checks import assert_derivatives_match_finite_differences
 from tests.test_estimator import pushed_box_run
 
 ALL = tuple(NLP_EFFECTS)
@@ -40,26 +41,9 @@ def _point(shape, effects, seed=0):
 @pytest.mark.parametrize("shape", ["box", "polygon:5"])
 def test_gradient_and_jacobian_with_every_effect_match_finite_differences(shape):
     est, pr, z, p = _point(shape, ALL)
-    f = ca.Function("f", [pr.z_sym, pr.p_sym], [pr.f])
-    grad = np.asarray(ca.Function("g", [pr.z_sym, pr.p_sym], [ca.gradient(pr.f, pr.z_sym)])(z, p)).ravel()
-    gfun = ca.Function("c", [pr.z_sym, pr.p_sym], [pr.g])
-    jac = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(pr.g, pr.z_sym)])(z, p)))
-    rng = np.random.default_rng(1)
-    idx = list(range(pr.n_theta + pr.n_phys)) + rng.choice(pr.n_z, 40, replace=False).tolist()
-    # central differences, h = 1e-6 (scaled): truncation ~1e-8 relative (as in
-    # tests/test_estimator.py), so 1e-5 relative leaves a wide margin; plus the rounding
-    # of f itself, ~eps·|f| / h (f is large here: the effects move the generic point far
-    # from the data), with a factor 10 of margin
-    h = 1e-6
-    f0 = abs(float(f(z, p)))
-    for i in idx:
-        e = np.zeros(pr.n_z)
-        e[i] = h
-        fd = (float(f(z + e, p)) - float(f(z - e, p))) / (2 * h)
-        tol = 1e-5 * max(1.0, abs(grad[i])) + 10 * np.finfo(float).eps * f0 / h
-        assert abs(fd - grad[i]) <= tol, (i, fd, grad[i])
-        gd = (np.asarray(gfun(z + e, p)).ravel() - np.asarray(gfun(z - e, p)).ravel()) / (2 * h)
-        np.testing.assert_allclose(gd, jac[:, i], rtol=1e-5, atol=1e-5)
+    # the objective is large here (the effects move the generic point far from the data):
+    # its own rounding, eps·|f| / h, with a factor 10 of margin joins the tolerance
+    assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=10.0)
 
 
 def test_exact_hessian_blocks_with_every_effect_match_casadi():
