@@ -66,12 +66,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
             if val is not None:
                 setattr(opts3, key, val)
         diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, echo=echo)
-        obj = diag.to_json()
-        written = write_report_3d(diag, out, obj)
-        if as_json:
-            click.echo(json.dumps(obj))
-        if not quiet:
-            click.echo(f"verdict: {diag.verdict} ({diag.reason}); wrote {out}/ ({', '.join(written)})", err=True)
+        _report(diag, write_report_3d, out, as_json, quiet)
         return
     est = read_estimate(estimate_path) if estimate_path else None
     shape = shape or (est.shape if est is not None else "box")
@@ -81,8 +76,14 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         if val is not None:
             setattr(opts, key, val)
     diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, echo=echo)
+    _report(diag, write_report, out, as_json, quiet)
+
+
+def _report(diag, write, out, as_json: bool, quiet: bool):
+    """Write the report folder with write(diag, out, obj) -> file names, print the JSON
+    object (--json) on stdout and the verdict line on stderr (unless --quiet)."""
     obj = diag.to_json()
-    written = write_report(diag, out, obj)
+    written = write(diag, out, obj)
     if as_json:
         click.echo(json.dumps(obj))
     if not quiet:
