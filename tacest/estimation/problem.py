@@ -737,6 +737,7 @@ class Problem2D:
         # normal velocities (m/s) of the vertices at the end of the interval, and the
         # separation speed the contact laws allow (0, or the rebound of restitution)
         vn_c = [ca.dot(n_g, point_velocity(v, levers[k])) for k in range(K)]
+        sig_v = g[G["sig_proc"]] * 9.81 * dt  # m/s: process noise of a velocity change
         r_rest = []
         if "soft_contact" in self.effects:
             # a compliant ground (a plate on a spring): it sinks by compliance × the total
@@ -750,14 +751,12 @@ class Problem2D:
             # approach speed a (normal velocity -a at the previous sample) it leaves with
             # +e·a; the contact laws see the gap before the rebound's travel dt·e·a
             e_r = ev["restitution.e"]
-            sig_v = g[G["sig_proc"]] * 9.81 * dt
             for k in range(K):
                 a = smooth_pos(-ca.dot(n_g, point_velocity(v_prev, levers[k])), 1e-3)  # m/s, approach
-                vn = ca.dot(n_g, point_velocity(v, levers[k]))
                 phi_c[k] = phi_c[k] - dt * e_r * a
-                vn_c[k] = vn - e_r * a
+                vn_c[k] = vn_c[k] - e_r * a
                 touch = 1 / (1 + ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps))  # as the contact laws
-                r_rest.append(touch * a / (a + IMPACT_SPEED) * (vn - e_r * a) / (sig_v + RESTITUTION_SCATTER * a))
+                r_rest.append(touch * a / (a + IMPACT_SPEED) * vn_c[k] / (sig_v + RESTITUTION_SCATTER * a))
         for k in range(K):
             ln, lt = lg[k], lg[K + k]
             gen += generalized_impulse(levers[k], Lam * (ln * n_g + lt * t_g))
@@ -780,7 +779,7 @@ class Problem2D:
             # tolerance lets loaded vertices hop within sig_gap, and the normal impulses
             # do positive work: heavy, slippery fits "vibrate" along the ground between
             # touches (a 25 kg box moved by a 0.9 N push)
-            sep = ground_gap_indicator(vn_c[k], g[G["sig_proc"]] * 9.81 * dt, eps)
+            sep = ground_gap_indicator(vn_c[k], sig_v, eps)
             # saturating (bounded curvature far from the ground); in units of the
             # reference weight m0·g·dt, like every impulse (see the cone above)
             comp.append(ln * (gap + sep) / (1 + gap + sep))
@@ -822,7 +821,6 @@ class Problem2D:
         M_ref = ca.vertcat(g[G["m_ref"]], g[G["m_ref"]], g[G["I_ref"]])
         grav = ca.vertcat(-9.81 * n_g * dt, 0)
         r_dyn_raw = (M * ((v - v_prev) - grav) - gen) / M_ref
-        sig_v = g[G["sig_proc"]] * 9.81 * dt
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         if r_rest:
             r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
