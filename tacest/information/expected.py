@@ -50,10 +50,10 @@ import scipy.sparse.linalg as spla
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import SQUARED_TERMS, START_TERM_OUTPUTS, TERMS, Problem2D, RunStructure
+from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
-from tacest.information.observed import KINEMATICS_SIGMA, RIDGE
+from tacest.information.observed import KINEMATICS_SIGMA, RIDGE, stage_residual_jacobian, start_residual_jacobian
 from tacest.io.run import Run
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
@@ -427,19 +427,14 @@ class ExpectedInformation:
         if self.n_lg not in (self.K, 2 * self.K):
             raise TacestError(f"internal: {self.n_lg} ground impulses per interval for {self.K} vertices")
         self.lg_nonneg = np.arange(self.n_lg) < self.K
-        self.stage_rj = ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w],
-                                    [ca.densify(r), ca.densify(ca.jacobian(r, y))])
+        self.stage_rj = stage_residual_jacobian(stage)
         self.stage_r_lg = ca.Function("stage_r_lg", [qp, vp, q, v, lg, lf, phys, d, g, w],
                                       [ca.densify(r), ca.densify(ca.jacobian(r, lg))])
         # the measurement rows only, for the identity-Jacobian approximation (w.r.t. q, phys)
         rm = ca.vertcat(*[rows[t] for t in MEASUREMENT_TERMS])
         self.stage_meas = ca.Function("stage_meas", [qp, vp, q, v, lg, lf, phys, d, g, w],
                                       [ca.densify(ca.jacobian(rm, ca.vertcat(q, phys)))])
-        q0, v0, phys0, d0, g0 = start.sx_in()
-        o0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
-        r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(o0[n]) for t, n in START_TERM_OUTPUTS])
-        self.start_rj = ca.Function("start_rj", [q0, v0, phys0, d0, g0, w],
-                                    [ca.densify(r0), ca.densify(ca.jacobian(r0, ca.vertcat(q0, v0, phys0)))])
+        self.start_rj = start_residual_jacobian(start)
         th = ca.SX.sym("theta", self.n_theta)
         self.phys_of_theta = ca.Function("phys_jac", [th], [pr.phys_sx(th, self.L, self.m0),
                                                             ca.densify(ca.jacobian(pr.phys_sx(th, self.L, self.m0),

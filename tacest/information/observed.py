@@ -33,6 +33,32 @@ KINEMATICS_SIGMA = 1e-4
 RIDGE = 1e-10
 
 
+def stage_residual_jacobian(stage):
+    """SX Function (q_prev, v_prev, q, v, lam_ground, lam_finger, phys, d, g, w) -> (r, J):
+    one interval's whitened residuals (each squared term times sqrt of its weight, then
+    eq. D2 over KINEMATICS_SIGMA) and their dense Jacobian with respect to the interval's
+    local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, phys]."""
+    qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
+    w = ca.SX.sym("w", len(TERMS))
+    out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+    r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS],
+                   out["g_kin"] / KINEMATICS_SIGMA)
+    y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
+    return ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w],
+                       [ca.densify(r), ca.densify(ca.jacobian(r, y))])
+
+
+def start_residual_jacobian(start):
+    """SX Function (q, v, phys, d, g, w) -> (r, J): a run's first-sample whitened
+    residuals (START_TERM_OUTPUTS) and their dense Jacobian with respect to [q, v, phys]."""
+    q0, v0, phys0, d0, g0 = start.sx_in()
+    w = ca.SX.sym("w", len(TERMS))
+    out0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
+    r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERM_OUTPUTS])
+    return ca.Function("start_rj", [q0, v0, phys0, d0, g0, w],
+                       [ca.densify(r0), ca.densify(ca.jacobian(r0, ca.vertcat(q0, v0, phys0)))])
+
+
 class _ResidualJacobian:
     """(z, p) -> (r (m,) DM, J (m, n_z) sparse DM) of the stacked whitened residuals
     (each squared term times the square root of its weight, then eq. D2 over
@@ -42,22 +68,8 @@ class _ResidualJacobian:
 
     def __init__(self, problem):
         self.pr = problem
-        self.stage_jac, self.start_jac = [], []
-        for stage, start in zip(problem.stage_funs, problem.start_funs):
-            qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
-            w = ca.SX.sym("w", len(TERMS))
-            out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
-            r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS],
-                           out["g_kin"] / KINEMATICS_SIGMA)
-            y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-            self.stage_jac.append(ca.Function("r_jac_stage", [qp, vp, q, v, lg, lf, phys, d, g, w],
-                                              [r, ca.densify(ca.jacobian(r, y))]))
-            q0, v0, phys0, d0, g0 = start.sx_in()
-            out0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
-            r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERM_OUTPUTS])
-            y0 = ca.vertcat(q0, v0, phys0)
-            self.start_jac.append(ca.Function("r_jac_start", [q0, v0, phys0, d0, g0, w],
-                                              [r0, ca.densify(ca.jacobian(r0, y0))]))
+        self.stage_jac = [stage_residual_jacobian(stage) for stage in problem.stage_funs]
+        self.start_jac = [start_residual_jacobian(start) for start in problem.start_funs]
 
     def __call__(self, z, p):
         pr = self.pr
@@ -77,7 +89,7 @@ class _ResidualJacobian:
             r = np.asarray(r)  # (n_r, T-1)
             J = np.asarray(J).reshape(r.shape[0], -1, st.T - 1, order="F")  # (n_r, n_y, T-1)
             idx = pr._stage_indices(i)  # (T-1, n_y)
-            n_r, n_y = J.shape[0], J.shape[1]
+            n_r = J.shape[0]
             row = m + np.arange(st.T - 1)[None, None, :] * n_r + np.arange(n_r)[:, None, None]
             rows.append(np.broadcast_to(row, J.shape).ravel())
             cols.append(np.broadcast_to(idx.T[None, :, :], J.shape).ravel())
