@@ -86,7 +86,6 @@ def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np
     and translated along the ground whenever a finger in contact would be inside it,
     just enough to clear it (no rotation); vectorized over the shapes, sequential in time."""
     T = run.n_samples
-    N = V_bodies.shape[0]
     poses = np.repeat(poses0[:, None, :], T, 1)
     if run.contact is None:
         return poses
