@@ -203,3 +203,40 @@ def test_horizontal_shift_of_the_scene_shifts_the_estimate(tmp_path):
     np.testing.assert_allclose(np.sort(np.abs(a.vertices.ravel())), np.sort(np.abs(b.vertices.ravel())), atol=5e-4)
     np.testing.assert_allclose(b.runs[0].pose[:, :2] - a.runs[0].pose[:, :2], np.tile(shift, (run.n_samples, 1)),
                                atol=5e-4)
+
+
+def test_start_shape_candidates_are_distinct_and_best_first():
+    from tacest.estimation.initial import DISTINCT_EXTENT_RATIO, choose_start_shape, start_shape_candidates
+    from tacest.geometry.shapes import numeric_vertices
+
+    run = pushed_box_run()
+    est = ImplicitEstimator([run], "box")
+    cands = start_shape_candidates(est.problem, [run], est.scales, est.s0, 4)
+    assert len(cands) == 4
+    np.testing.assert_array_equal(cands[0], choose_start_shape(est.problem, [run], est.scales, est.s0))
+    ext = [np.ptp(numeric_vertices(est.shape, c, est.scales.L), axis=0) for c in cands]
+    for i in range(len(ext)):
+        for j in range(i):
+            # distinct: some extent differs by more than the ratio (exact arithmetic on the grid)
+            assert np.max(np.abs(np.log(ext[i] / ext[j]))) > np.log(DISTINCT_EXTENT_RATIO)
+
+
+def test_restarts_keep_the_lowest_objective_and_skip_consistent_fits():
+    run = pushed_box_run()
+    # default threshold: a clean pushed box is physically consistent, one solve only
+    est = ImplicitEstimator([run], "box")
+    out = est.solve()
+    assert len(est.attempts) == 1
+    assert est.attempts[0]["physics_per_sample"] <= est.config.solver.restart_physics
+    # a threshold no fit meets: every start is tried and the best successful one is kept
+    cfg = load_config(None, overrides={"solver": {"restarts": 2, "restart_physics": 1e-12}})
+    est = ImplicitEstimator([run], "box", cfg)
+    out = est.solve()
+    assert len(est.attempts) == 3
+    ok = [a["objective"] for a in est.attempts if a["status"] != "failed"]
+    assert ok and out.objective == min(ok)
+    # the returned z is that fit's: its physics measure is the one recorded for it
+    kept = next(a for a in est.attempts if a.get("objective") == out.objective)
+    assert est.physics_per_sample(out.z) == pytest.approx(kept["physics_per_sample"], rel=1e-9)
+    with pytest.raises(TacestError, match="restart"):
+        load_config(None, overrides={"solver": {"restarts": -1}})

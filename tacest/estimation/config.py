@@ -93,6 +93,15 @@ class Solver:
     #: off: touches alone do not pin shape and trajectory apart.)
     homotopy: list = field(default_factory=lambda: [[1.0, 0.1, 1.0], [0.3, 1.0, 1.0]])
     print_every: int = 10  #: iterations between progress lines
+    #: further starting shapes tried when a fit fails or violates its own physics by more
+    #: than restart_physics (estimator.ImplicitEstimator.solve)
+    restarts: int = 2
+    #: objective units per sample of the physics terms (dynamics, penetration,
+    #: complementarity, dissipation, cone) above which a fit is a local minimum worth a
+    #: restart.  Closed-loop fits of boxes that place the shape within a few mm hold
+    #: 0.001-0.03 per sample; fits that float or sink the object to follow the touches of
+    #: a wrong shape (Chamfer 10-30 mm) 0.2-1.1
+    restart_physics: float = 0.1
 
 
 @dataclass
@@ -190,6 +199,9 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
         if sec.hessian not in ("gauss-newton", "exact", "gauss-newton-then-exact"):
             raise TacestError(f"{name}.hessian: expected gauss-newton, exact or gauss-newton-then-exact, "
                               f"got {sec.hessian!r}")
+    if cfg.solver.restarts < 0 or not cfg.solver.restart_physics > 0:
+        raise TacestError(f"solver.restarts must be >= 0 and solver.restart_physics > 0, got "
+                          f"{cfg.solver.restarts} and {cfg.solver.restart_physics}")
     if cfg.solver.linear_solver not in ("mumps", "spral", "ma27", "ma57", "ma86", "ma97"):
         raise TacestError(f"solver.linear_solver: unknown {cfg.solver.linear_solver!r}")
     return cfg

@@ -7,16 +7,17 @@ Pipeline: scales → shape start → consistent initial guess → staged homotop
 
 from __future__ import annotations
 
+import json
 import time
 
 import casadi as ca
 import numpy as np
 
-from tacest.errors import TacestError
+from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector, touching
-from tacest.estimation.initial import choose_start_shape, initial_extents, initial_guess, start_trajectories
-from tacest.estimation.problem import SQUARED_TERMS, TERMS, RunStructure
+from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates, start_trajectories
+from tacest.estimation.problem import PHYSICS_TERMS, SQUARED_TERMS, TERMS, RunStructure
 from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
 from tacest.geometry.shapes import make_shape
 from tacest.io.estimate import Estimate, RunEstimate
@@ -82,6 +83,9 @@ class ImplicitEstimator:
         self.fixed_theta = None
         self.refit_shape = False
         self.warm_blocks = {}
+        #: one dict per solve of :meth:`solve` (start_shape, status, objective,
+        #: physics_per_sample; or status "failed" and error)
+        self.attempts = []
 
     # --------------------------------------------------------------------------------
     def variable_bounds(self):
@@ -151,7 +155,13 @@ class ImplicitEstimator:
         return np.where(free, lbx, self.z), np.where(free, ubx, self.z)
 
     def solve(self) -> SolveOutcome:
-        """Staged solve.
+        """Staged solve from the best starting shape; when that fit fails, or violates its
+        own physics by more than ``solver.restart_physics`` objective units per sample
+        (a local minimum where the object floats, sinks or slides against friction to
+        follow the touches), again from up to ``solver.restarts`` other starting shapes
+        (initial.start_shape_candidates), keeping the successful fit of lowest objective.
+
+        Each solve:
 
         1. "impulses": the contact impulses alone, with the initial trajectory, shape and
            parameters held (a convex least-squares problem), so that every later stage
@@ -159,12 +169,50 @@ class ImplicitEstimator:
            Gauss–Newton model is good);
         2. the homotopy stages of the config, everything free.
         """
-        cfg = self.config.solver
         pr = self.problem
         if self.fixed_theta is not None:
-            self.s0 = self.fixed_theta[: pr.n_shape].copy()
+            starts = [self.fixed_theta[: pr.n_shape].copy()]
         else:
-            self.s0 = choose_start_shape(pr, self.runs, self.scales, self.s0)
+            starts = start_shape_candidates(pr, self.runs, self.scales, self.s0, 1 + int(self.config.solver.restarts))
+        best = failure = None
+        self.attempts = []
+        for k, s0 in enumerate(starts):
+            if k:
+                last = self.attempts[-1]
+                self.echo(f"restart {k}/{len(starts) - 1} from another starting shape: the last fit "
+                          + ("failed" if last["status"] == "failed" else
+                             f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+            try:
+                out = self._solve_from(s0)
+            except SolveFailedError as exc:
+                failure = failure or exc
+                self.attempts.append({"start_shape": np.asarray(s0, float), "status": "failed", "error": str(exc)})
+                continue
+            physics = self.physics_per_sample(out.z)
+            self.attempts.append({"start_shape": np.asarray(s0, float), "status": out.status,
+                                  "objective": float(out.objective), "physics_per_sample": float(physics)})
+            if best is None or out.objective < best[0].objective:
+                best = (out, physics, s0, self.p_final)
+            if physics <= self.config.solver.restart_physics:
+                break
+        if best is None:
+            raise failure
+        out, _, self.s0, self.p_final = best
+        self.z = out.z
+        return out
+
+    def physics_per_sample(self, z) -> float:
+        """Objective units per sample of the physics terms (:data:`PHYSICS_TERMS`) at z
+        with the final stage's parameters: how far a fit violates its own model."""
+        t, _ = self.problem.term_fun(z, self.p_final)
+        t = dict(zip(TERMS, np.asarray(t, float).ravel()))
+        return sum(t[k] for k in PHYSICS_TERMS) / sum(st.T for st in self.structures)
+
+    def _solve_from(self, s0) -> SolveOutcome:
+        """One staged solve (see :meth:`solve`) from the starting shape s0 (scaled)."""
+        cfg = self.config.solver
+        pr = self.problem
+        self.s0 = np.asarray(s0, float)
         trajectories = start_trajectories(pr, self.runs, self.scales, self.s0)
         self.z = initial_guess(pr, self.runs, self.scales, self.s0, trajectories)
         if self.fixed_theta is not None:
@@ -433,5 +481,7 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         config=est.config.to_dict(), method="implicit",
         extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
                                           for s in out.stages),
-                     "length_scale": est.scales.L, "mass_scale": est.scales.m0},
+                     "length_scale": est.scales.L, "mass_scale": est.scales.m0,
+                     "starts": json.dumps([{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in a.items()}
+                                           for a in est.attempts])},
     )

@@ -128,6 +128,9 @@ def finger_gaps_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.n
 
 #: candidate extents of the starting shape, as factors of the length scale L (geometric grid)
 EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
+#: two starting shapes are distinct when one's width or height is more than this factor
+#: of the other's (about 1.4 grid steps of EXTENT_GRID)
+DISTINCT_EXTENT_RATIO = 1.25
 
 
 def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.ndarray:
@@ -145,21 +148,38 @@ def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray)
         + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
 
 
-def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray) -> np.ndarray:
-    """Starting shape parameters: among shapes of width × height on :data:`EXTENT_GRID`
-    (and the given guess), the one whose push-tracker trajectories agree best with the
-    contact flags (:func:`touch_inconsistency_batch`).  Touches from both sides of a resting
-    object fix its width; top touches its height."""
+def start_shape_candidates(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray,
+                           n: int = 1) -> list:
+    """Up to n distinct starting shapes (shape parameter vectors), best first: among
+    shapes of width × height on :data:`EXTENT_GRID` (and the given guess), ordered by how
+    well their push-tracker trajectories agree with the contact flags
+    (:func:`touch_inconsistency_batch`; touches from both sides of a resting object fix
+    its width, top touches its height).  Each later shape differs from every earlier one
+    by more than :data:`DISTINCT_EXTENT_RATIO` in width or height, so that a restart from
+    it explores another basin, not a neighbour of a failed start."""
     if not any(r.n_fingers for r in runs):
-        return np.asarray(s_guess, float)
+        return [np.asarray(s_guess, float)]
     L = scales.L
     candidates = [np.asarray(s_guess, float)] + [problem.shape.initial(w, h) for w in EXTENT_GRID
                                                    for h in EXTENT_GRID]
     Vs = np.stack([numeric_vertices(problem.shape, s, L) for s in candidates])
     cost = sum(touch_inconsistency_batch(run, Vs, _tracked_batch(run, Vs)) for run in runs)
-    # the first of the cheapest (the guess wins ties)
-    best = int(np.argmin(cost - 1e-12 * (np.arange(len(candidates)) == 0)))
-    return candidates[best]
+    # the cheapest first (the guess wins ties: stable sort, guess at index 0)
+    order = np.argsort(cost, kind="stable")
+    extents = np.ptp(Vs, axis=1)  # (N, 2) m
+    picked = []
+    for k in order:
+        ratio = np.abs(np.log(extents[k][None] / extents[picked]))
+        if not picked or np.all(np.max(ratio, axis=1) > np.log(DISTINCT_EXTENT_RATIO)):
+            picked.append(int(k))
+        if len(picked) == n:
+            break
+    return [candidates[k] for k in picked]
+
+
+def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray) -> np.ndarray:
+    """The best starting shape of :func:`start_shape_candidates`."""
+    return start_shape_candidates(problem, runs, scales, s_guess, 1)[0]
 
 
 def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray):

@@ -74,6 +74,9 @@ START_TERM_OUTPUTS = (("dynamics", "rest"), ("penetration", "penetration"), ("po
 #: whitened residual, so the Gauss–Newton Hessian covers the whole loss
 PENALTY_TERMS = ()
 TERMS = SQUARED_TERMS + PENALTY_TERMS
+#: the terms that measure how far a fit violates its own model (rigid-body dynamics,
+#: contact and friction), as opposed to the measurement terms
+PHYSICS_TERMS = ("dynamics", "penetration", "complementarity", "dissipation", "cone")
 #: m/s: smoothing of |slip| in the maximal-dissipation residual (see
 #: dissipation_shortfall); well below poke speeds of several cm/s
 SLIP_EPS = 3e-3
