@@ -130,6 +130,14 @@ class Solver3D:
     #: default: the real tossed cube rocks on ~2 mm rounded edges, and a sharp box then
     #: comes out 2 % small (docs/estimation3d.md); a sharp object gets a radius near 0
     edge_radius_sigma: float = 0.005
+    #: runs without pose observations only: further starts tried when a fit fails or
+    #: violates its own physics by more than restart_physics (initial3d.py,
+    #: estimator3d.Estimator3D.solve); pose-observed runs solve once from their poses
+    restarts: int = 2
+    #: objective units per sample of the physics terms (dynamics, penetration,
+    #: complementarity, dissipation, cone) above which a 3-D fit without pose observations
+    #: is a local minimum worth a restart (calibration: docs/estimation3d.md)
+    restart_physics: float = 0.1
 
 
 @dataclass
@@ -202,6 +210,9 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
     if cfg.solver.restarts < 0 or not cfg.solver.restart_physics > 0:
         raise TacestError(f"solver.restarts must be >= 0 and solver.restart_physics > 0, got "
                           f"{cfg.solver.restarts} and {cfg.solver.restart_physics}")
+    if cfg.solver3d.restarts < 0 or not cfg.solver3d.restart_physics > 0:
+        raise TacestError(f"solver3d.restarts must be >= 0 and solver3d.restart_physics > 0, got "
+                          f"{cfg.solver3d.restarts} and {cfg.solver3d.restart_physics}")
     if cfg.solver.linear_solver not in ("mumps", "spral", "ma27", "ma57", "ma86", "ma97"):
         raise TacestError(f"solver.linear_solver: unknown {cfg.solver.linear_solver!r}")
     return cfg

@@ -16,6 +16,7 @@ is identified only relative to that mass (I / m).
 
 from __future__ import annotations
 
+import json
 import time
 
 import casadi as ca
@@ -23,9 +24,11 @@ import numpy as np
 
 from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
                                      quat_log_rate)
-from tacest.errors import TacestError
+from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_velocity, touching
+from tacest.estimation.initial3d import start_candidates_3d
+from tacest.estimation.problem import PHYSICS_TERMS
 from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
                                          Problem3D, impulse_variable)
 from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, BuiltSolver, SolveOutcome, StageInfo,
@@ -197,6 +200,11 @@ class Estimator3D:
         self.problem: Problem3D = self.built.problem
         self.z = None
         self.p_final = None
+        #: per run the (T, 7) starting poses of the current start (initial3d.py), or None
+        #: for :meth:`start_poses`
+        self.start_tracks = None
+        #: one dict per solve attempt (start, status, objective, physics per sample)
+        self.attempts: list[dict] = []
 
     # --------------------------------------------------------------------------------
     def params(self, eps, comp_mult, dyn_mult=1.0, ridge=None, s_ref=None):
@@ -237,7 +245,7 @@ class Estimator3D:
         LF = np.zeros((3 * self.F, self.layout.M))
         V = numeric_vertices_3d(self.shape, s0, sc.L)
         for i, run in enumerate(self.runs):
-            poses = self.start_poses(run, V)
+            poses = self.start_tracks[i] if self.start_tracks is not None else self.start_poses(run, V)
             X[:, self.layout.run_samples(i)] = np.concatenate([poses[:, :3] / sc.L, poses[:, 3:]], 1).T
             if run.n_fingers:
                 T = run.n_samples
@@ -395,19 +403,80 @@ class Estimator3D:
 
     # --------------------------------------------------------------------------------
     def solve(self) -> SolveOutcome:
-        """Staged solve: the ground impulses by non-negative least squares for the
-        observed (or resting) trajectory; with fingers, the contact impulses alone by
-        IPOPT; then the homotopy stages of the config with everything free (see
-        estimator.py).  Hessian models as configured (``gauss-newton-then-exact``: the
-        exact Hessian in the last stage only)."""
+        """Staged solve (:meth:`_solve_from`).  Runs with pose observations (or held
+        parameters, or no fingertip) solve once, from the observed poses and
+        :meth:`choose_start_shape`.  Without pose observations the starts are
+        initial3d.start_candidates_3d's (push-tracked boxes of a few extents and the
+        plain resting start, best agreement with the contact flags first): solve from
+        the first; when that fit fails, or violates its own physics by more than
+        ``solver3d.restart_physics`` objective units per sample, again from up to
+        ``solver3d.restarts`` others; keep the successful fit of lowest objective."""
+        pr, cfg3 = self.problem, self.config.solver3d
+        self.attempts = []
+        if self.has_pose or self.fixed_theta is not None or not self.F:
+            t0 = time.perf_counter()
+            s0 = self.choose_start_shape() if self.fixed_theta is None else self.fixed_theta[: pr.n_shape].copy()
+            self.echo(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
+            return self._solve_from(s0)
+        t0 = time.perf_counter()
+        starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
+        self.echo(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
+            f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
+        best = failure = None
+        for k, c in enumerate(starts):
+            if k:
+                last = self.attempts[-1]
+                self.echo(f"restart {k}/{len(starts) - 1} from another start: the last fit "
+                          + ("failed" if last["status"] == "failed" else
+                             f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+            s0 = self.shape.initial(c.extents)
+            rec = {"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
+                   "touch_inconsistency": float(c.inconsistency)}
+            self.start_tracks = c.poses
+            try:
+                out = self._solve_from(s0)
+            except SolveFailedError as exc:
+                failure = failure or exc
+                self.attempts.append({**rec, "status": "failed", "error": str(exc)})
+                continue
+            finally:
+                self.start_tracks = None
+            physics = self.physics_per_sample(out.z)
+            self.attempts.append({**rec, "status": out.status, "objective": float(out.objective),
+                                  "physics_per_sample": float(physics)})
+            if best is None or out.objective < best[0].objective:
+                best = (out, s0, self.p_final, self.bounds_final)
+            if physics <= cfg3.restart_physics:
+                break
+        if best is None:
+            raise failure
+        out, self.s0, self.p_final, self.bounds_final = best
+        self.z = out.z
+        return out
+
+    def physics_per_sample(self, z) -> float:
+        """Objective units per sample of the physics terms (problem.PHYSICS_TERMS: dynamics,
+        penetration, complementarity, dissipation, cone; weights applied) at z with the
+        final stage's parameters: how far a fit violates its own model."""
+        _, _, w = self.problem.split_parameters(self.p_final)
+        st, o0 = self.stage_outputs(z)
+        total = 0.0
+        for t in PHYSICS_TERMS:
+            wt = float(w[TERMS3D.index(t)])
+            total += wt * 0.5 * float(np.sum(st[t] ** 2)) if st[t].size else 0.0
+            if t in o0 and o0[t].size:
+                total += wt * 0.5 * float(np.sum(o0[t] ** 2))
+        return total / self.layout.S
+
+    def _solve_from(self, s0) -> SolveOutcome:
+        """One staged solve from the starting shape s0 (scaled): the ground impulses by
+        non-negative least squares for the observed (or starting) trajectory; with
+        fingers, the contact impulses alone by IPOPT; then the homotopy stages of the
+        config with everything free (see estimator.py).  Hessian models as configured
+        (``gauss-newton-then-exact``: the exact Hessian in the last stage only)."""
         cfg, cfg3 = self.config.solver, self.config.solver3d
         pr = self.problem
-        t0 = time.perf_counter()
-        if self.fixed_theta is None:
-            self.s0 = self.choose_start_shape()
-        else:
-            self.s0 = self.fixed_theta[: pr.n_shape].copy()
-        self.echo(f"starting shape {np.round(self.s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
+        self.s0 = np.asarray(s0, float)
         self.z = self.initial_guess()
         if self.fixed_theta is not None:
             self.z[: pr.n_theta] = self.fixed_theta
@@ -583,7 +652,10 @@ def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: Estimator
                                           for s in out.stages),
                      "length_scale": est.scales.L, "mass_scale": est.scales.m0,
                      "shape_params": np.asarray(out.z[: pr.n_shape] * est.scales.L, float),
-                     "notes": "; ".join(notes)},
+                     "notes": "; ".join(notes),
+                     **({"starts": json.dumps([{k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                for k, v in a.items()} for a in est.attempts])}
+                        if est.attempts else {})},
     )
 
 

@@ -1,0 +1,238 @@
+"""Benchmark the 3-D estimator (``estimate_runs_3d``) on simulated finger pokes of a box.
+
+    .venv/bin/python benchmarks/bench_estimate3d.py [--seeds 10] [--first 0] [--pokes 6]
+                                                    [--timeout 900] [--quiet] [--json OUT.json]
+
+Case: ``tacest record --source sim --dim 3 --object box --pokes 6 --seed S`` (MuJoCo; a
+random box per seed, one spherical fingertip, 100 Hz, about 9-11 s; fingertip position,
+contact flag, normal and force, NO pose observations), estimated as ``box`` with the
+default config (starts of tacest/estimation/initial3d.py, restarts of ``[solver3d]``).
+
+Every estimate runs in its own subprocess (this script with ``--worker``) with a time
+limit; a SolveFailedError, any other error and a timeout count as failures and are
+reported with their reason.  Wall time is measured in the worker around
+``estimate_runs_3d`` (NLP construction and every restart included; Python start-up and
+imports not).
+
+Printed per seed: Chamfer distance (mm, the placed shapes over time, as ``tacest eval``),
+relative errors of mass and of ground and finger friction, wall time, recording duration,
+and the starts tried (label, objective, physics terms per sample).  Then the medians over
+the successful runs, the failures, and the targets with PASS / FAIL (as the 2-D box case
+of bench_estimate.py): median Chamfer <= 3 mm, median mass and friction errors <= 15 %;
+a target counts as met only if no run failed.  Wall time / recording duration is printed,
+not targeted (3-D restarts solve up to 1 + solver3d.restarts NLPs).
+The exit status is 0 whether or not the targets are met (1 only for bad arguments).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGET_CHAMFER = 3e-3  # m
+TARGET_REL = 0.15
+REL_KEYS = ("mass_rel", "friction_ground_rel", "friction_finger_rel")
+
+
+def worker(run_path: str) -> dict:
+    """Estimate one 3-D run file and score it against its truth; never raises."""
+    from tacest.errors import TacestError
+    from tacest.estimation.estimator3d import estimate_runs_3d
+    from tacest.evaluation.metrics import evaluate, match_run
+    from tacest.io.h5util import sha256_file
+    from tacest.io.run import read_run
+
+    out = {"ok": False, "status": "", "error": "", "wall": math.nan}
+    run = read_run(run_path)
+    out["samples"] = run.n_samples
+    out["duration"] = run.n_samples * run.dt
+    t0 = time.perf_counter()
+    try:
+        est = estimate_runs_3d([run], "box")
+    except TacestError as exc:
+        out["wall"] = time.perf_counter() - t0
+        m = re.search(r": (\w+) after \d+ iterations", str(exc))
+        out["status"] = type(exc).__name__ + (f" ({m.group(1)})" if m else "")
+        out["error"] = str(exc)
+        return out
+    except Exception as exc:  # noqa: BLE001 - a crash is a failure to report, not to hide
+        out["wall"] = time.perf_counter() - t0
+        out["status"] = f"crash: {type(exc).__name__}"
+        out["error"] = str(exc)
+        return out
+    out["wall"] = time.perf_counter() - t0
+    out.update(ok=bool(est.success), status=str(est.solver_status), iterations=int(est.iterations),
+               objective=float(est.objective), starts=json.loads(est.extra_attrs.get("starts", "[]")))
+    if not est.success:
+        out["error"] = "estimate returned without success"
+        return out
+    idx, _ = match_run(est, run, truth_sha256=sha256_file(run_path))
+    rep = evaluate(est, run, idx)
+    for k in ("chamfer", "chamfer_body", "pose_position_rmse", "pose_angle_rmse", *REL_KEYS):
+        v = rep[k]
+        out[k] = None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
+    return out
+
+
+def run_job(run_path: Path, timeout: float) -> dict:
+    """The worker in a subprocess with a time limit (killed when it runs over)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path)]
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"ok": False, "status": "timeout", "error": f"no result within {timeout:.0f} s",
+                "wall": time.perf_counter() - t0}
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        return {"ok": False, "status": f"worker exit {proc.returncode}", "error": tail,
+                "wall": time.perf_counter() - t0}
+    return json.loads(lines[-1])
+
+
+def record(seed: int, pokes: int, directory: Path) -> Path:
+    """Record the 3-D poke run of ``seed`` (as ``tacest record --source sim --dim 3
+    --object box --pokes N --seed S``)."""
+    from tacest.io.run import write_run
+    from tacest.sim.record import SimOptions, record_sim
+
+    path = directory / f"pokes3d_{seed}.h5"
+    write_run(record_sim(SimOptions(dim=3, object_spec="box", pokes=pokes, seed=seed)), path)
+    return path
+
+
+def _median(values):
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return float(np.median(vals)) if vals else math.nan
+
+
+def _fmt(v, scale=1.0, digits=1, pct=False):
+    if v is None or not np.isfinite(v):
+        return "-"
+    return f"{100 * v:.{digits}f} %" if pct else f"{v * scale:.{digits}f}"
+
+
+def _starts(j) -> str:
+    parts = []
+    for a in j.get("starts", []):
+        if a.get("status") == "failed":
+            parts.append(f"{a['start']}: failed")
+        else:
+            parts.append(f"{a['start']}: obj {a['objective']:.0f}, phys {a['physics_per_sample']:.3f}")
+    return "; ".join(parts)
+
+
+def summarize(jobs: list[dict]) -> dict:
+    good = [j for j in jobs if j.get("ok")]
+    s = {"runs": len(jobs), "failures": len(jobs) - len(good),
+         "failure_reasons": sorted({j["status"] for j in jobs if not j.get("ok")}),
+         "chamfer": _median([j.get("chamfer") for j in good]),
+         "wall": _median([j.get("wall") for j in jobs if np.isfinite(j.get("wall", math.nan))]),
+         "duration": _median([j.get("duration") for j in jobs if j.get("duration")]),
+         "realtime_ratio": _median([j["wall"] / j["duration"] for j in jobs
+                                    if j.get("duration") and np.isfinite(j.get("wall", math.nan))])}
+    for k in REL_KEYS:
+        s[k] = _median([j.get(k) for j in good])
+    no_fail = s["failures"] == 0
+    targets = [(f"median chamfer <= {TARGET_CHAMFER * 1e3:.0f} mm", f"{_fmt(s['chamfer'], 1e3, 2)} mm",
+                no_fail and s["chamfer"] <= TARGET_CHAMFER)]
+    for k in REL_KEYS:
+        targets.append((f"median {k} <= {TARGET_REL:.0%}", _fmt(s[k], pct=True), no_fail and s[k] <= TARGET_REL))
+    s["targets"] = [{"target": t, "value": v, "met": bool(m)} for t, v, m in targets]
+    return s
+
+
+def print_results(jobs: list[dict], s: dict):
+    head = (f"{'seed':>4s} {'chamfer mm':>10s} {'mass':>8s} {'mu_gnd':>8s} {'mu_fgr':>8s} {'wall s':>7s} "
+            f"{'rec s':>6s}  starts (objective, physics terms per sample)")
+    print(head)
+    print("-" * len(head))
+    for j in jobs:
+        if j.get("ok"):
+            print(f"{j['seed']:4d} {_fmt(j.get('chamfer'), 1e3, 2):>10s} {_fmt(j.get('mass_rel'), pct=True):>8s} "
+                  f"{_fmt(j.get('friction_ground_rel'), pct=True):>8s} "
+                  f"{_fmt(j.get('friction_finger_rel'), pct=True):>8s} {_fmt(j['wall']):>7s} "
+                  f"{_fmt(j.get('duration')):>6s}  {_starts(j)}")
+        else:
+            print(f"{j['seed']:4d} FAILED ({j['status']}): {j['error']} [{_fmt(j['wall'])} s]")
+    print("-" * len(head))
+    print(f"{'med':>4s} {_fmt(s['chamfer'], 1e3, 2):>10s} {_fmt(s['mass_rel'], pct=True):>8s} "
+          f"{_fmt(s['friction_ground_rel'], pct=True):>8s} {_fmt(s['friction_finger_rel'], pct=True):>8s} "
+          f"{_fmt(s['wall']):>7s} {_fmt(s['duration']):>6s}  wall/rec x{_fmt(s['realtime_ratio'], digits=2)}; "
+          f"failures {s['failures']} of {s['runs']}")
+    print()
+    print("targets (medians over successful runs; any failure fails the target):")
+    for t in s["targets"]:
+        print(f"  {'PASS' if t['met'] else 'FAIL'}  {t['target']:36s} (measured {t['value']})")
+    if s["failures"]:
+        print(f"  failures: {s['failures']} of {s['runs']} ({'; '.join(s['failure_reasons'])})")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, default=10, help="number of seeds (default 10)")
+    p.add_argument("--first", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--pokes", type=int, default=6, help="pokes per recording (default 6)")
+    p.add_argument("--timeout", type=float, default=900.0, help="s per estimate (default 900)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write all figures to this JSON file")
+    p.add_argument("--quiet", action="store_true", help="only the tables")
+    p.add_argument("--worker", nargs=1, metavar="RUN", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.worker:
+        print(json.dumps(_plain(worker(a.worker[0]))))
+        return 0
+    if a.seeds < 1 or a.pokes < 1:
+        p.error("--seeds and --pokes must be >= 1")
+
+    def say(msg):
+        if not a.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    say(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (other work slows the wall clock)")
+    jobs = []
+    t_all = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench_estimate3d_") as tmp:
+        for seed in range(a.first, a.first + a.seeds):
+            j = run_job(record(seed, a.pokes, Path(tmp)), a.timeout)
+            j["seed"] = seed
+            jobs.append(j)
+            if j.get("ok"):
+                say(f"[pokes3d seed {seed}] {j['status']}: chamfer {1e3 * j['chamfer']:.2f} mm, "
+                    f"wall {j['wall']:.1f} s for {j['duration']:.1f} s recorded; {_starts(j)}")
+            else:
+                say(f"[pokes3d seed {seed}] FAILED ({j['status']}): {j['error']} [{j['wall']:.1f} s]")
+    say(f"benchmark took {time.perf_counter() - t_all:.0f} s; load average now {os.getloadavg()[0]:.2f}")
+    s = summarize(jobs)
+    print_results(jobs, s)
+    if a.json_out:
+        Path(a.json_out).write_text(json.dumps(_plain({"seeds": list(range(a.first, a.first + a.seeds)),
+                                                       "pokes": a.pokes, "jobs": jobs, "summary": s}), indent=1))
+    return 0
+
+
+def _plain(v):
+    """JSON-safe copy: NaN and inf become null, numpy scalars Python numbers."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, (np.floating, np.integer)):
+        v = v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+if __name__ == "__main__":
+    sys.exit(main())

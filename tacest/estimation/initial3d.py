@@ -1,0 +1,281 @@
+"""Starting points of the 3-D estimator for runs without pose observations.
+
+Without pose observations the plain start is the object resting at its initial pose for
+the whole run, however far the fingers pushed it; the NLP must then find the pushes
+itself, and from a start far from them it often stops at its iteration limit or in a
+local minimum (a shape floating or sinking to follow the touches).  As in 2-D
+(initial.py) the remedy is a physically plausible start that follows the touches, for a
+few candidate extents:
+
+* the **push tracker**: the object rests on the ground at its initial pose; at every
+  sample where a fingertip in contact would be inside it, it slides along the ground
+  (along the horizontal part of the measured push) just enough to clear the fingertip;
+  its yaw about the up axis follows the measured normals of side touches (a side face's
+  outward normal turns with the object; the face is the one whose normal is nearest);
+  it never tips;
+* the **candidates**: box extents (w, d, h) on a geometric grid, ranked by how well
+  their tracked trajectories agree with the contact flags
+  (:func:`touch_inconsistency_3d`: a touching fingertip should be on the surface, a
+  non-touching one outside), plus the plain resting start; distinct candidates differ
+  by more than :data:`DISTINCT_EXTENT_RATIO` in some extent.
+
+Shapes other than boxes use the box of the same extents for the tracker (their starting
+shape is inscribed in it, :meth:`Shape3D.initial`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tacest.estimation.data import touching
+from tacest.geometry.transforms import quat_to_matrix
+from tacest.io.run import Run
+
+#: |n·up| below which a measured normal counts as a side touch (its horizontal part sets
+#: the push direction and the yaw): 45°, as initial.TOP_TOUCH_COS in 2-D
+SIDE_TOUCH_COS = 0.7
+#: largest slide per sample (m): 5 cm, as in 2-D (a fingertip far inside a wrong shape
+#: is cleared over a few samples instead of throwing the object across the scene)
+MAX_STEP = 0.05
+#: side-touch samples whose yaw estimates are combined by a median (about 0.1 s at
+#: 100 Hz): a single normal at an edge or corner can be off by 10-15°
+YAW_MEDIAN_WINDOW = 9
+#: side-touch samples of one contact before its normals turn the object (0.05 s at
+#: 100 Hz): the first normals of a contact, at an edge or corner, can be off by 10-20°
+YAW_MIN_SAMPLES = 5
+#: largest difference (rad) between a side touch's face yaw and the current yaw for the
+#: touch to turn the object (10°): at a vertical edge the measured normal bisects two
+#: faces and points 20-45° off both; pushes turn a box by a few degrees per poke, and
+#: the median window follows such a turn within a contact
+YAW_ACCEPT = np.radians(10.0)
+#: candidate extents of the starting box, factors of the length scale L (geometric grid;
+#: 0.4-2.0 L covers objects 4-20 cm at L = 10 cm, beyond the prior's usual range)
+EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
+#: relative cost preference per squared log-extent (units of L) breaking ties between
+#: candidate boxes (start_candidates_3d)
+TIE_PREFERENCE = 0.02
+#: two starting boxes are distinct when some extent differs by more than this factor
+#: (about 1.4 grid steps of EXTENT_GRID), as initial.DISTINCT_EXTENT_RATIO in 2-D
+DISTINCT_EXTENT_RATIO = 1.25
+
+
+@dataclass
+class Start3D:
+    """One starting point: box extents (3,) in units of L, and per run the (T, 7) poses
+    [x, y, z m, qw, qx, qy, qz], or None for the plain resting start."""
+
+    extents: np.ndarray
+    poses: list | None
+    label: str
+    inconsistency: float
+
+
+def _frame(up: np.ndarray, R0: np.ndarray):
+    """Horizontal unit vectors (h1, h2) with (h1, h2, up) right-handed; h1 along the
+    body x axis of orientation R0 projected on the ground plane."""
+    up = up / np.linalg.norm(up)
+    h1 = R0[:, 0] - (R0[:, 0] @ up) * up
+    if np.linalg.norm(h1) < 1e-6:
+        h1 = R0[:, 1] - (R0[:, 1] @ up) * up
+    h1 /= np.linalg.norm(h1)
+    return h1, np.cross(up, h1)
+
+
+def _axis_rotation(up: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations by yaw (...) rad about the unit axis up (Rodrigues)."""
+    K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
+    s, c = np.sin(yaw)[..., None, None], np.cos(yaw)[..., None, None]
+    return np.eye(3) + s * K + (1 - c) * (K @ K)
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions [w, x, y, z] of rotations (..., 3, 3) (w >= 0)."""
+    R = np.asarray(R, float)
+    w = np.sqrt(np.maximum(1 + R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2], 0)) / 2
+    x = np.sqrt(np.maximum(1 + R[..., 0, 0] - R[..., 1, 1] - R[..., 2, 2], 0)) / 2
+    y = np.sqrt(np.maximum(1 - R[..., 0, 0] + R[..., 1, 1] - R[..., 2, 2], 0)) / 2
+    z = np.sqrt(np.maximum(1 - R[..., 0, 0] - R[..., 1, 1] + R[..., 2, 2], 0)) / 2
+    x = np.copysign(x, R[..., 2, 1] - R[..., 1, 2])
+    y = np.copysign(y, R[..., 0, 2] - R[..., 2, 0])
+    z = np.copysign(z, R[..., 1, 0] - R[..., 0, 1])
+    q = np.stack([w, x, y, z], -1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def initial_orientation(run: Run) -> np.ndarray:
+    """(3, 3) the orientation at t = 0: the prior's initial pose, else unrotated."""
+    if "initial_pose" in run.prior:
+        q = np.asarray(run.prior["initial_pose"], float)[3:7]
+        return quat_to_matrix(q / np.linalg.norm(q))
+    return np.eye(3)
+
+
+def initial_position(run: Run, extents_m: np.ndarray, R0: np.ndarray) -> np.ndarray:
+    """(N, 3) m: the prior's initial position, else at the origin; for every box of
+    extents (N, 3) m moved along up so that its lowest corner is on the ground."""
+    pos = np.zeros(3)
+    if "initial_pose" in run.prior:
+        pos = np.asarray(run.prior["initial_pose"], float)[:3].copy()
+    up = np.asarray(run.up, float)
+    reach = 0.5 * extents_m @ np.abs(R0.T @ up)  # (N,) support distance downward
+    height = pos @ up - run.ground_height
+    return pos[None] + (reach - height)[:, None] * up[None]
+
+
+def yaw_track(run: Run) -> np.ndarray:
+    """(T,) rad: the yaw about up of the tracked object relative to its initial
+    orientation.  At side touches the outward face normal is the measured normal, so
+    the yaw is the angle of the normal's horizontal part less a multiple of 90° (the
+    face nearest the current yaw), combined over the last :data:`YAW_MEDIAN_WINDOW`
+    side-touch samples of the same contact by a median once there are
+    :data:`YAW_MIN_SAMPLES`; elsewhere it holds."""
+    T = run.n_samples
+    yaw = np.zeros(T)
+    if not run.n_fingers:
+        return yaw
+    up = np.asarray(run.up, float)
+    up = up / np.linalg.norm(up)
+    h1, h2 = _frame(up, initial_orientation(run))
+    on = touching(run) & np.all(np.isfinite(run.normal), axis=-1)
+    cur = 0.0
+    recent: dict[int, list] = {}
+    for t in range(T):
+        for f in range(run.n_fingers):
+            if not on[t, f]:
+                recent.pop(f, None)
+                continue
+            n = run.normal[t, f]
+            if abs(n @ up) >= SIDE_TOUCH_COS:
+                continue
+            a = float(np.arctan2(n @ h2, n @ h1))
+            psi = a - np.round((a - cur) / (np.pi / 2)) * (np.pi / 2)  # the face nearest the current yaw
+            if abs(psi - cur) > YAW_ACCEPT:
+                continue  # an edge or corner touch
+            buf = recent.setdefault(f, [])
+            buf.append(psi)
+            del buf[:-YAW_MEDIAN_WINDOW]
+            if len(buf) >= YAW_MIN_SAMPLES:
+                cur = float(np.median(buf))
+        yaw[t] = cur
+    return yaw
+
+
+def _box_signed_distance(p: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Signed distance (m) of body-frame points p (..., 3) to boxes of half extents
+    half (..., 3) m (negative inside)."""
+    q = np.abs(p) - half
+    return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(np.max(q, axis=-1), 0)
+
+
+def push_tracker_3d(run: Run, extents_m: np.ndarray) -> np.ndarray:
+    """(N, T, 7) poses of N boxes of extents (N, 3) m, each at rest at its initial pose
+    (:func:`initial_position`), turned by :func:`yaw_track` and slid along the ground
+    whenever a touching fingertip would be inside it, just enough to clear it;
+    vectorized over the boxes, sequential in time."""
+    extents_m = np.atleast_2d(np.asarray(extents_m, float))
+    N, T = extents_m.shape[0], run.n_samples
+    up = np.asarray(run.up, float)
+    up = up / np.linalg.norm(up)
+    R0 = initial_orientation(run)
+    Rt = _axis_rotation(up, yaw_track(run)) @ R0  # (T, 3, 3), shared by all boxes
+    cur = initial_position(run, extents_m, R0)  # (N, 3)
+    half = 0.5 * extents_m
+    pos = np.zeros((N, T, 3))
+    on = (touching(run) & np.all(np.isfinite(run.normal), axis=-1)) if run.n_fingers else np.zeros((T, 0), bool)
+    for t in range(T):
+        for f in np.nonzero(on[t])[0]:
+            n = run.normal[t, f]
+            push = -(n - (n @ up) * up)  # horizontal part of the push on the object
+            size = np.linalg.norm(push)
+            if abs(n @ up) >= SIDE_TOUCH_COS or size < 1e-9:
+                continue  # mostly from above: the tracker does not slide the object
+            c = run.finger_position[t, f]
+            gap = _box_signed_distance((c[None] - cur) @ Rt[t], half) - run.finger_radius[f]
+            step = np.where(gap < 0, np.minimum(-gap / size, MAX_STEP), 0.0)
+            cur = cur + step[:, None] * (push / size)[None]
+        pos[:, t] = cur
+    q = np.repeat(_quat_from_matrix(Rt)[None], N, 0)
+    return np.concatenate([pos, q], -1)
+
+
+def resting_poses(run: Run, extents_m: np.ndarray) -> np.ndarray:
+    """(N, T, 7) the boxes of extents (N, 3) m resting at their initial poses throughout."""
+    extents_m = np.atleast_2d(np.asarray(extents_m, float))
+    R0 = initial_orientation(run)
+    pos = initial_position(run, extents_m, R0)
+    q = _quat_from_matrix(R0)
+    pose = np.concatenate([pos, np.repeat(q[None], len(pos), 0)], 1)
+    return np.repeat(pose[:, None], run.n_samples, 1)
+
+
+def finger_gaps_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(N, T, F) m: gap between each fingertip sphere and each box of extents (N, 3) m
+    placed at poses (N, T, 7)."""
+    N, T, F = poses.shape[0], run.n_samples, run.n_fingers
+    if not F:
+        return np.zeros((N, T, 0))
+    R = quat_to_matrix(poses[..., 3:].reshape(-1, 4)).reshape(N, T, 3, 3)
+    rel = run.finger_position[None] - poses[:, :, None, :3]  # (N, T, F, 3) world
+    p_body = np.einsum("ntji,ntfj->ntfi", R, rel)
+    sd = _box_signed_distance(p_body, 0.5 * np.asarray(extents_m, float)[:, None, None, :])
+    return np.where(np.isfinite(sd), sd, 0.0) - run.finger_radius[None, None, :]
+
+
+def touch_inconsistency_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(N,) m²: how badly each of N boxes (N, 3) m moved along its poses (N, T, 7)
+    disagrees with the contact flags: the sum over samples of max(gap, 0)² where a
+    fingertip touched and min(gap, 0)² where it did not (and its data arrived)."""
+    if not run.n_fingers:
+        return np.zeros(len(poses))
+    gaps = finger_gaps_3d(run, extents_m, poses)
+    valid = ~run.finger_missing_mask
+    on = touching(run)
+    off = ~run.contact.astype(bool) & valid
+    return np.sum(np.where(on[None], np.maximum(gaps, 0), 0) ** 2, axis=(1, 2)) \
+        + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
+
+
+def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, n: int = 1) -> list[Start3D]:
+    """Up to n distinct starts, best first, by :func:`touch_inconsistency_3d` summed over
+    the runs: push-tracked boxes of extents on :data:`EXTENT_GRID`³ (units of L) and the
+    plain resting start of extents ``resting_extents`` (3,) (units of L).  Each later
+    start's extents differ from every earlier one's by more than
+    :data:`DISTINCT_EXTENT_RATIO` in some extent, or it is the resting start (the other
+    kind of trajectory), so that a restart explores another basin.  With n > 1 the
+    resting start is among them (last, if its cost does not rank it higher)."""
+    g = EXTENT_GRID
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    cost = np.zeros(len(grid))
+    tracked = []
+    for run in runs:
+        P = push_tracker_3d(run, grid * L)
+        cost += touch_inconsistency_3d(run, grid * L, P)
+        tracked.append(P)
+    rest = np.asarray(resting_extents, float)
+    rest_cost = sum(float(touch_inconsistency_3d(run, rest[None] * L, resting_poses(run, rest[None] * L))[0])
+                    for run in runs)
+    # ties (an extent no two-sided touch measured leaves the cost unchanged) go to the
+    # box nearest the cube of size L: a relative preference of TIE_PREFERENCE per
+    # squared log-extent, 1 % at twice or half L, far below the cost steps between grid
+    # points that the touches do measure
+    all_ext = np.concatenate([rest[None], grid])
+    all_cost = np.concatenate([[rest_cost], cost])
+    order = np.argsort(all_cost * (1 + TIE_PREFERENCE * np.sum(np.log(all_ext) ** 2, axis=1)), kind="stable")
+    picked: list[Start3D] = []
+    for k in order:
+        if k == 0:
+            cand = Start3D(rest, None, "resting", rest_cost)
+        else:
+            e = grid[k - 1]
+            if any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(DISTINCT_EXTENT_RATIO)
+                   for p in picked):
+                continue
+            cand = Start3D(e.copy(), [P[k - 1] for P in tracked], "push-tracked", float(cost[k - 1]))
+        picked.append(cand)
+        if len(picked) == n:
+            break
+    if n > 1 and all(p.poses is not None for p in picked):  # the plain start is always tried
+        picked[-1] = Start3D(rest, None, "resting", rest_cost)
+    return picked

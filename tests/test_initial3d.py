@@ -1,0 +1,165 @@
+"""Starts of the 3-D estimator without pose observations (initial3d.py) and its restarts
+(Estimator3D.solve): synthetic pushes, no NLP built, quick."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tacest.errors import SolveFailedError
+from tacest.estimation import estimator3d
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.initial3d import (EXTENT_GRID, Start3D, finger_gaps_3d, push_tracker_3d, start_candidates_3d,
+                                         touch_inconsistency_3d, yaw_track)
+from tacest.estimation.solver import SolveOutcome
+from tacest.io.run import Run
+
+DT = 0.01
+RADIUS = 0.01  # m, fingertip radius
+BOX = np.array([0.12, 0.08, 0.06])  # m, extents of the pushed box
+
+
+def _push_run(yaw_deg: float = 0.0, edge_normal: bool = False) -> Run:
+    """A fingertip approaching the box (at rest at the origin) along +x at mid-height,
+    touching its -x face and pushing it 4 cm at 2 cm/s, then leaving.  The measured
+    normal is the -x face's outward normal turned by yaw_deg about z (the object's yaw
+    while pushed); with edge_normal, the first 5 touching samples report an edge normal
+    at 45°, as a touch at a vertical edge does."""
+    T = 400
+    x_face = -BOX[0] / 2 - RADIUS  # the fingertip centre when touching the unmoved face
+    x = np.full(T, x_face - 0.03)
+    approach = np.arange(50, 100)
+    x[approach] = np.linspace(x_face - 0.03, x_face, len(approach))
+    push = np.arange(100, 300)
+    x[push] = x_face + 0.02 * DT * (push - 100)  # 2 cm/s for 2 s: 4 cm
+    x[300:] = x[299] - 0.01
+    contact = np.zeros((T, 1), np.uint8)
+    contact[push] = 1
+    a = np.radians(180.0 + yaw_deg)
+    normal = np.full((T, 1, 3), np.nan)
+    normal[push, 0] = [np.cos(a), np.sin(a), 0.0]
+    if edge_normal:
+        normal[100:105, 0] = [np.cos(np.radians(225)), np.sin(np.radians(225)), 0.0]
+    fp = np.stack([x, np.zeros(T), np.full(T, BOX[2] / 2)], 1)[:, None, :]
+    force = np.zeros((T, 1, 3))
+    force[push, 0, 0] = 2.0
+    return Run(dim=3, dt=DT, time=np.arange(T) * DT, gravity=np.array([0.0, 0.0, -9.81]), source="test",
+               finger_position=fp, finger_radius=np.array([RADIUS]), contact=contact, force=force, normal=normal)
+
+
+def test_the_tracked_box_follows_the_push_and_the_finger_is_never_deep_inside():
+    run = _push_run()
+    poses = push_tracker_3d(run, BOX[None])[0]  # (T, 7)
+    # resting on the ground (its centre half a height up), never tipped
+    np.testing.assert_allclose(poses[:, 2], BOX[2] / 2, atol=1e-12)
+    np.testing.assert_allclose(poses[:, 3], 1.0, atol=1e-12)
+    # pushed 4 cm along +x within 1 mm (the tracker clears the fingertip one sample
+    # late: at most one sample's 0.2 mm of travel behind), no sideways drift
+    assert poses[0, 0] == 0.0
+    assert poses[-1, 0] == pytest.approx(0.04, abs=1e-3)
+    np.testing.assert_allclose(poses[:, 1], 0.0, atol=1e-12)
+    gaps = finger_gaps_3d(run, BOX[None], poses[None])[0, :, 0]
+    # the fingertip is never deeper than 1e-9 m (rounding) after the tracker's step:
+    # the tracker moves within the sample the finger arrives
+    assert gaps.min() > -1e-9
+    # the untracked resting box would have the finger 4 cm inside: the tracker is what fixes it
+    rest = np.repeat(poses[:1], run.n_samples, 0)
+    assert finger_gaps_3d(run, BOX[None], rest[None])[0, :, 0].min() < -0.03
+
+
+def test_the_yaw_follows_side_normals_and_ignores_an_edge_touch():
+    turned = yaw_track(_push_run(yaw_deg=6.0))
+    # the normals say 6°: the tracked yaw is 6° once YAW_MIN_SAMPLES touches agree
+    assert np.degrees(turned[-1]) == pytest.approx(6.0, abs=1e-9)
+    assert turned[0] == 0.0
+    # 5 edge normals at 45° (beyond YAW_ACCEPT = 10° of the current yaw) do not turn it
+    edge = yaw_track(_push_run(yaw_deg=0.0, edge_normal=True))
+    assert np.max(np.abs(np.degrees(edge))) < 1e-9
+    # the tracked quaternion is the yaw about z
+    q = push_tracker_3d(_push_run(yaw_deg=6.0), BOX[None])[0, -1, 3:]
+    np.testing.assert_allclose(q, [np.cos(np.radians(3.0)), 0, 0, np.sin(np.radians(3.0))], atol=1e-12)
+
+
+def test_candidates_rank_the_touched_width_and_include_the_resting_start():
+    run = _push_run()
+    L = 0.1
+    starts = start_candidates_3d([run], L, np.ones(3), 3)
+    assert len(starts) == 3
+    assert starts[-1].label == "resting" and starts[-1].poses is None
+    assert starts[0].label == "push-tracked"
+    # the box rests at the origin and the finger first touches its -x face: a narrower
+    # box leaves the finger outside while it touches, a wider one puts it inside before
+    # (the tracker only pushes touching fingers); the best width is the true one within
+    # one step of the grid (a factor 2.0 / 0.4 over 10 steps, 17.5 %)
+    best = starts[0]
+    step = (EXTENT_GRID[1] / EXTENT_GRID[0])
+    assert abs(np.log(best.extents[0] * L / BOX[0])) < np.log(step)
+    # and keeps the touching finger on its surface within half a grid step of the width
+    # (the face offset of a width off by a fraction of a step), 0.1 m x 17.5 % / 2 ≈ 9 mm
+    gaps = finger_gaps_3d(run, best.extents[None] * L, best.poses[0][None])[0, :, 0]
+    assert np.all(np.abs(gaps[run.contact[:, 0] == 1]) < 0.5 * (step - 1) * L)
+    # a clearly wrong box costs more
+    wrong = np.array([[0.05, 0.08, 0.06]])
+    assert touch_inconsistency_3d(run, wrong, push_tracker_3d(run, wrong))[0] > 10 * best.inconsistency + 1e-6
+
+
+class _FakeProblem:
+    n_shape = 3
+
+
+def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
+    """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
+    ``outcomes`` in turn (None: the solve fails)."""
+    est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
+    cfg = EstimatorConfig()
+    cfg.solver3d.restart_physics = restart_physics
+    cfg.solver3d.restarts = restarts
+    est.config, est.echo, est.problem = cfg, lambda *_: None, _FakeProblem()
+    est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
+    est.shape = estimator3d.make_shape_3d("box")
+    est.scales = type("S", (), {"L": 0.1})()
+    est.start_tracks, est.attempts = None, []
+    starts = [Start3D(np.full(3, 1.0 + 0.3 * k), [np.zeros((400, 7))], f"start {k}", float(k)) for k in range(3)]
+    monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: starts[:n])
+    calls = []
+
+    def solve_from(s0):
+        k = len(calls)
+        calls.append(np.asarray(s0, float))
+        assert est.start_tracks is starts[k].poses  # the start's trajectory is used
+        if outcomes[k] is None:
+            raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1': Maximum_Iterations_Exceeded")
+        obj, phys = outcomes[k]
+        est.p_final, est.bounds_final = ("p", k), ("b", k)
+        return SolveOutcome(z=np.array([obj, phys]), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded",
+                            success=True, iterations=1, wall_time=0.0, objective=obj, stages=[])
+
+    monkeypatch.setattr(est, "_solve_from", solve_from)
+    monkeypatch.setattr(est, "physics_per_sample", lambda z: float(z[1]))
+    return est, calls
+
+
+def test_restart_keeps_the_successful_fit_of_lowest_objective(monkeypatch):
+    # start 0 violates its physics, start 1 fails, start 2 violates too but has the lower objective
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.5), None, (30.0, 0.3)])
+    out = est.solve()
+    assert len(calls) == 3
+    assert out.objective == 30.0 and est.p_final == ("p", 2) and est.bounds_final == ("b", 2)
+    np.testing.assert_allclose(est.s0, calls[2])
+    assert [a["status"] for a in est.attempts] == ["Solve_Succeeded", "failed", "Solve_Succeeded"]
+    assert est.start_tracks is None
+    # the lower objective wins even when it came first
+    est, calls = _fake_estimator(monkeypatch, [(20.0, 0.5), (40.0, 0.3), (60.0, 0.2)])
+    assert est.solve().objective == 20.0 and len(calls) == 3
+
+
+def test_no_restart_after_a_physically_consistent_fit(monkeypatch):
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), (10.0, 0.01), (5.0, 0.0)])
+    assert est.solve().objective == 50.0 and len(calls) == 1
+
+
+def test_every_start_failing_raises_the_first_failure(monkeypatch):
+    est, calls = _fake_estimator(monkeypatch, [None, None, None])
+    with pytest.raises(SolveFailedError, match="Maximum_Iterations_Exceeded"):
+        est.solve()
+    assert len(calls) == 3 and len(est.attempts) == 3
