@@ -216,6 +216,8 @@ def test_noiseless_tosses_give_back_the_box(tosses):
     # the trajectory follows the (noiseless) observations to well below a millimetre
     pos = np.concatenate([r.pose[:, :3] - t.pose_obs[:, :3] for r, t in zip(est.runs, tosses)])
     assert np.sqrt(np.mean(np.sum(pos ** 2, 1))) < 5e-4
+    # pose-observed runs solve once from their observations: no push-tracked starts
+    assert "starts" not in est.extra_attrs
 
 
 def _augmented_tosses(edge_radius, ground_height):
