@@ -46,14 +46,14 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
-from tacest.information.observed import KINEMATICS_SIGMA, RIDGE, stage_residual_jacobian, start_residual_jacobian
+from tacest.information.observed import (KINEMATICS_SIGMA, schur_information, stage_residual_jacobian,
+                                         start_residual_jacobian)
 from tacest.io.run import Run
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
@@ -619,21 +619,6 @@ class ExpectedInformation:
         Ja = np.concatenate([np.einsum("rnp,pk->nrk", J[:, :, 3:], dphys).reshape(-1, self.n_theta),
                              np.transpose(J[:, :, :3], (1, 0, 2)).reshape(-1, 3)], axis=1)
         return self.to_physical(Ja.T @ Ja, model)
-
-
-def schur_information(Ja: np.ndarray, Jx) -> np.ndarray:
-    """JaᵀJa − JaᵀJx (JxᵀJx + δI)⁻¹ JxᵀJa with observed.py's relative ridge δ."""
-    Jx = sp.csc_matrix(Jx)
-    I_aa = Ja.T @ Ja
-    if Jx.shape[1] == 0:
-        return 0.5 * (I_aa + I_aa.T)
-    I_ax = (Jx.T @ Ja).T  # (n_a, n_x)
-    I_xx = (Jx.T @ Jx).tocsc()
-    ridge = RIDGE * max(float(I_xx.diagonal().max()), 1.0)
-    lu = spla.splu((I_xx + ridge * sp.identity(I_xx.shape[0], format="csc")).tocsc())
-    X = lu.solve(np.ascontiguousarray(I_ax.T))
-    I_s = I_aa - I_ax @ X
-    return 0.5 * (I_s + I_s.T)
 
 
 # ---------------------------------------------------------------------------------

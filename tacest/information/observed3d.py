@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from tacest.estimation.problem3d import PHYS_NAMES_3D
-from tacest.information.observed import RIDGE
+from tacest.information.observed import schur_information
 
 
 def data_jacobian_3d(problem, z, p):
@@ -51,15 +50,7 @@ def observed_information_3d(problem, z, p, lbx, ubx, L, mass):
     is_keep = np.zeros(problem.n_z, bool)
     is_keep[keep] = True
     nuis = np.nonzero(~is_keep & ~fixed)[0]
-    A = J[:, keep]
-    B = J[:, nuis]
-    I_tt = (A.T @ A).toarray()
-    I_tx = (A.T @ B).tocsc()
-    I_xx = (B.T @ B).tocsc()
-    ridge = RIDGE * max(float(I_xx.diagonal().max()), 1.0)
-    lu = spla.splu((I_xx + ridge * sp.identity(I_xx.shape[0], format="csc")).tocsc())
-    I_s = I_tt - I_tx @ lu.solve(I_tx.T.toarray())
-    I_s = 0.5 * (I_s + I_s.T)
+    I_s = schur_information(J[:, keep], J[:, nuis])
     d = np.ones(n_theta)
     d[: problem.n_shape] = 1.0 / L  # scaled shape = physical / L
     d[problem.n_shape] = 1.0 / mass  # d log m / d m
