@@ -11,7 +11,8 @@ few candidate extents:
   sample where a fingertip in contact would be inside it, it slides along the ground
   (along the horizontal part of the measured push) just enough to clear the fingertip;
   its yaw about the up axis follows the measured normals of side touches (a side face's
-  outward normal turns with the object; the face is the one whose normal is nearest);
+  outward normal turns with the object; the face is the one whose normal is nearest;
+  touches at edges and corners are left out);
   it never tips;
 * the **candidates**: box extents (w, d, h) on a geometric grid, ranked by how well
   their tracked trajectories agree with the contact flags
@@ -45,14 +46,29 @@ YAW_MEDIAN_WINDOW = 9
 #: side-touch samples of one contact before its normals turn the object (0.05 s at
 #: 100 Hz): the first normals of a contact, at an edge or corner, can be off by 10-20°
 YAW_MIN_SAMPLES = 5
+#: |n·up| below which a side touch's normal sets the yaw (within 17° of horizontal): at
+#: a top edge or corner (|n·up| 0.3-0.7) its horizontal part is 10° and more off the face
+YAW_TOUCH_COS = 0.3
 #: largest difference (rad) between a side touch's face yaw and the current yaw for the
-#: touch to turn the object (10°): at a vertical edge the measured normal bisects two
-#: faces and points 20-45° off both; pushes turn a box by a few degrees per poke, and
-#: the median window follows such a turn within a contact
-YAW_ACCEPT = np.radians(10.0)
+#: touch to turn the object (6°): at a vertical edge the measured normal bisects two
+#: faces and points 20-45° off both; pushes turn a box by a few degrees per poke,
+#: gradually, and the median window follows such a turn within a contact
+YAW_ACCEPT = np.radians(6.0)
+#: s: width of the centred moving average smoothing the tracked yaw (0.3 s, 31 samples
+#: at 100 Hz).  The median track turns in steps of a few tenths of a degree per sample
+#: (normal noise ~2°), an angular velocity of ~0.5 rad/s noise that the rotational
+#: dynamics cannot explain; IPOPT then ends at its iteration limit or in a poor local
+#: minimum (seed 5 of the simulated pokes: objective 274 unsmoothed, 109 with this
+#: smoothing, 107 at the truth; 0.15 s was not enough)
+YAW_SMOOTH_TIME = 0.3
 #: candidate extents of the starting box, factors of the length scale L (geometric grid;
 #: 0.4-2.0 L covers objects 4-20 cm at L = 10 cm, beyond the prior's usual range)
 EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
+#: factors around a picked grid box tried by the refinement (4.4 % steps over one step
+#: of EXTENT_GRID either way): a box 7 mm too large on a 12 cm object, within one coarse
+#: step, holds the tracked object several mm off the touches, and the fit from it ends
+#: in a poor local minimum (seed 5: objective 931 vs 105 from the true extents)
+EXTENT_REFINE = np.geomspace(1 / 1.19, 1.19, 9)
 #: relative cost preference per squared log-extent (units of L) breaking ties between
 #: candidate boxes (start_candidates_3d)
 TIE_PREFERENCE = 0.02
@@ -130,7 +146,8 @@ def yaw_track(run: Run) -> np.ndarray:
     the yaw is the angle of the normal's horizontal part less a multiple of 90° (the
     face nearest the current yaw), combined over the last :data:`YAW_MEDIAN_WINDOW`
     side-touch samples of the same contact by a median once there are
-    :data:`YAW_MIN_SAMPLES`; elsewhere it holds."""
+    :data:`YAW_MIN_SAMPLES`; elsewhere it holds.  The result is smoothed by a centred
+    moving average of :data:`YAW_SMOOTH_TIME`."""
     T = run.n_samples
     yaw = np.zeros(T)
     if not run.n_fingers:
@@ -147,7 +164,7 @@ def yaw_track(run: Run) -> np.ndarray:
                 recent.pop(f, None)
                 continue
             n = run.normal[t, f]
-            if abs(n @ up) >= SIDE_TOUCH_COS:
+            if abs(n @ up) >= YAW_TOUCH_COS:
                 continue
             a = float(np.arctan2(n @ h2, n @ h1))
             psi = a - np.round((a - cur) / (np.pi / 2)) * (np.pi / 2)  # the face nearest the current yaw
@@ -159,6 +176,10 @@ def yaw_track(run: Run) -> np.ndarray:
             if len(buf) >= YAW_MIN_SAMPLES:
                 cur = float(np.median(buf))
         yaw[t] = cur
+    width = int(round(YAW_SMOOTH_TIME / run.dt)) | 1  # odd: centred
+    if width > 1 and T > 1:
+        pad = np.concatenate([np.full(width // 2, yaw[0]), yaw, np.full(width // 2, yaw[-1])])
+        yaw = np.convolve(pad, np.ones(width) / width, mode="valid")
     return yaw
 
 
@@ -239,7 +260,8 @@ def touch_inconsistency_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -
 
 def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, n: int = 1) -> list[Start3D]:
     """Up to n distinct starts, best first, by :func:`touch_inconsistency_3d` summed over
-    the runs: push-tracked boxes of extents on :data:`EXTENT_GRID`³ (units of L) and the
+    the runs: push-tracked boxes of extents on :data:`EXTENT_GRID`³ (units of L), each
+    picked one refined on the finer grid :data:`EXTENT_REFINE`³ around it, and the
     plain resting start of extents ``resting_extents`` (3,) (units of L).  Each later
     start's extents differ from every earlier one's by more than
     :data:`DISTINCT_EXTENT_RATIO` in some extent, or it is the resting start (the other
@@ -248,31 +270,46 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     g = EXTENT_GRID
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     cost = np.zeros(len(grid))
-    tracked = []
     for run in runs:
-        P = push_tracker_3d(run, grid * L)
-        cost += touch_inconsistency_3d(run, grid * L, P)
-        tracked.append(P)
+        cost += touch_inconsistency_3d(run, grid * L, push_tracker_3d(run, grid * L))
+
+    def cost_key(extents, costs):
+        # ties (an extent no two-sided touch measured leaves the cost unchanged) go to
+        # the box nearest the cube of size L: a relative preference of TIE_PREFERENCE
+        # per squared log-extent, 1 % at twice or half L, far below the cost steps
+        # between grid points that the touches do measure
+        return costs * (1 + TIE_PREFERENCE * np.sum(np.log(extents) ** 2, axis=1))
+
+    def refine(e):
+        """The best box on the finer grid EXTENT_REFINE³ around extents e (3,) (units of L)."""
+        f = EXTENT_REFINE
+        boxes = e * np.stack(np.meshgrid(f, f, f, indexing="ij"), -1).reshape(-1, 3)
+        tracks = [push_tracker_3d(run, boxes * L) for run in runs]
+        c = sum(touch_inconsistency_3d(run, boxes * L, P) for run, P in zip(runs, tracks))
+        k = int(np.argmin(cost_key(boxes, c)))
+        return boxes[k], [P[k] for P in tracks], float(c[k])
+
     rest = np.asarray(resting_extents, float)
     rest_cost = sum(float(touch_inconsistency_3d(run, rest[None] * L, resting_poses(run, rest[None] * L))[0])
                     for run in runs)
-    # ties (an extent no two-sided touch measured leaves the cost unchanged) go to the
-    # box nearest the cube of size L: a relative preference of TIE_PREFERENCE per
-    # squared log-extent, 1 % at twice or half L, far below the cost steps between grid
-    # points that the touches do measure
     all_ext = np.concatenate([rest[None], grid])
     all_cost = np.concatenate([[rest_cost], cost])
-    order = np.argsort(all_cost * (1 + TIE_PREFERENCE * np.sum(np.log(all_ext) ** 2, axis=1)), kind="stable")
+    order = np.argsort(cost_key(all_ext, all_cost), kind="stable")
     picked: list[Start3D] = []
     for k in order:
         if k == 0:
             cand = Start3D(rest, None, "resting", rest_cost)
         else:
-            e = grid[k - 1]
-            if any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(DISTINCT_EXTENT_RATIO)
-                   for p in picked):
+            def close(e):
+                return any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(
+                    DISTINCT_EXTENT_RATIO) for p in picked)
+
+            if close(grid[k - 1]):
                 continue
-            cand = Start3D(e.copy(), [P[k - 1] for P in tracked], "push-tracked", float(cost[k - 1]))
+            box, poses, c = refine(grid[k - 1])
+            if close(box):  # refined into the neighbourhood of an earlier start
+                continue
+            cand = Start3D(box, poses, "push-tracked", c)
         picked.append(cand)
         if len(picked) == n:
             break
