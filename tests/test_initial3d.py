@@ -163,3 +163,13 @@ def test_every_start_failing_raises_the_first_failure(monkeypatch):
     with pytest.raises(SolveFailedError, match="Maximum_Iterations_Exceeded"):
         est.solve()
     assert len(calls) == 3 and len(est.attempts) == 3
+
+
+def test_new_solver3d_keys_are_checked():
+    from tacest.errors import TacestError
+    from tacest.estimation.config import load_config
+
+    for bad in ({"hessian_no_pose": "newton"}, {"homotopy_no_pose": [[0.3, 1.0]]}, {"restarts": -1},
+                {"restart_physics": 0.0}):
+        with pytest.raises(TacestError, match="solver3d"):
+            load_config(overrides={"solver3d": bad})

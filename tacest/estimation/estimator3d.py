@@ -480,7 +480,10 @@ class Estimator3D:
         self.z = self.initial_guess()
         if self.fixed_theta is not None:
             self.z[: pr.n_theta] = self.fixed_theta
-        hom = list(cfg3.homotopy)
+        # runs without pose observations have stages of their own (the pose-observed
+        # path keeps [solver3d] homotopy and hessian)
+        hom = list(cfg3.homotopy if self.has_pose else cfg3.homotopy_no_pose)
+        hessian = cfg3.hessian if self.has_pose else cfg3.hessian_no_pose
         plan = [("impulses", *hom[0], "impulses")] if self.F else []
         for k, (eps, w, wd) in enumerate(hom):
             plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, "all"))
@@ -497,7 +500,7 @@ class Estimator3D:
                 lbx, ubx = self._impulse_only(lbx, ubx, self.z)
             self.z = np.clip(self.z, lbx, ubx)
             final = label == plan[-1][0]
-            mode = cfg3.hessian
+            mode = hessian
             if mode == "gauss-newton-then-exact":
                 mode = "exact" if final and len(hom) > 1 else "gauss-newton"
             sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x, None,
