@@ -841,9 +841,16 @@ class Problem2D:
             "cone": ca.vertcat(*cone) / g[G["sig_comp"]],
             "g_kin": g_kin,
             # diagnostics only (not in the loss): tangential ground impulses (scaled) and
-            # finger impulses on the object (N·s, world)
+            # finger impulses on the object (N·s, world); the ground contacts' geometric
+            # gaps (m) and slip velocities (m/s), the ground friction coefficient and the
+            # object's weight in units of the reference weight (for the active-set rows
+            # of the information, tacest.information.observed)
             "lam_t_ground": lg[K:],
             "imp_finger": ca.vertcat(*imp_finger) if F else ca.SX.zeros(0),
+            "phi_ground": ca.vertcat(*phi),
+            "slip_ground": ca.vertcat(*slip),
+            "mu_ground": mu_g,
+            "weight": mass / g[G["m0"]],
         }
         names = list(outs)
         return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g],

@@ -52,8 +52,8 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
-from tacest.information.observed import (KINEMATICS_SIGMA, schur_information, stage_residual_jacobian,
-                                         start_residual_jacobian)
+from tacest.information.observed import (KINEMATICS_SIGMA, contact_state_function, schur_information,
+                                         stage_active_weights, stage_residual_jacobian, start_residual_jacobian)
 from tacest.io.run import Run
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
@@ -428,6 +428,7 @@ class ExpectedInformation:
             raise TacestError(f"internal: {self.n_lg} ground impulses per interval for {self.K} vertices")
         self.lg_nonneg = np.arange(self.n_lg) < self.K
         self.stage_rj = stage_residual_jacobian(stage)
+        self.contact_state = contact_state_function(stage)
         self.stage_r_lg = ca.Function("stage_r_lg", [qp, vp, q, v, lg, lf, phys, d, g, w],
                                       [ca.densify(r), ca.densify(ca.jacobian(r, lg))])
         # the measurement rows only, for the identity-Jacobian approximation (w.r.t. q, phys)
@@ -482,7 +483,8 @@ class ExpectedInformation:
         args = [Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((self.n_lg, N)), LF,
                 np.repeat(phys[:, None], N, 1), D[:, 1:], np.repeat(g[:, None], N, 1), np.repeat(w[:, None], N, 1)]
         args[4] = LG = self._fit_ground(args, N, model.friction_ground)
-        r, J = self._call(self.stage_rj, N, *args)
+        a = stage_active_weights(lambda *x: self._call(self.contact_state, N, *x), N, args[:9], self.K)
+        r, J = self._call(self.stage_rj, N, *args, a)
         n_r = r.shape[0]
         J = J.reshape(n_r, N, self.n_y)
         r0, J0 = self._call(self.start_rj, 1, Q[:, 0], Vv[:, 0], phys, D[:, 0], g, w)

@@ -17,6 +17,22 @@ quantities ``phys`` are tied to theta by the equality phys = phys(theta): the re
 see theta only through them, so their Jacobian columns are folded into theta's by the
 chain rule, J_θ ← J_θ + J_phys ∂phys/∂θ (:func:`fold_lifted_parameters`), and they are
 not nuisance variables.
+
+Active-set rows.  The estimator's contact laws are relaxed for the solver's sake: a
+loaded vertex may sit within a fraction of a millimetre of the ground at small cost, and
+the maximal-dissipation residual is flat to second order at zero slip (its gradient is
+the friction impulse times the slip).  Linearized there, a resting object is free to
+drift and tilt: on a box at rest after three pokes the final position came out uncertain
+by 4-15 cm, so that every new poke looked as if it first had to find the object again,
+and a touch on an untouched face taught no more than one on a known face.  The
+information is therefore taken on the active set of the fit, as for constrained
+estimation: at every interval, a ground vertex that carries load (normal impulse at least
+:data:`ACTIVE_LOAD_FRACTION` of the object's weight) adds the row gap / sigma_pen (it is
+on the ground, to the tolerated penetration), and one that also sticks (slip below the
+estimator's slip smoothing SLIP_EPS, friction inside :data:`ACTIVE_CONE_FRACTION` of the
+cone) adds slip / SLIP_EPS (it does not move).  The rows carry no weight where the
+contact is open or sliding, so sliding and lift-off stay as the relaxed laws describe
+them.  Their weights are fixed at the linearization point (:func:`active_weights`).
 """
 
 from __future__ import annotations
@@ -26,7 +42,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from tacest.estimation.problem import SQUARED_TERMS, START_TERM_OUTPUTS, TERMS
+from tacest.estimation.problem import SLIP_EPS, SQUARED_TERMS, START_TERM_OUTPUTS, TERMS
 
 #: scaled units (L per second) of the stand-in residual for eq. D2; 1e-4 is far tighter
 #: than any measurement, so it acts as the constraint without dominating the conditioning
@@ -44,18 +60,69 @@ KINEMATICS_SIGMA = 1e-4
 RIDGE = 1e-12
 
 
+#: a ground vertex is in the active set when its normal impulse is at least this
+#: fraction of the object's weight per interval (a box resting on two vertices carries
+#: half on each; a vertex grazing the ground while the object tips carries little)
+ACTIVE_LOAD_FRACTION = 0.05
+#: ... and sticks when its friction impulse is inside this fraction of the cone (at the
+#: cone's edge it is about to slide, which the dissipation residual describes)
+ACTIVE_CONE_FRACTION = 0.95
+
+
+def active_weights(phi, slip, lam_n, lam_t, mu, weight, sig_pen):
+    """(2K, N) weights of the active-set rows (module docstring) of N intervals.
+
+    phi, slip : (K, N) ground gaps (m) and slip velocities (m/s); lam_n, lam_t : (K, N)
+    normal and tangential ground impulses (units of the reference weight m0·g·dt);
+    mu : (N,) ground friction; weight : (N,) the object's weight in those units;
+    sig_pen : (N,) m, the tolerated penetration.  Rows [gap weights (1/m); slip weights
+    (s/m)]; 0 where the vertex is not loaded, or (slip rows) not sticking.
+    """
+    loaded = lam_n >= ACTIVE_LOAD_FRACTION * np.asarray(weight)[None, :]
+    stick = loaded & (np.abs(slip) <= SLIP_EPS) & (np.abs(lam_t) <= ACTIVE_CONE_FRACTION * np.asarray(mu)[None, :] * lam_n)
+    return np.concatenate([loaded / np.asarray(sig_pen)[None, :], stick / SLIP_EPS], axis=0)
+
+
+def contact_state_function(stage):
+    """SX Function (the stage's inputs) -> (phi (K,) m, slip (K,) m/s, mu, weight): what
+    :func:`active_weights` needs besides the impulses."""
+    ins = stage.sx_in()
+    out = dict(zip(stage.name_out(), stage(*ins)))
+    return ca.Function("contact_state", list(ins), [out["phi_ground"], out["slip_ground"], out["mu_ground"],
+                                                    out["weight"]])
+
+
+def stage_active_weights(cstate, N, args, n_k):
+    """(2K, N) :func:`active_weights` of N intervals from the mapped contact-state
+    function ``cstate`` (a callable of the stage's 9 inputs returning (phi, slip, mu,
+    weight) as (K, N), (K, N), (1, N), (1, N) arrays); args : the stage's inputs with
+    the ground impulses (2K, N) at index 4 and the global vector g at index 8."""
+    from tacest.estimation.problem import G
+
+    phi, slip, mu, weight = (np.asarray(a, float) for a in cstate(*args))
+    lg = np.asarray(args[4], float).reshape(2 * n_k, N)
+    g = np.asarray(args[8], float)
+    sig_pen = g[G["sig_pen"]] if g.ndim == 1 else g[G["sig_pen"], :]
+    return active_weights(phi.reshape(n_k, N), slip.reshape(n_k, N), lg[:n_k], lg[n_k:], mu.reshape(N),
+                          weight.reshape(N), np.broadcast_to(sig_pen, (N,)))
+
+
 def stage_residual_jacobian(stage):
-    """SX Function (q_prev, v_prev, q, v, lam_ground, lam_finger, phys, d, g, w) -> (r, J):
-    one interval's whitened residuals (each squared term times sqrt of its weight, then
-    eq. D2 over KINEMATICS_SIGMA) and their dense Jacobian with respect to the interval's
-    local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, phys]."""
+    """SX Function (q_prev, v_prev, q, v, lam_ground, lam_finger, phys, d, g, w, a) ->
+    (r, J): one interval's whitened residuals (each squared term times sqrt of its
+    weight, then eq. D2 over KINEMATICS_SIGMA, then the active-set rows a ⊙ [gaps;
+    slips] with a from :func:`active_weights`) and their dense Jacobian with respect to
+    the interval's local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, phys]."""
     qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
     w = ca.SX.sym("w", len(TERMS))
     out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+    K = out["phi_ground"].shape[0]
+    a = ca.SX.sym("a", 2 * K)
     r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS],
-                   out["g_kin"] / KINEMATICS_SIGMA)
+                   out["g_kin"] / KINEMATICS_SIGMA,
+                   a * ca.vertcat(out["phi_ground"], out["slip_ground"]))
     y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-    return ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w],
+    return ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w, a],
                        [ca.densify(r), ca.densify(ca.jacobian(r, y))])
 
 
@@ -80,6 +147,7 @@ class _ResidualJacobian:
     def __init__(self, problem):
         self.pr = problem
         self.stage_jac = [stage_residual_jacobian(stage) for stage in problem.stage_funs]
+        self.contact_state = [contact_state_function(stage) for stage in problem.stage_funs]
         self.start_jac = [start_residual_jacobian(start) for start in problem.start_funs]
 
     def __call__(self, z, p):
@@ -95,8 +163,9 @@ class _ResidualJacobian:
             g = p[off: off + n_g]
             D = p[off + n_g: off + n_g + n_d].reshape(st.T, -1).T
             Q, V, LG, LF = pr.run_blocks(z, i)
-            r, J = self.stage_jac[i].map(st.T - 1)(Q[:, :-1], V[:, :-1], Q[:, 1:], V[:, 1:], LG, LF, phys,
-                                                   D[:, 1:], g, w)
+            args = (Q[:, :-1], V[:, :-1], Q[:, 1:], V[:, 1:], LG, LF, phys, D[:, 1:], g)
+            a = stage_active_weights(self.contact_state[i].map(st.T - 1), st.T - 1, args, pr.K)
+            r, J = self.stage_jac[i].map(st.T - 1)(*args, w, a)
             r = np.asarray(r)  # (n_r, T-1)
             J = np.asarray(J).reshape(r.shape[0], -1, st.T - 1, order="F")  # (n_r, n_y, T-1)
             idx = pr._stage_indices(i)  # (T-1, n_y)
