@@ -5,7 +5,10 @@ initial trajectory (the pose observations, or the prior's resting pose) → grou
 impulses by non-negative least squares → staged solve (with fingers the contact
 impulses alone, then the stages of ``[solver3d]``, IPOPT) → unscaled trajectories,
 per-sample residuals, observed information → a :class:`tacest.io.estimate.Estimate`
-with dim 3.  See docs/estimation3d.md.
+with dim 3.  Without pose observations (finger pokes) the starts are push-tracked boxes
+of a few extents and the resting box (initial3d.py), with restarts from the others when a
+fit fails or violates its own physics, keeping the fit of lowest objective.
+See docs/estimation3d.md.
 A failed IPOPT solve raises SolveFailedError; nothing is reported as an estimate then.
 
 Without a measured force (e.g. pose-only motion capture of a tossed object) the mass
