@@ -158,9 +158,9 @@ def test_no_restart_after_a_physically_consistent_fit(monkeypatch):
     assert est.solve().objective == 50.0 and len(calls) == 1
 
 
-def test_every_start_failing_raises_the_first_failure(monkeypatch):
+def test_every_start_failing_raises_one_solve_failure(monkeypatch):
     est, calls = _fake_estimator(monkeypatch, [None, None, None])
-    with pytest.raises(SolveFailedError, match="Maximum_Iterations_Exceeded"):
+    with pytest.raises(SolveFailedError, match="no fit from any of 3 starts.*Maximum_Iterations_Exceeded"):
         est.solve()
     assert len(calls) == 3 and len(est.attempts) == 3
 
@@ -173,3 +173,26 @@ def test_new_solver3d_keys_are_checked():
                 {"restart_physics": 0.0}):
         with pytest.raises(TacestError, match="solver3d"):
             load_config(overrides={"solver3d": bad})
+
+
+def test_a_poke_run_whose_every_start_fails_exits_2_without_output(tmp_path):
+    """Through the CLI: IPOPT limited to 2 iterations cannot fit any start; one clear
+    line, exit status 2, no estimate file."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from tacest.io.run import write_run
+
+    write_run(_push_run(), tmp_path / "push.h5")
+    cfg = tmp_path / "few.toml"
+    cfg.write_text("[solver]\nmax_iter = 2\nstage_max_iter = 2\n")
+    out = tmp_path / "est.h5"
+    tacest = str(Path(sys.executable).with_name("tacest"))
+    r = subprocess.run([tacest, "estimate", str(tmp_path / "push.h5"), "--shape", "box", "--config", str(cfg),
+                        "--quiet", "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("tacest: error:"), r.stderr
+    assert "no fit from any of 3 starts" in lines[0] and "Maximum_Iterations_Exceeded" in lines[0]
+    assert not out.exists()

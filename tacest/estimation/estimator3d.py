@@ -452,7 +452,9 @@ class Estimator3D:
             if physics <= cfg3.restart_physics:
                 break
         if best is None:
-            raise failure
+            if len(starts) == 1:
+                raise failure
+            raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {failure}") from None
         out, self.s0, self.p_final, self.bounds_final = best
         self.z = out.z
         return out
