@@ -17,8 +17,9 @@ few candidate extents:
 * the **candidates**: box extents (w, d, h) on a geometric grid, ranked by how well
   their tracked trajectories agree with the contact flags
   (:func:`touch_inconsistency_3d`: a touching fingertip should be on the surface, a
-  non-touching one outside), plus the plain resting start; distinct candidates differ
-  by more than :data:`DISTINCT_EXTENT_RATIO` in some extent.
+  non-touching one outside), each picked box refined on a finer grid around it, plus
+  the plain resting start; distinct candidates differ by more than
+  :data:`DISTINCT_EXTENT_RATIO` in some extent.
 
 Shapes other than boxes use the box of the same extents for the tracker (their starting
 shape is inscribed in it, :meth:`Shape3D.initial`).
@@ -58,8 +59,8 @@ YAW_ACCEPT = np.radians(6.0)
 #: at 100 Hz).  The median track turns in steps of a few tenths of a degree per sample
 #: (normal noise ~2°), an angular velocity of ~0.5 rad/s noise that the rotational
 #: dynamics cannot explain; IPOPT then ends at its iteration limit or in a poor local
-#: minimum (seed 5 of the simulated pokes: objective 274 unsmoothed, 109 with this
-#: smoothing, 107 at the truth; 0.15 s was not enough)
+#: minimum (seed 5 of the simulated pokes, true extents: unsmoothed, the iteration
+#: limit; smoothed over 0.3 s, objective 105, 107 at the truth)
 YAW_SMOOTH_TIME = 0.3
 #: candidate extents of the starting box, factors of the length scale L (geometric grid;
 #: 0.4-2.0 L covers objects 4-20 cm at L = 10 cm, beyond the prior's usual range)
