@@ -258,7 +258,7 @@ class _StandIn:
         self.calls = 0
 
     def fit_local(self, runs, shape, config, warm=None, warm_runs=None, pinned=None, pin="all", echo=None,
-                  information=False, accept_budget=False):
+                  information=False, accept_budget=False, effects=()):
         self.calls += 1
         tr = runs[0].truth
         V = np.asarray(tr.vertices, float)
@@ -326,6 +326,7 @@ def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, 
     among the candidates says that it cannot be excluded (here the stand-in cannot fit
     NLP candidates: force_scale is "unavailable", the caveat holds all the same)."""
     monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
     run = _read(recordings["none"])
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
     assert d.verdict == "none", d.reason
@@ -334,6 +335,7 @@ def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, 
 
 def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkeypatch):
     monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
     run = _read(recordings["none"])
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_bias", "latency")))
     fb = next(c for c in d.effects if c.name == "force_bias")
@@ -358,6 +360,7 @@ def test_nlp_candidates_go_through_the_estimator_when_it_offers_them(recordings,
         return f
 
     monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: True)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
     monkeypatch.setattr(diag_mod, "fit_estimator", fake_fit_estimator)
     run = _read(recordings["none"])
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_scale",)))
@@ -374,6 +377,7 @@ def test_json_schema_and_report_folder(recordings, stand_in, tmp_path, monkeypat
 
     # the stand-in fits through the local back end only: force_bias is then "unavailable"
     monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
 
     from tacest.cli.diagnose import diagnose as cmd
 

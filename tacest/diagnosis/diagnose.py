@@ -43,7 +43,7 @@ import numpy as np
 
 from tacest.diagnosis import candidates as cands
 from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, estimator_supports_effects, fit_estimator,
-                                      fit_local, weighted_objective)
+                                      fit_local, local_supports_effects, weighted_objective)
 from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
 from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
@@ -55,6 +55,11 @@ from tacest.io.estimate import CORE_PARAMS, Estimate
 
 #: smallest share of the plain model's held-out gap a candidate must close to be blamed
 MIN_REDUCTION = 0.2
+#: an effect parameter within this fraction of its range from a hard bound of its
+#: augmentation (problem.NLP_EFFECTS; not the "no effect" end) is "at its bound": the fit
+#: pushed it as far as the augmentation allows, so what it explains is not the effect
+#: within its physical range (1 %: far below any parameter's resolution in the tests)
+BOUND_TOLERANCE = 0.01
 #: appended to a "none" verdict when force_scale was a candidate: a sensor gain is not
 #: identifiable from force-sensing pokes unless the mass is known (every force of the
 #: model scales with the mass, every measured force with the gain: the plain model fits
@@ -144,6 +149,7 @@ class CandidateResult:
     score: float = float("nan")
     folds_improved: int = 0
     folds_compared: int = 0
+    at_bound: list = field(default_factory=list)
     significant: bool = False
     screening: float = 0.0
     wall_time: float = 0.0
@@ -157,6 +163,7 @@ class CandidateResult:
             "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
             "score": _num(self.score), "significant": bool(self.significant),
             "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
+            "at_bound": list(self.at_bound),
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
             "full_objective": _num(self.full_objective), "fits": self.fits, "screening": _num(self.screening),
             "wall_time": _num(self.wall_time),
@@ -284,8 +291,9 @@ class _Context:
         runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
         if self.backend == "estimator":
             return fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=self.echo)
+        extra = {"effects": tuple(effects), "information": True} if effects else {}
         return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
-                         warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True)
+                         warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
 
     def fold_objective(self, fold: Fold, name: str, value, effects, cfit: FitResult) -> tuple:
         """(held-out objective, status text) of one candidate in one fold."""
@@ -303,11 +311,12 @@ class _Context:
             hf = fit_estimator(held, self.shape, self.budget_config, effects=effects,
                                fixed=dataclasses.replace(tf.estimate, runs=warm), echo=_noop, refit_shape=True)
         else:
+            extra = {"effects": tuple(effects)} if effects else {}
             tf = fit_local(train, self.shape, self.budget_config, warm=cfit.estimate,
-                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True)
+                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True, **extra)
             hf = fit_local(held, self.shape, self.budget_config, warm=cfit.estimate,
                            warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.heldout], pinned=tf.theta,
-                           pin="physics", accept_budget=True)
+                           pin="physics", accept_budget=True, **extra)
         status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
         return weighted_objective(hf.estimate, self.config), status
 
@@ -339,7 +348,12 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     names = cands.parse_effect_list(options.effects)
     wanted = [cands.candidate(n, n_vertices=K) for n in names]
     need_nlp = any(c.kind == "nlp" for c in wanted)
-    backend = "estimator" if need_nlp and estimator_supports_effects() else "local"
+    if need_nlp and local_supports_effects():
+        backend = "warm"
+    elif need_nlp and estimator_supports_effects():
+        backend = "estimator"
+    else:
+        backend = "local"
     ctx = _Context(runs, shape, config, options, echo, backend)
 
     # 1. the plain model on all data -------------------------------------------------
@@ -353,7 +367,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         base_est = estimate
     else:
         echo("plain model: fitting all runs")
-        if backend == "estimator":
+        if backend in ("estimator", "warm"):
             base = fit_estimator(runs, shape, config, echo=_noop)
         else:
             base = fit_local(runs, shape, config, accept_budget=True)
@@ -407,7 +421,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                 cres[i].message = (f"not refitted: screening signature {cres[i].screening:.0%} ranked "
                                    f"{rank + 1} of {len(order)} (max_candidates {options.max_candidates})")
     for c in cres:
-        if c.status == "ok" and c.kind == "nlp" and backend != "estimator":
+        if c.status == "ok" and c.kind == "nlp" and backend == "local":
             c.status = "unavailable"
             c.message = ("the estimator has no NLP augmentation for this effect yet "
                          "(estimate_runs takes no effects=/fixed=)")
@@ -537,6 +551,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
                        "wall_time": cfit.wall_time})
         c.params = {k: v for k, v in cfit.estimate.params.items() if k not in CORE_PARAMS and np.ndim(v) == 0}
         c.params_std = {k: float(cfit.estimate.std.get(k, float("nan"))) for k in c.params}
+        c.at_bound = params_at_bound(cfit.theta, effects, K=len(np.asarray(cfit.estimate.vertices)))
         value = None
     c.full_objective = obj
     # held-out comparison on the folds where the plain model's fit succeeded
@@ -571,16 +586,52 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     c.folds_improved = sum(1 for j in common if base_fold[j] - c.heldout[j] > c.penalty * fold_share[j])
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
-    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.reduction)
+    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.reduction, c.at_bound,
+                           c.name)
 
 
-def counts(score, folds_improved, folds_compared, gap_before, reduction) -> bool:
+def params_at_bound(theta, effects, K: int) -> list:
+    """Names (problem order, ``effect.parameter``) of the effect parameters of a scaled
+    theta that sit within BOUND_TOLERANCE of their range from a hard bound that is not
+    their "no effect" value (problem.NLP_EFFECTS); [] without theta or effects."""
+    from tacest.estimation.problem import PHYS_NAMES, effect_parameters
+
+    if theta is None or not effects:
+        return []
+    rows = effect_parameters(tuple(effects), int(K))
+    theta = np.asarray(theta, float)
+    a = len(theta) - len(rows)
+    if a < len(PHYS_NAMES):
+        return []
+    out = []
+    for j, (eff, name, centre, _sigma, lo, hi) in enumerate(rows):
+        u, tol = float(theta[a + j]), BOUND_TOLERANCE * (hi - lo)
+        if (abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol):
+            out.append(f"{eff}.{name}")
+    return out
+
+
+#: candidates whose augmentation is observationally equivalent to the plain model with
+#: other parameter values: a force-sensor gain g is a mass g times the true one (every
+#: force of the model scales with the mass, every measured force with the gain; only
+#: gain x mass is identifiable, docs/diagnosis.md "Identifiability").  Whatever such a
+#: candidate improves comes from the units of the model's own residuals (its physics
+#: residuals are in force units, which a gain above 1 shrinks: on a clean recording the
+#: fitted gain went to 5.9 and the held-out objective to 14 % of the noise floor), not
+#: from the data, so it is fitted and reported but never blamed.
+EQUIVALENT_TO_PLAIN = ("force_scale",)
+
+
+def counts(score, folds_improved, folds_compared, gap_before, reduction, at_bound=(), name=None) -> bool:
     """The verdict rule for one candidate (module doc): score > 0, better than the plain
     model by its share of the penalty in at least half of the folds, a held-out gap above
     the floor, at least MIN_REDUCTION of it closed (the candidate must close a real part
-    of the gap, not a sliver of a large misfit)."""
+    of the gap, not a sliver of a large misfit), and no effect parameter at a hard bound
+    of its augmentation (params_at_bound)."""
     vals = [score, folds_improved, folds_compared, gap_before, reduction]
     if any(v is None or not np.isfinite(float(v)) for v in vals):
+        return False
+    if at_bound or name in EQUIVALENT_TO_PLAIN:
         return False
     return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and gap_before > 0
                 and reduction >= MIN_REDUCTION)

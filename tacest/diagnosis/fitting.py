@@ -59,6 +59,14 @@ def _noop(*_a, **_k):
     pass
 
 
+def local_supports_effects() -> bool:
+    """True when ``ImplicitEstimator`` takes ``effects=`` (the local back end can then fit
+    the NLP augmentations with warm starts)."""
+    from tacest.estimation.estimator import ImplicitEstimator
+
+    return "effects" in inspect.signature(ImplicitEstimator.__init__).parameters
+
+
 def estimator_supports_effects() -> bool:
     """True when ``estimate_runs`` takes ``effects=`` and ``fixed=`` (NLP augmentations)."""
     from tacest.estimation.estimator import estimate_runs
@@ -108,9 +116,14 @@ def _local_estimator_class():
     class LocalEstimator(ImplicitEstimator):
         """ImplicitEstimator with a warm start and optional pinned shared parameters."""
 
-        def __init__(self, runs, shape_spec, config, echo, pinned_theta=None, pin="all"):
+        def __init__(self, runs, shape_spec, config, echo, pinned_theta=None, pin="all", effects=()):
             # its own copy: solve_from may change the ridge of a retry
-            super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo)
+            if effects:
+                super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo,
+                                 effects=tuple(effects))
+            else:
+                super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo)
+            self.effects = tuple(effects)
             self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
             self.pin = pin
             self.z = None
@@ -216,8 +229,11 @@ def _local_estimator_class():
 
 
 def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
-    """Scaled theta [shape s, log(m/m0), log(I/I_uniform), mu_ground, mu_finger] of an
-    estimate (the inverse of the problem's theta -> physical map)."""
+    """Scaled theta [shape s, log(m/m0), log(I/I_uniform), mu_ground, mu_finger, effect
+    parameters] of an estimate (the inverse of the problem's theta -> physical map).
+    Effect parameters the estimate does not have (a plain fit warm-starting an
+    augmented model) start at "no effect" (scaled 0, the centre of every effect's prior,
+    problem.NLP_EFFECTS)."""
     from tacest.geometry.shapes import polygon_area_centroid_j
 
     shape = problem.shape
@@ -233,8 +249,17 @@ def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
     mass = float(estimate.params["mass"])
     inertia = float(estimate.params["inertia"])
     i_uniform = mass * float(J) / float(area)
-    return np.concatenate([s, [np.log(mass / m0), np.log(inertia / i_uniform),
+    core = np.concatenate([s, [np.log(mass / m0), np.log(inertia / i_uniform),
                                float(estimate.params["friction_ground"]), float(estimate.params["friction_finger"])]])
+    n_eff = int(getattr(problem, "n_eff", 0))
+    if not n_eff:
+        return core
+    eff = np.zeros(n_eff)
+    if set(problem.effects) <= set(estimate.model or ()):
+        from tacest.estimation.augment import effect_theta
+
+        eff = effect_theta(problem, estimate.params, L, m0, float(estimate.params["friction_ground"]))
+    return np.concatenate([core, eff])
 
 
 def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
@@ -292,6 +317,11 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
     from tacest.io.h5util import sha256_file
 
     V, mass, inertia, mu_g, mu_f = est.physical(out.z)[:5]
+    params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
+    if model:
+        from tacest.estimation.augment import effect_params
+
+        params.update(effect_params(est.problem, out.z, est.scales.L, est.scales.m0))
     run_ests = []
     for i, run in enumerate(runs):
         pose, vel, imp = est.trajectories(out.z, i)
@@ -304,8 +334,7 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
         from tacest.information.observed import observed_information
 
         info, names, std = observed_information(est, out.z)
-    return Estimate(dim=2, shape=est.shape.name, vertices=V,
-                    params={"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f},
+    return Estimate(dim=2, shape=est.shape.name, vertices=V, params=params,
                     runs=run_ests, model=list(model), solver_status=out.status, success=out.success,
                     iterations=out.iterations, wall_time=out.wall_time, objective=out.objective, information=info,
                     info_names=names, std=std, config=est.config.to_dict(), method="implicit",
@@ -314,7 +343,7 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
 
 def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = None, warm_runs: list = None,
               pinned: np.ndarray = None, pin: str = "all", echo=None, information: bool = False,
-              accept_budget: bool = False) -> FitResult:
+              accept_budget: bool = False, effects=()) -> FitResult:
     """Fit ``runs`` with the local back end (see module docstring).
 
     warm : Estimate whose parameters (and, per run, ``warm_runs[i]`` trajectories) start
@@ -323,7 +352,9 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
         "all"), its shape part only (``pin`` "shape"), or all but the shape (``pin``
         "physics": mass, inertia, frictions, effect parameters);
     accept_budget : keep the last iterate of a final stage that used up its iteration
-        budget (config.solver.max_iter), reporting IPOPT's status (see BUDGET_STATUSES).
+        budget (config.solver.max_iter), reporting IPOPT's status (see BUDGET_STATUSES);
+    effects : NLP augmentations (problem.NLP_EFFECTS) of the fitted model; parameters the
+        warm estimate lacks start at "no effect" (see theta_from_estimate).
     Raises SolveFailedError when IPOPT fails.
     """
     echo = echo or _noop
@@ -331,7 +362,7 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
     cls = _local_estimator_class()
     if pin not in PIN_MODES:
         raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
-    est = cls(runs, shape, config, echo, pinned_theta=pinned, pin=pin)
+    est = cls(runs, shape, config, echo, pinned_theta=pinned, pin=pin, effects=effects)
     notes = []
     warm_given = warm is not None and any(w is not None for w in (warm_runs or []))
     try:
@@ -350,7 +381,7 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
         out = _cold_solve(est, runs, pinned, pin, accept_budget)
     if est.retried:
         notes.append("IPOPT failed to step in a final stage, which was redone once with a larger ridge")
-    estimate = _estimate_of(est, out, runs, [], information)
+    estimate = _estimate_of(est, out, runs, list(effects), information)
     estimate.wall_time = time.perf_counter() - t0
     theta = np.asarray(out.z[: est.problem.n_theta], float).copy()
     return FitResult(estimate=estimate, runs=list(runs), theta=theta, wall_time=estimate.wall_time, backend="local",
