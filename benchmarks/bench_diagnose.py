@@ -1,11 +1,11 @@
 """Benchmark ``tacest diagnose`` on simulated recordings whose effect is hidden from it.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_diagnose.py [--seeds 2] [--effects none,latency,...]
+    nice -n 10 .venv/bin/python benchmarks/bench_diagnose.py [--seeds 2] [--first-seed 0] [--effects none,latency,...]
                                                               [--design effects|random] [--pokes 3] [--tip-pokes 0]
                                                               [--cache DIR] [--timeout 1800]
                                                               [--fit-iterations 150] [--quiet] [--json OUT.json]
 
-For every effect named in SPEC (and ``none``) and seeds 0..N-1 it records a 2-D box with
+For every effect named in SPEC (and ``none``) and seeds FIRST..FIRST+N-1 (``--first-seed``, default 0) it records a 2-D box with
 tacest's simulator and the effect at a random strength, writes it twice (with /truth
 for the benchmark, without it for the diagnosis), and runs ``diagnose`` on the copy
 without truth, every SPEC effect a candidate.
@@ -471,6 +471,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
     ap.add_argument("--effects", default=",".join(SPEC_EFFECTS), help="effects to record (default: all of SPEC)")
     ap.add_argument("--design", choices=("effects", "random"), default="effects",
                     help="effects: fast pokes high on the object, pose observed, effect strengths visible "
@@ -506,7 +508,7 @@ def main(argv=None):
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}; {len(effects)} effects x {args.seeds} seeds, "
           f"{design}; estimator {estimator_fingerprint()}", flush=True)
     results = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         for effect in effects:
             draw = None
             if args.design == "effects":
