@@ -94,8 +94,9 @@ class _BasinStandIn:
         return self._fit(runs, warm, effects)
 
     def fit_estimator(self, runs, shape, config, effects=(), fixed=None, echo=None, refit_shape=False):
-        assert not effects and fixed is None, "the warm back end fits only the plain model with estimate_runs"
-        return self._fit(runs)
+        # the warm back end's cold starts: the plain fit and each candidate's fit to all data
+        assert fixed is None, "the warm back end never holds parameters through estimate_runs"
+        return self._fit(runs, None, effects)
 
 
 def test_a_candidate_is_not_credited_with_the_basin_its_fit_found(clean_run, monkeypatch):

@@ -99,6 +99,7 @@ class DiagnoseOptions:
     fits_per_candidate: int = FITS_PER_CANDIDATE
     max_candidates: Optional[int] = None
     floor: str = "calibrated"
+    cold_starts: bool = True
 
     def validate(self):
         if self.floor not in MODES:
@@ -226,6 +227,7 @@ class Diagnosis:
             "options": {"window": self.options.window, "alpha": self.options.alpha,
                         "max_folds": self.options.max_folds, "fit_iterations": self.options.fit_iterations,
                         "fits_per_candidate": self.options.fits_per_candidate,
+                        "cold_starts": self.options.cold_starts,
                         "max_candidates": self.options.max_candidates, "floor": self.options.floor},
         }
 
@@ -294,8 +296,28 @@ class _Context:
         if self.backend == "estimator":
             return fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=self.echo)
         extra = {"effects": tuple(effects), "information": True} if effects else {}
-        return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
-                         warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
+        if self.backend != "warm" or not self.options.cold_starts:
+            return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
+                             warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
+        # warm back end: the warm start from the plain fit and the estimator's own starts
+        # (estimate_runs, as the plain fit had), the lower objective kept (the plain
+        # model gets the chosen start too: see the control in _fit_candidate)
+        fits, errors = [], []
+        for how in ("warm", "cold"):
+            try:
+                if how == "warm":
+                    f = fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
+                                  warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True,
+                                  **extra)
+                else:
+                    f = fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=_noop)
+                f.notes.append(f"start: {how}")
+                fits.append((weighted_objective(f.estimate, self.config), f))
+            except SolveFailedError as exc:
+                errors.append(exc)
+        if not fits:
+            raise errors[0]
+        return min(fits, key=lambda t: t[0])[1]
 
     def fold_objective(self, fold: Fold, name: str, value, effects, cfit: FitResult) -> tuple:
         """(held-out objective, status text) of one candidate in one fold."""
@@ -525,6 +547,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
                 f = ctx.fit_all(spec.name, value, warm=base)
                 obj = weighted_objective(f.estimate, ctx.config)
                 c.fits.append({"value": value, "objective": obj, "status": f.estimate.solver_status,
+                               "start": _start_of(f),
                                "wall_time": f.wall_time})
                 tried.append((obj, value, f))
                 objectives[value] = obj
@@ -550,10 +573,13 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
             return
         obj = weighted_objective(cfit.estimate, ctx.config)
         c.fits.append({"value": None, "objective": obj, "status": cfit.estimate.solver_status,
+                       "start": _start_of(cfit),
                        "wall_time": cfit.wall_time})
         c.params = {k: v for k, v in cfit.estimate.params.items() if k not in CORE_PARAMS and np.ndim(v) == 0}
         c.params_std = {k: float(cfit.estimate.std.get(k, float("nan"))) for k in c.params}
-        c.at_bound = params_at_bound(cfit.theta, effects, K=len(np.asarray(cfit.estimate.vertices)))
+        K = len(np.asarray(cfit.estimate.vertices))
+        theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, effects, K)
+        c.at_bound = params_at_bound(theta, effects, K=K)
         value = None
     c.full_objective = obj
     # held-out comparison on the folds where the plain model's fit succeeded
@@ -607,6 +633,26 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
                            c.name)
 
 
+def _theta_of_estimate(est: Estimate, effects, K: int):
+    """Scaled theta whose effect block is that of an estimate's effect parameters (the
+    entries before it are zeros: params_at_bound reads the effect block only); None when
+    the estimate lacks the scales or a parameter."""
+    from types import SimpleNamespace
+
+    from tacest.estimation.augment import effect_theta
+    from tacest.estimation.problem import PHYS_NAMES, effect_parameters
+
+    rows = effect_parameters(tuple(effects), int(K))
+    pr = SimpleNamespace(eff_index={f"{e}.{n}": j for j, (e, n, *_) in enumerate(rows)}, n_eff=len(rows), K=int(K))
+    try:
+        L = float(est.extra_attrs["length_scale"])
+        m0 = float(est.extra_attrs["mass_scale"])
+        u = effect_theta(pr, est.params, L, m0, float(est.params["friction_ground"]))
+    except (KeyError, TypeError, ValueError, TacestError):
+        return None
+    return np.concatenate([np.zeros(2 + len(PHYS_NAMES)), u])
+
+
 def params_at_bound(theta, effects, K: int) -> list:
     """Names (problem order, ``effect.parameter``) of the effect parameters of a scaled
     theta that sit within BOUND_TOLERANCE of their range from a hard bound that is not
@@ -652,6 +698,11 @@ def counts(score, folds_improved, folds_compared, gap_before, reduction, at_boun
         return False
     return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and gap_before > 0
                 and reduction >= MIN_REDUCTION)
+
+
+def _start_of(fit: FitResult) -> str:
+    """How a fit to all data started (``warm``, ``cold``), from its notes."""
+    return next((n[7:] for n in fit.notes if n.startswith("start: ")), "warm")
 
 
 def _profile_std(profile, name, best):
