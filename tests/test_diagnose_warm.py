@@ -166,3 +166,29 @@ def test_warm_local_fit_adds_an_effect_from_no_effect():
     assert aug < plain - 3.0, (plain, aug, e)
     assert e > 0.3, (plain, aug, e)
     assert math.isfinite(f.estimate.std.get("restitution.e", math.nan))
+
+
+class _ColdLuckStandIn(_BasinStandIn):
+    """Only the estimator's own start (estimate_runs) of the candidate ``lucky`` finds
+    the lower basin; warm-started fits inherit their start's basin."""
+
+    def fit_local(self, runs, shape, config, warm=None, warm_runs=None, pinned=None, pin="all", echo=None,
+                  information=False, accept_budget=False, effects=()):
+        return self._fit(runs, warm, ())  # the warm start keeps its basin, whatever the effect
+
+
+def test_candidate_fit_keeps_the_better_of_warm_and_cold_starts(clean_run, monkeypatch):
+    s = _ColdLuckStandIn(lucky="linear_drag")
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
+    d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag", "force_bias")))
+    lin = next(c for c in d.effects if c.name == "linear_drag")
+    fb = next(c for c in d.effects if c.name == "force_bias")
+    assert lin.fits[0]["start"] == "cold" and fb.fits[0]["start"] in ("warm", "cold")
+    # the plain model from the cold start lands in the same basin: nothing credited
+    assert abs(lin.improvement) < 1e-9 and d.verdict == "none", d.reason
+    # without cold starts the warm fit is used
+    d2 = diag_mod.diagnose([clean_run], "box",
+                           options=diag_mod.DiagnoseOptions(effects=("linear_drag",), cold_starts=False))
+    assert d2.effects[0].fits[0]["start"] == "warm"
