@@ -309,8 +309,8 @@ class _Context:
                     f = fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
                                   warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True,
                                   **extra)
-                else:
-                    f = fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=_noop)
+                else:  # the plain fit's own budget (the configuration's), as the plain fit had
+                    f = fit_estimator(runs, self.shape, self.config, effects=effects, echo=_noop)
                 f.notes.append(f"start: {how}")
                 fits.append((weighted_objective(f.estimate, self.config), f))
             except SolveFailedError as exc:
