@@ -139,18 +139,26 @@ TIP_ANGLE_DEG = (0.0, 10.0)
 TIP_DEPTH = (0.03, 0.06)
 
 
+def high_poke(rng: np.random.Generator, state, angle_deg, height, depth) -> tuple:
+    """(approach angle rad, target (2,) m, depth m) of a poke from a random side aimed
+    above the centroid of the object of a WorldState: elevation drawn from ``angle_deg``
+    (deg), target height from ``height`` (fractions of the object's height above its
+    centroid), depth from ``depth`` (m)."""
+    world = state.world()
+    c, verts = world.centroid__world(), world.vertices__world()
+    h = float(np.ptp(verts[:, 1]))
+    angle = math.radians(rng.uniform(*angle_deg))
+    if rng.random() < 0.5:
+        angle = math.pi - angle
+    target = c + np.array([0.0, rng.uniform(*height) * h])
+    return angle, target, float(rng.uniform(*depth))
+
+
 def tip_poke(rng: np.random.Generator, state) -> np.ndarray:
     """A tipping poke (POKE_NAMES vector) at the object of a WorldState, from a random side."""
     from tacest.sim.pokes import APPROACH_TIME, CLEARANCE
 
-    world = state.world()
-    c, verts = world.centroid__world(), world.vertices__world()
-    height = float(np.ptp(verts[:, 1]))
-    angle = math.radians(rng.uniform(*TIP_ANGLE_DEG))
-    if rng.random() < 0.5:
-        angle = math.pi - angle
-    target = c + np.array([0.0, rng.uniform(*TIP_HEIGHT) * height])
-    depth = float(rng.uniform(*TIP_DEPTH))
+    angle, target, depth = high_poke(rng, state, TIP_ANGLE_DEG, TIP_HEIGHT, TIP_DEPTH)
     return np.array([0.0, angle, target[0], target[1], depth, (CLEARANCE + depth) / APPROACH_TIME])
 
 
@@ -214,14 +222,7 @@ def effect_poke(rng: np.random.Generator, state) -> np.ndarray:
     """A fast poke high on the object (POKE_NAMES vector) from a random side."""
     from tacest.sim.pokes import CLEARANCE
 
-    world = state.world()
-    c, verts = world.centroid__world(), world.vertices__world()
-    height = float(np.ptp(verts[:, 1]))
-    angle = math.radians(rng.uniform(*EFFECT_POKE_ANGLE_DEG))
-    if rng.random() < 0.5:
-        angle = math.pi - angle
-    target = c + np.array([0.0, rng.uniform(*EFFECT_POKE_HEIGHT) * height])
-    depth = float(rng.uniform(*EFFECT_POKE_DEPTH))
+    angle, target, depth = high_poke(rng, state, EFFECT_POKE_ANGLE_DEG, EFFECT_POKE_HEIGHT, EFFECT_POKE_DEPTH)
     speed = min(1.0, (CLEARANCE + depth) / rng.uniform(*EFFECT_POKE_DURATION))
     return np.array([0.0, angle, target[0], target[1], depth, speed])
 
