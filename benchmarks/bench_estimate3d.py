@@ -8,11 +8,11 @@ random box per seed, one spherical fingertip, 100 Hz, about 9-11 s; fingertip po
 contact flag, normal and force, NO pose observations), estimated as ``box`` with the
 default config (starts of tacest/estimation/initial3d.py, restarts of ``[solver3d]``).
 
-Every estimate runs in its own subprocess (this script with ``--worker``) with a time
-limit; a SolveFailedError, any other error and a timeout count as failures and are
-reported with their reason.  Wall time is measured in the worker around
-``estimate_runs_3d`` (NLP construction and every restart included; Python start-up and
-imports not).
+Every estimate runs in its own subprocess (bench_estimate.py's worker, which hands a 3-D
+run to ``estimate_runs_3d``) with a time limit; a SolveFailedError, any other error and a
+timeout count as failures and are reported with their reason.  Wall time is measured in
+the worker around the estimate (NLP construction and every restart included; Python
+start-up and imports not).
 
 Printed per seed: Chamfer distance (mm, the placed shapes over time, as ``tacest eval``),
 relative errors of mass and of ground and finger friction, wall time, recording duration,
@@ -28,77 +28,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
-import re
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-TARGET_CHAMFER = 3e-3  # m
-TARGET_REL = 0.15
-REL_KEYS = ("mass_rel", "friction_ground_rel", "friction_finger_rel")
-
-
-def worker(run_path: str) -> dict:
-    """Estimate one 3-D run file and score it against its truth; never raises."""
-    from tacest.errors import TacestError
-    from tacest.estimation.estimator3d import estimate_runs_3d
-    from tacest.evaluation.metrics import evaluate, match_run
-    from tacest.io.h5util import sha256_file
-    from tacest.io.run import read_run
-
-    out = {"ok": False, "status": "", "error": "", "wall": math.nan}
-    run = read_run(run_path)
-    out["samples"] = run.n_samples
-    out["duration"] = run.n_samples * run.dt
-    t0 = time.perf_counter()
-    try:
-        est = estimate_runs_3d([run], "box")
-    except TacestError as exc:
-        out["wall"] = time.perf_counter() - t0
-        m = re.search(r": (\w+) after \d+ iterations", str(exc))
-        out["status"] = type(exc).__name__ + (f" ({m.group(1)})" if m else "")
-        out["error"] = str(exc)
-        return out
-    except Exception as exc:  # noqa: BLE001 - a crash is a failure to report, not to hide
-        out["wall"] = time.perf_counter() - t0
-        out["status"] = f"crash: {type(exc).__name__}"
-        out["error"] = str(exc)
-        return out
-    out["wall"] = time.perf_counter() - t0
-    out.update(ok=bool(est.success), status=str(est.solver_status), iterations=int(est.iterations),
-               objective=float(est.objective), starts=json.loads(est.extra_attrs.get("starts", "[]")))
-    if not est.success:
-        out["error"] = "estimate returned without success"
-        return out
-    idx, _ = match_run(est, run, truth_sha256=sha256_file(run_path))
-    rep = evaluate(est, run, idx)
-    for k in ("chamfer", "chamfer_body", "pose_position_rmse", "pose_angle_rmse", *REL_KEYS):
-        v = rep[k]
-        out[k] = None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
-    return out
-
-
-def run_job(run_path: Path, timeout: float) -> dict:
-    """The worker in a subprocess with a time limit (killed when it runs over)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path)]
-    t0 = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"ok": False, "status": "timeout", "error": f"no result within {timeout:.0f} s",
-                "wall": time.perf_counter() - t0}
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-        return {"ok": False, "status": f"worker exit {proc.returncode}", "error": tail,
-                "wall": time.perf_counter() - t0}
-    return json.loads(lines[-1])
+# the sibling script (this folder is on sys.path when a benchmark script runs)
+from bench_estimate import TARGET_CHAMFER, _fmt, accuracy_targets, median_figures, run_job
 
 
 def record(seed: int, pokes: int, directory: Path) -> Path:
@@ -112,17 +49,6 @@ def record(seed: int, pokes: int, directory: Path) -> Path:
     return path
 
 
-def _median(values):
-    vals = [v for v in values if v is not None and np.isfinite(v)]
-    return float(np.median(vals)) if vals else math.nan
-
-
-def _fmt(v, scale=1.0, digits=1, pct=False):
-    if v is None or not np.isfinite(v):
-        return "-"
-    return f"{100 * v:.{digits}f} %" if pct else f"{v * scale:.{digits}f}"
-
-
 def _starts(j) -> str:
     parts = []
     for a in j.get("starts", []):
@@ -134,22 +60,9 @@ def _starts(j) -> str:
 
 
 def summarize(jobs: list[dict]) -> dict:
-    good = [j for j in jobs if j.get("ok")]
-    s = {"runs": len(jobs), "failures": len(jobs) - len(good),
-         "failure_reasons": sorted({j["status"] for j in jobs if not j.get("ok")}),
-         "chamfer": _median([j.get("chamfer") for j in good]),
-         "wall": _median([j.get("wall") for j in jobs if np.isfinite(j.get("wall", math.nan))]),
-         "duration": _median([j.get("duration") for j in jobs if j.get("duration")]),
-         "realtime_ratio": _median([j["wall"] / j["duration"] for j in jobs
-                                    if j.get("duration") and np.isfinite(j.get("wall", math.nan))])}
-    for k in REL_KEYS:
-        s[k] = _median([j.get(k) for j in good])
-    no_fail = s["failures"] == 0
-    targets = [(f"median chamfer <= {TARGET_CHAMFER * 1e3:.0f} mm", f"{_fmt(s['chamfer'], 1e3, 2)} mm",
-                no_fail and s["chamfer"] <= TARGET_CHAMFER)]
-    for k in REL_KEYS:
-        targets.append((f"median {k} <= {TARGET_REL:.0%}", _fmt(s[k], pct=True), no_fail and s[k] <= TARGET_REL))
-    s["targets"] = [{"target": t, "value": v, "met": bool(m)} for t, v, m in targets]
+    s = median_figures(jobs)
+    s["targets"] = [{"target": t, "value": v, "met": bool(m)}
+                    for t, v, m in accuracy_targets(s, TARGET_CHAMFER["box"])]
     return s
 
 
@@ -187,11 +100,7 @@ def main(argv=None) -> int:
     p.add_argument("--timeout", type=float, default=900.0, help="s per estimate (default 900)")
     p.add_argument("--json", dest="json_out", default=None, help="also write all figures to this JSON file")
     p.add_argument("--quiet", action="store_true", help="only the tables")
-    p.add_argument("--worker", nargs=1, metavar="RUN", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
-    if a.worker:
-        print(json.dumps(_plain(worker(a.worker[0]))))
-        return 0
     if a.seeds < 1 or a.pokes < 1:
         p.error("--seeds and --pokes must be >= 1")
 
@@ -204,7 +113,7 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_estimate3d_") as tmp:
         for seed in range(a.first, a.first + a.seeds):
-            j = run_job(record(seed, a.pokes, Path(tmp)), a.timeout)
+            j = run_job(record(seed, a.pokes, Path(tmp)), "box", "implicit", a.timeout)
             j["seed"] = seed
             jobs.append(j)
             if j.get("ok"):
@@ -216,22 +125,11 @@ def main(argv=None) -> int:
     s = summarize(jobs)
     print_results(jobs, s)
     if a.json_out:
-        Path(a.json_out).write_text(json.dumps(_plain({"seeds": list(range(a.first, a.first + a.seeds)),
+        from tacest.evaluation.metrics import to_jsonable
+
+        Path(a.json_out).write_text(json.dumps(to_jsonable({"seeds": list(range(a.first, a.first + a.seeds)),
                                                        "pokes": a.pokes, "jobs": jobs, "summary": s}), indent=1))
     return 0
-
-
-def _plain(v):
-    """JSON-safe copy: NaN and inf become null, numpy scalars Python numbers."""
-    if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        v = v.item()
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 if __name__ == "__main__":
