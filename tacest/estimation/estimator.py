@@ -13,12 +13,13 @@ import time
 import casadi as ca
 import numpy as np
 
-from tacest.errors import SolveFailedError, TacestError
+from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vector, touching
 from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates, start_trajectories
 from tacest.estimation.problem import PHYSICS_TERMS, SQUARED_TERMS, TERMS, RunStructure
-from tacest.estimation.solver import FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver
+from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver,
+                                     solve_from_starts)
 from tacest.geometry.shapes import make_shape
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
@@ -174,30 +175,15 @@ class ImplicitEstimator:
             starts = [self.fixed_theta[: pr.n_shape].copy()]
         else:
             starts = start_shape_candidates(pr, self.runs, self.scales, self.s0, 1 + int(self.config.solver.restarts))
-        best = failure = None
+
+        def solve_one(s0):
+            out = self._solve_from(s0)
+            return out, self.physics_per_sample(out.z), (s0, self.p_final)
+
         self.attempts = []
-        for k, s0 in enumerate(starts):
-            if k:
-                last = self.attempts[-1]
-                self.echo(f"restart {k}/{len(starts) - 1} from another starting shape: the last fit "
-                          + ("failed" if last["status"] == "failed" else
-                             f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
-            try:
-                out = self._solve_from(s0)
-            except SolveFailedError as exc:
-                failure = failure or exc
-                self.attempts.append({"start_shape": np.asarray(s0, float), "status": "failed", "error": str(exc)})
-                continue
-            physics = self.physics_per_sample(out.z)
-            self.attempts.append({"start_shape": np.asarray(s0, float), "status": out.status,
-                                  "objective": float(out.objective), "physics_per_sample": float(physics)})
-            if best is None or out.objective < best[0].objective:
-                best = (out, physics, s0, self.p_final)
-            if physics <= self.config.solver.restart_physics:
-                break
-        if best is None:
-            raise failure
-        out, _, self.s0, self.p_final = best
+        out, (self.s0, self.p_final) = solve_from_starts(
+            [({"start_shape": np.asarray(s0, float)}, s0) for s0 in starts], solve_one,
+            self.config.solver.restart_physics, self.echo, self.attempts)
         self.z = out.z
         return out
 

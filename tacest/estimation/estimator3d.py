@@ -35,7 +35,7 @@ from tacest.estimation.problem import PHYSICS_TERMS
 from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
                                          Problem3D, impulse_variable)
 from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, BuiltSolver, SolveOutcome, StageInfo,
-                                     check_success)
+                                     check_success, solve_from_starts)
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
@@ -425,37 +425,25 @@ class Estimator3D:
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
         self.echo(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
-        best = failure = None
-        for k, c in enumerate(starts):
-            if k:
-                last = self.attempts[-1]
-                self.echo(f"restart {k}/{len(starts) - 1} from another start: the last fit "
-                          + ("failed" if last["status"] == "failed" else
-                             f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+
+        def solve_one(c):
             s0 = self.shape.initial(c.extents)
-            rec = {"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
-                   "touch_inconsistency": float(c.inconsistency)}
             self.start_tracks = c.poses
             try:
                 out = self._solve_from(s0)
-            except SolveFailedError as exc:
-                failure = failure or exc
-                self.attempts.append({**rec, "status": "failed", "error": str(exc)})
-                continue
             finally:
                 self.start_tracks = None
-            physics = self.physics_per_sample(out.z)
-            self.attempts.append({**rec, "status": out.status, "objective": float(out.objective),
-                                  "physics_per_sample": float(physics)})
-            if best is None or out.objective < best[0].objective:
-                best = (out, s0, self.p_final, self.bounds_final)
-            if physics <= cfg3.restart_physics:
-                break
-        if best is None:
+            return out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final)
+
+        records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
+                    "touch_inconsistency": float(c.inconsistency)} for c in starts]
+        try:
+            out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
+                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.echo, self.attempts)
+        except SolveFailedError as first:
             if len(starts) == 1:
-                raise failure
-            raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {failure}") from None
-        out, self.s0, self.p_final, self.bounds_final = best
+                raise
+            raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {first}") from None
         self.z = out.z
         return out
 

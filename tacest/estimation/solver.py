@@ -193,3 +193,44 @@ def check_success(info: StageInfo):
     if info.status not in SUCCESS_STATUSES:
         raise SolveFailedError(f"IPOPT failed in stage {info.name!r}: {info.status} after {info.iterations} "
                                "iterations (no estimate written)")
+
+
+def solve_from_starts(starts: list, solve_one, restart_physics: float, echo, attempts: list) -> tuple:
+    """Solve from each start in turn until a fit is physically consistent; keep the
+    successful fit of lowest objective (the restarts of the 2-D and 3-D estimators).
+
+    starts : list of (record, start): ``record`` a dict describing the start (copied into
+        the attempt's entry), ``start`` what ``solve_one`` takes;
+    solve_one(start) -> (SolveOutcome, physics per sample (objective units), saved):
+        one staged solve; ``saved`` is whatever the caller must restore for that fit;
+        raises SolveFailedError when the solve fails;
+    restart_physics : a fit whose physics per sample is at most this ends the search;
+    attempts : a list that receives one dict per solve (the record with status,
+        objective and physics_per_sample, or status "failed" and error), also when every
+        solve fails.
+
+    Returns (out, saved): the kept fit and its ``saved``.  When no start gives a fit,
+    raises the first start's SolveFailedError (``attempts`` holds every failure).
+    """
+    best = failure = None
+    for k, (record, start) in enumerate(starts):
+        if k:
+            last = attempts[-1]
+            echo(f"restart {k}/{len(starts) - 1} from another start: the last fit "
+                 + ("failed" if last["status"] == "failed" else
+                    f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+        try:
+            out, physics, saved = solve_one(start)
+        except SolveFailedError as exc:
+            failure = failure or exc
+            attempts.append({**record, "status": "failed", "error": str(exc)})
+            continue
+        attempts.append({**record, "status": out.status, "objective": float(out.objective),
+                         "physics_per_sample": float(physics)})
+        if best is None or out.objective < best[0].objective:
+            best = (out, saved)
+        if physics <= restart_physics:
+            break
+    if best is None:
+        raise failure
+    return best
