@@ -146,7 +146,10 @@ class ImplicitEstimator:
 
     # --------------------------------------------------------------------------------
     def impulse_only_bounds(self, lbx, ubx):
-        """Bounds that hold everything but the contact impulses at the current z."""
+        """Bounds that hold everything but the contact impulses at the current z.  (Not
+        the parameters too, even on observed poses: with the noisy observed trajectory
+        held, the dynamics residual of a light object is cheapest, and such a stage
+        ran to the mass bound.)"""
         pr = self.problem
         free = np.zeros(pr.n_z, bool)
         for off in pr.offsets:
@@ -231,12 +234,12 @@ class ImplicitEstimator:
             self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
                       f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
             final = label == plan[-1][0]
-            if final or which == "impulses":
+            if final or info.status in FATAL_STATUSES:
                 check_success(info)
-            elif info.status in FATAL_STATUSES:
-                check_success(info)
-            # an intermediate homotopy stage only prepares the next one: its iterate is
-            # used whether or not IPOPT met its tolerance within the stage's budget
+            # the impulses stage and an intermediate homotopy stage only prepare the next
+            # one: the iterate is used whether or not IPOPT met its tolerance within the
+            # stage's budget (on observed poses, whose noise the impulses cannot follow
+            # exactly, the impulses stage can crawl to its budget)
             self.z = np.asarray(sol["x"]).reshape(-1)
             if which == "all":
                 lam_x = np.asarray(sol["lam_x"]).reshape(-1)

@@ -1,12 +1,14 @@
 """Starting point of the NLP: a consistent object at rest on the ground, pushed along
-quasi-statically by the measured contacts.
+quasi-statically by the measured contacts, or the observed poses where there are any.
 
 DESIGN's pitfall: a plain NLP started from a rough guess converges to nonsense (a box
 twice too long floating in the air).  The start here is physically consistent: the
 lowest face on the ground at t = 0, and at every later sample the object translated
 just enough along the ground that no finger in contact is inside it (a frictionless,
 rotation-free "push tracker").  The NLP then finds rotation, tipping, shape and
-parameters from there.
+parameters from there.  A run with pose observations (``/observations/pose``) starts
+on its observed trajectory instead (missing rows interpolated), which already holds
+the tipping and turning the push tracker cannot know of.
 """
 
 from __future__ import annotations
@@ -73,6 +75,42 @@ def initial_pose(run: Run, width: float, height: float) -> np.ndarray:
         x = along - side * width / 2
     centre = base + 0.5 * height * up + x * horiz
     return np.array([centre[0], centre[1], 0.0])
+
+
+#: fewest observed pose rows for a run to start on its observed trajectory
+MIN_OBSERVED_ROWS = 2
+
+
+#: window (s) of the local quadratic that smooths observed poses for the start: the
+#: velocities of the start are differences of its poses, and at 100 Hz a raw 0.5 mm
+#: position noise gives velocity changes of ~20 process sigmas per sample, which the
+#: solver first removes by making the object light (the dynamics residual scales with
+#: the mass) and then stays in that basin; 0.07 s keeps a tipping fall's shape
+OBSERVED_SMOOTHING_S = 0.07
+
+
+def observed_trajectory(run: Run):
+    """(T, 3) poses [x, y, angle] (m, m, rad) of the run's pose observations, the angle
+    unwrapped, rows that were not observed interpolated linearly (held constant before
+    the first and after the last observed row), then smoothed by a local quadratic over
+    :data:`OBSERVED_SMOOTHING_S`; None without observations or with fewer than
+    :data:`MIN_OBSERVED_ROWS` observed rows."""
+    if run.pose_obs is None:
+        return None
+    ok = np.all(np.isfinite(run.pose_obs), axis=1)
+    if ok.sum() < MIN_OBSERVED_ROWS:
+        return None
+    obs = run.pose_obs[ok].astype(float)
+    obs[:, 2] = np.unwrap(obs[:, 2])
+    t_obs = np.nonzero(ok)[0]
+    t_all = np.arange(run.n_samples)
+    poses = np.stack([np.interp(t_all, t_obs, obs[:, j]) for j in range(3)], axis=1)
+    window = 2 * int(round(OBSERVED_SMOOTHING_S / run.dt / 2)) + 1
+    if window >= 5 and run.n_samples >= window:
+        from scipy.signal import savgol_filter
+
+        poses = savgol_filter(poses, window, 2, axis=0, mode="interp")
+    return poses
 
 
 def _rotations(angles):
@@ -148,22 +186,50 @@ def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray)
         + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
 
 
+#: cap (as a factor of the length scale L) on how far a shape placed on observed poses
+#: may float above the ground in :func:`ground_inconsistency_batch`: floating while the
+#: object flies or falls costs every candidate about the same, so it cannot outweigh
+#: the penetration of a shape that is too large
+FLOAT_CAP_L = 0.5
+
+
+def ground_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray, L: float) -> np.ndarray:
+    """(N,) m²: how badly each of N shapes (N, K, 2) placed on its poses (N, T, 3)
+    disagrees with a ground it rests on: the sum over the observed samples (all samples
+    without observations) of min(φ, 0)² + min(max(φ, 0), FLOAT_CAP_L·L)², φ the height
+    of the lowest vertex above the ground.  Zero for push-tracked poses (they keep the
+    lowest vertex on the ground); for observed poses it measures the extents that the
+    resting and tipping object shows."""
+    R = _rotations(poses[..., 2])  # (N, T, 2, 2)
+    world = np.einsum("ntij,nkj->ntki", R, V_bodies) + poses[:, :, None, :2]
+    phi = np.min(world @ run.up, axis=2) - run.ground_height  # (N, T)
+    cost = np.minimum(phi, 0.0) ** 2 + np.minimum(np.maximum(phi, 0.0), FLOAT_CAP_L * L) ** 2
+    if run.pose_obs is not None:
+        cost = cost * np.all(np.isfinite(run.pose_obs), axis=1)[None]
+    return np.sum(cost, axis=1)
+
+
 def start_shape_candidates(problem, runs: list[Run], scales: Scales, s_guess: np.ndarray,
                            n: int = 1) -> list:
     """Up to n distinct starting shapes (shape parameter vectors), best first: among
     shapes of width × height on :data:`EXTENT_GRID` (and the given guess), ordered by how
-    well their push-tracker trajectories agree with the contact flags
-    (:func:`touch_inconsistency_batch`; touches from both sides of a resting object fix
-    its width, top touches its height).  Each later shape differs from every earlier one
+    well their starting trajectories (push-tracked, or observed) agree with the contact
+    flags (:func:`touch_inconsistency_batch`; touches from both sides of a resting
+    object fix its width, top touches its height) and with the ground
+    (:func:`ground_inconsistency_batch`; observed poses of a resting or tipping object
+    fix its extents).  Each later shape differs from every earlier one
     by more than :data:`DISTINCT_EXTENT_RATIO` in width or height, so that a restart from
     it explores another basin, not a neighbour of a failed start."""
-    if not any(r.n_fingers for r in runs):
+    if not any(r.n_fingers or observed_trajectory(r) is not None for r in runs):
         return [np.asarray(s_guess, float)]
     L = scales.L
     candidates = [np.asarray(s_guess, float)] + [problem.shape.initial(w, h) for w in EXTENT_GRID
                                                    for h in EXTENT_GRID]
     Vs = np.stack([numeric_vertices(problem.shape, s, L) for s in candidates])
-    cost = sum(touch_inconsistency_batch(run, Vs, _tracked_batch(run, Vs)) for run in runs)
+    cost = 0.0
+    for run in runs:
+        poses = _tracked_batch(run, Vs)
+        cost = cost + touch_inconsistency_batch(run, Vs, poses) + ground_inconsistency_batch(run, Vs, poses, L)
     # the cheapest first (the guess wins ties: stable sort, guess at index 0)
     order = np.argsort(cost, kind="stable")
     extents = np.ptp(Vs, axis=1)  # (N, 2) m
@@ -183,7 +249,8 @@ def choose_start_shape(problem, runs: list[Run], scales: Scales, s_guess: np.nda
 
 
 def start_trajectories(problem, runs: list[Run], scales: Scales, s0: np.ndarray):
-    """(T, 3) push-tracker pose trajectories of the starting shape, one per run."""
+    """(T, 3) starting pose trajectories of the shape s0, one per run: the observed
+    trajectory where the run has one, else the push tracker's."""
     V = numeric_vertices(problem.shape, s0, scales.L)
     return [_tracked(run, V) for run in runs]
 
@@ -193,8 +260,13 @@ def _tracked(run: Run, V: np.ndarray) -> np.ndarray:
 
 
 def _tracked_batch(run: Run, Vs: np.ndarray) -> np.ndarray:
-    """(N, T, 3) push-tracker trajectories of N shapes (N, K, 2), each starting at its
-    :func:`initial_pose` with its lowest vertex exactly on the ground."""
+    """(N, T, 3) starting trajectories of N shapes (N, K, 2): the observed trajectory
+    (:func:`observed_trajectory`) for every shape where the run has one, else push-tracker
+    trajectories, each starting at its :func:`initial_pose` with its lowest vertex
+    exactly on the ground."""
+    observed = observed_trajectory(run)
+    if observed is not None:
+        return np.repeat(observed[None], Vs.shape[0], axis=0)
     poses0 = []
     for V in Vs:
         w = V[:, 0].max() - V[:, 0].min()
