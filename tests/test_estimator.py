@@ -240,3 +240,100 @@ def test_restarts_keep_the_lowest_objective_and_skip_consistent_fits():
     assert est.physics_per_sample(out.z) == pytest.approx(kept["physics_per_sample"], rel=1e-9)
     with pytest.raises(TacestError, match="restart"):
         load_config(None, overrides={"solver": {"restarts": -1}})
+
+
+def test_observed_trajectory_interpolates_unwraps_and_smooths_without_bias():
+    from tacest.estimation.initial import OBSERVED_SMOOTHING_S, observed_trajectory
+
+    run = pushed_box_run(T=60)
+    t = np.arange(run.n_samples) * run.dt
+    # a quadratic in every coordinate, the angle crossing ±pi (wrapped as observed)
+    true = np.stack([0.1 + 0.2 * t - 0.3 * t**2, 0.05 + 0.1 * t**2, 3.0 + 2.0 * t + 1.5 * t**2], axis=1)
+    obs = true.copy()
+    obs[:, 2] = np.angle(np.exp(1j * true[:, 2]))
+    assert np.any(np.abs(np.diff(obs[:, 2])) > np.pi)  # the observations do wrap
+    run.pose_obs = obs
+    assert OBSERVED_SMOOTHING_S / run.dt >= 5  # the smoother is in use at this rate
+    # the local quadratic reproduces a quadratic: only rounding (1e-9 of O(1) values)
+    np.testing.assert_allclose(observed_trajectory(run), true, atol=1e-9)
+    # missing rows are interpolated: a linear motion survives interpolation and smoothing
+    lin = np.stack([0.1 + 0.2 * t, 0.05 + 0 * t, 0.5 - 1.0 * t], axis=1)
+    run.pose_obs = lin.copy()
+    run.pose_obs[10:25] = np.nan
+    run.pose_obs[:3] = np.nan  # before the first observed row: held at that row
+    got = observed_trajectory(run)
+    half = int(round(OBSERVED_SMOOTHING_S / run.dt / 2))  # the smoother's half-window
+    # beyond the rows held before the first observation (constant), and a half-window
+    # of the smoother from them, the line is reproduced up to rounding
+    np.testing.assert_allclose(got[3 + half:], lin[3 + half:], atol=1e-9)
+    assert np.all(np.isfinite(got))
+    # no usable observations: no observed trajectory
+    run.pose_obs = np.full_like(lin, np.nan)
+    run.pose_obs[5] = lin[5]
+    assert observed_trajectory(run) is None
+    run.pose_obs = None
+    assert observed_trajectory(run) is None
+
+
+def _pose_observed_pushes(seed: int, speed: float, height: float):
+    """A clean box, pose observed at 0.5 mm, pushed twice (from +x, then from -x) at
+    ``speed`` m/s, ``height`` × its height above the centroid, 5 cm past the touch."""
+    from tacest.sim.record import SimOptions, append_run, initial_state, simulate_pokes, state_from_run
+
+    opts = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=5e-4)
+    state = initial_state(opts)
+    run = None
+    for i, side in enumerate((0.0, np.pi)):
+        st = state if run is None else state_from_run(run)
+        world = st.world()
+        c, verts = world.centroid__world(), world.vertices__world()
+        target = c + np.array([0.0, height * np.ptp(verts[:, 1])])
+        poke = np.array([0.0, side, target[0], target[1], 0.05, speed])
+        part = simulate_pokes(st, poke[None], opts, noise_key=i + 1)
+        run = part if run is None else append_run(run, part)
+    return run
+
+
+def _max_tilt(run) -> float:
+    """Largest rotation (rad) of the true object from its starting angle."""
+    return float(np.max(np.abs(np.angle(np.exp(1j * (run.truth.pose[:, 2] - run.truth.pose[0, 2]))))))
+
+
+@pytest.mark.slow
+def test_known_answer_toppled_box_with_observed_poses():
+    """Pose-observed toppling (tipping, a fall onto the next face, landing): mass and
+    ground friction recovered.  Before the observed start, fits of fast high pushes
+    went to mass 0.27-0.37 kg for 0.8 and ground friction 2.0 (its bound)."""
+    run = _pose_observed_pushes(seed=3, speed=0.3, height=0.48)
+    assert _max_tilt(run) > np.radians(60)  # it topples (else the test shows nothing new)
+    est = estimate_runs([run], "box")
+    assert est.success
+    # 15 %: the accuracy target of the estimator's benchmark for mass and friction
+    assert est.params["mass"] == pytest.approx(run.truth.mass, rel=0.15)
+    assert est.params["friction_ground"] == pytest.approx(run.truth.friction_ground, rel=0.15)
+    # the observed poses fix the extents: 3 mm, the benchmark's Chamfer target
+    np.testing.assert_allclose(np.sort(np.ptp(est.vertices, axis=0)),
+                               np.sort(np.ptp(np.asarray(run.truth.vertices), axis=0)), atol=3e-3)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="known limitation (docs/estimation.md, 'Pose observations and light objects'): "
+                          "a massless object with ground friction 2 balances these pushes statically and "
+                          "follows the pose noise freely; its objective (80) is far below the true "
+                          "parameters' (414), so this is the model's optimum, not a basin")
+def test_pose_observed_sliding_box_does_not_collapse_to_a_massless_object():
+    run = _pose_observed_pushes(seed=4, speed=0.15, height=0.4)
+    est = estimate_runs([run], "box")
+    assert est.params["mass"] == pytest.approx(run.truth.mass, rel=0.15)
+
+
+@pytest.mark.slow
+def test_a_fit_at_a_parameter_bound_is_not_presented_as_identified():
+    """Whatever the fit of the pushes above gives, a mass or ground friction off by more
+    than the benchmark's 15 % is not reported as identifiable (there: a massless object
+    with ground friction at its bound 2.0)."""
+    run = _pose_observed_pushes(seed=4, speed=0.15, height=0.4)
+    est = estimate_runs([run], "box")
+    for name, true in (("mass", run.truth.mass), ("friction_ground", run.truth.friction_ground)):
+        if abs(est.params[name] / true - 1) > 0.15:
+            assert not est.identifiable[name], (name, est.params[name], true)

@@ -37,6 +37,9 @@ FRICTION_BOUNDS = (0.01, 2.0)
 #: variables in an interval of 2e-9 solve (the diagnosis pins parameters the same way).
 #: 1e-9 of a scaled parameter (O(1)) is far below anything the data resolve.
 PIN_HALF_WIDTH = 1e-9
+#: distance (log mass, or friction) from a bound within which a fitted parameter counts
+#: as ended at that bound (IPOPT's interior point stops within ~1e-8 of an active bound)
+AT_BOUND_TOLERANCE = 1e-3
 
 
 def _noop(*_a, **_k):
@@ -453,6 +456,17 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     for k in ("friction_ground", "friction_finger", "mass"):
         if k in std and not std[k] <= 0.5 * max(params[k], 1e-3):
             identifiable[k] = False
+    # a parameter that ended at its hard bound is held there by the bound, not the data
+    # (e.g. a light object with ground friction 2 that balances slow pushes statically;
+    # docs/estimation.md, "Pose observations and light objects")
+    at_bound = {"mass": np.log(mass / est.scales.m0) <= LOG_MASS_BOUNDS[0] + AT_BOUND_TOLERANCE
+                or np.log(mass / est.scales.m0) >= LOG_MASS_BOUNDS[1] - AT_BOUND_TOLERANCE,
+                "friction_ground": not FRICTION_BOUNDS[0] + AT_BOUND_TOLERANCE < mu_g < FRICTION_BOUNDS[1] - AT_BOUND_TOLERANCE,
+                "friction_finger": not FRICTION_BOUNDS[0] + AT_BOUND_TOLERANCE < mu_f < FRICTION_BOUNDS[1] - AT_BOUND_TOLERANCE}
+    for k, hit in at_bound.items():
+        if hit and identifiable.get(k) and fixed is None:
+            identifiable[k] = False
+            echo(f"warning: {k} = {params[k]:.4g} ended at its bound: the data do not determine it")
     for k in std:  # effect parameters: identifiable where the data bound them
         if "." in k:
             identifiable[k] = bool(np.isfinite(std[k]))
