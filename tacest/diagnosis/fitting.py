@@ -230,27 +230,13 @@ def _local_estimator_class():
 
 def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
     """Scaled theta [shape s, log(m/m0), log(I/I_uniform), mu_ground, mu_finger, effect
-    parameters] of an estimate (the inverse of the problem's theta -> physical map).
+    parameters] of an estimate (estimator.core_theta_of, then the effect block).
     Effect parameters the estimate does not have (a plain fit warm-starting an
     augmented model) start at "no effect" (scaled 0, the centre of every effect's prior,
     problem.NLP_EFFECTS)."""
-    from tacest.geometry.shapes import polygon_area_centroid_j
+    from tacest.estimation.estimator import core_theta_of
 
-    shape = problem.shape
-    V = np.asarray(estimate.vertices, float)
-    L, m0 = scales.L, scales.m0
-    if shape.name == "box":
-        s = np.array([V[:, 0].max() - V[:, 0].min(), V[:, 1].max() - V[:, 1].min()]) / L
-    else:
-        if V.shape[0] != shape.n_vertices:
-            raise TacestError(f"estimate has {V.shape[0]} vertices, the shape {shape.name} has {shape.n_vertices}")
-        s = V.reshape(-1) / L
-    area, _, J = polygon_area_centroid_j(V)
-    mass = float(estimate.params["mass"])
-    inertia = float(estimate.params["inertia"])
-    i_uniform = mass * float(J) / float(area)
-    core = np.concatenate([s, [np.log(mass / m0), np.log(inertia / i_uniform),
-                               float(estimate.params["friction_ground"]), float(estimate.params["friction_finger"])]])
+    core = core_theta_of(problem, scales, estimate, "the warm estimate")
     n_eff = int(getattr(problem, "n_eff", 0))
     if not n_eff:
         return core
@@ -258,7 +244,7 @@ def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
     if set(problem.effects) <= set(estimate.model or ()):
         from tacest.estimation.augment import effect_theta
 
-        eff = effect_theta(problem, estimate.params, L, m0, float(estimate.params["friction_ground"]))
+        eff = effect_theta(problem, estimate.params, scales.L, scales.m0, float(estimate.params["friction_ground"]))
     return np.concatenate([core, eff])
 
 

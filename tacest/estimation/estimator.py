@@ -7,7 +7,6 @@ Pipeline: scales → shape start → consistent initial guess → staged homotop
 
 from __future__ import annotations
 
-import json
 import time
 
 import casadi as ca
@@ -19,7 +18,7 @@ from tacest.estimation.data import GRAVITY, Scales, choose_scales, parameter_vec
 from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates, start_trajectories
 from tacest.estimation.problem import PHYSICS_TERMS, SQUARED_TERMS, TERMS, RunStructure
 from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, SolveOutcome, check_success, get_solver,
-                                     solve_from_starts)
+                                     attempts_json, solve_from_starts)
 from tacest.geometry.shapes import make_shape
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
@@ -322,31 +321,40 @@ class ImplicitEstimator:
         return pose, vel, imp
 
 
+def core_theta_of(problem, scales: Scales, estimate: Estimate, what: str = "the estimate") -> np.ndarray:
+    """Scaled theta before the effect block, [shape s, log(m/m0), log(I/I_uniform),
+    mu_ground, mu_finger], of a 2-D estimate's vertices and parameters (the inverse of the
+    problem's theta -> physical map); a TacestError naming ``what`` when the estimate
+    does not fit the problem's shape or lacks a parameter."""
+    from tacest.geometry.shapes import polygon_area_centroid_j
+
+    L, m0 = scales.L, scales.m0
+    V = np.asarray(estimate.vertices, float)
+    if estimate.dim != 2 or V.ndim != 2 or V.shape[1] != 2:
+        raise TacestError(f"{what} is not a 2-D estimate")
+    if problem.shape.name == "box":
+        s = np.array([np.ptp(V[:, 0]), np.ptp(V[:, 1])]) / L
+    else:
+        if V.shape[0] != problem.K:
+            raise TacestError(f"{what} has {V.shape[0]} vertices, the shape {problem.shape.name} has {problem.K}")
+        s = V.reshape(-1) / L
+    try:
+        mass, inertia = float(estimate.params["mass"]), float(estimate.params["inertia"])
+        mu_g, mu_f = float(estimate.params["friction_ground"]), float(estimate.params["friction_finger"])
+    except KeyError as exc:
+        raise TacestError(f"{what} has no parameter {exc.args[0]!r}") from None
+    area, _, J = polygon_area_centroid_j(V)
+    return np.concatenate([s, [np.log(mass / m0), np.log(inertia / (mass * float(J) / float(area))), mu_g, mu_f]])
+
+
 def fixed_theta_of(est: "ImplicitEstimator", fixed: Estimate) -> np.ndarray:
     """Scaled theta of the problem from an estimate's parameters (shape from its
     vertices, mass, inertia, frictions, effect parameters): what ``fixed=`` holds."""
     from tacest.estimation.augment import effect_theta
-    from tacest.geometry.shapes import polygon_area_centroid_j
 
-    pr = est.problem
-    L, m0 = est.scales.L, est.scales.m0
-    V = np.asarray(fixed.vertices, float)
-    if fixed.dim != 2 or V.ndim != 2 or V.shape[1] != 2:
-        raise TacestError("the fixed estimate is not a 2-D estimate")
-    if est.shape.name == "box":
-        s = np.array([np.ptp(V[:, 0]), np.ptp(V[:, 1])]) / L
-    else:
-        if V.shape[0] != pr.K:
-            raise TacestError(f"the fixed estimate has {V.shape[0]} vertices, the shape {est.shape.name} has {pr.K}")
-        s = V.reshape(-1) / L
-    try:
-        mass, inertia = float(fixed.params["mass"]), float(fixed.params["inertia"])
-        mu_g, mu_f = float(fixed.params["friction_ground"]), float(fixed.params["friction_finger"])
-    except KeyError as exc:
-        raise TacestError(f"the fixed estimate has no parameter {exc.args[0]!r}") from None
-    area, _, J = polygon_area_centroid_j(V)
-    theta = np.concatenate([s, [np.log(mass / m0), np.log(inertia / (mass * float(J) / float(area))), mu_g, mu_f],
-                            effect_theta(pr, fixed.params, L, m0, mu_g)])
+    core = core_theta_of(est.problem, est.scales, fixed, "the fixed estimate")
+    theta = np.concatenate([core, effect_theta(est.problem, fixed.params, est.scales.L, est.scales.m0,
+                                               float(fixed.params["friction_ground"]))])
     if not np.all(np.isfinite(theta)):
         raise TacestError("the fixed estimate has non-finite parameters")
     return theta
@@ -459,10 +467,12 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     # a parameter that ended at its hard bound is held there by the bound, not the data
     # (e.g. a light object with ground friction 2 that balances slow pushes statically;
     # docs/estimation.md, "Pose observations and light objects")
-    at_bound = {"mass": np.log(mass / est.scales.m0) <= LOG_MASS_BOUNDS[0] + AT_BOUND_TOLERANCE
-                or np.log(mass / est.scales.m0) >= LOG_MASS_BOUNDS[1] - AT_BOUND_TOLERANCE,
-                "friction_ground": not FRICTION_BOUNDS[0] + AT_BOUND_TOLERANCE < mu_g < FRICTION_BOUNDS[1] - AT_BOUND_TOLERANCE,
-                "friction_finger": not FRICTION_BOUNDS[0] + AT_BOUND_TOLERANCE < mu_f < FRICTION_BOUNDS[1] - AT_BOUND_TOLERANCE}
+    def ended_at_bound(u, bounds):
+        return not bounds[0] + AT_BOUND_TOLERANCE < u < bounds[1] - AT_BOUND_TOLERANCE
+
+    at_bound = {"mass": ended_at_bound(np.log(mass / est.scales.m0), LOG_MASS_BOUNDS),
+                "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
+                "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)}
     for k, hit in at_bound.items():
         if hit and identifiable.get(k) and fixed is None:
             identifiable[k] = False
@@ -485,6 +495,5 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
                                           for s in out.stages),
                      "length_scale": est.scales.L, "mass_scale": est.scales.m0,
-                     "starts": json.dumps([{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in a.items()}
-                                           for a in est.attempts])},
+                     "starts": attempts_json(est.attempts)},
     )

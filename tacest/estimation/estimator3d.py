@@ -19,7 +19,6 @@ is identified only relative to that mass (I / m).
 
 from __future__ import annotations
 
-import json
 import time
 
 import casadi as ca
@@ -35,7 +34,7 @@ from tacest.estimation.problem import PHYSICS_TERMS
 from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
                                          Problem3D, impulse_variable)
 from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, BuiltSolver, SolveOutcome, StageInfo,
-                                     check_success, solve_from_starts)
+                                     attempts_json, check_success, solve_from_starts)
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
@@ -649,9 +648,7 @@ def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: Estimator
                      "length_scale": est.scales.L, "mass_scale": est.scales.m0,
                      "shape_params": np.asarray(out.z[: pr.n_shape] * est.scales.L, float),
                      "notes": "; ".join(notes),
-                     **({"starts": json.dumps([{k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                                                for k, v in a.items()} for a in est.attempts])}
-                        if est.attempts else {})},
+                     **({"starts": attempts_json(est.attempts)} if est.attempts else {})},
     )
 
 

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from tacest.estimation.data import touching
+# the grid of candidate extents (factors of L) and the distinctness of starts, as in 2-D
+from tacest.estimation.initial import DISTINCT_EXTENT_RATIO, EXTENT_GRID
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.run import Run
 
@@ -62,9 +64,6 @@ YAW_ACCEPT = np.radians(6.0)
 #: minimum (seed 5 of the simulated pokes, true extents: unsmoothed, the iteration
 #: limit; smoothed over 0.3 s, objective 105, 107 at the truth)
 YAW_SMOOTH_TIME = 0.3
-#: candidate extents of the starting box, factors of the length scale L (geometric grid;
-#: 0.4-2.0 L covers objects 4-20 cm at L = 10 cm, beyond the prior's usual range)
-EXTENT_GRID = np.geomspace(0.4, 2.0, 11)
 #: factors around a picked grid box tried by the refinement (4.4 % steps over one step
 #: of EXTENT_GRID either way): a box 7 mm too large on a 12 cm object, within one coarse
 #: step, holds the tracked object several mm off the touches, and the fit from it ends
@@ -73,9 +72,6 @@ EXTENT_REFINE = np.geomspace(1 / 1.19, 1.19, 9)
 #: relative cost preference per squared log-extent (units of L) breaking ties between
 #: candidate boxes (start_candidates_3d)
 TIE_PREFERENCE = 0.02
-#: two starting boxes are distinct when some extent differs by more than this factor
-#: (about 1.4 grid steps of EXTENT_GRID), as initial.DISTINCT_EXTENT_RATIO in 2-D
-DISTINCT_EXTENT_RATIO = 1.25
 
 
 @dataclass

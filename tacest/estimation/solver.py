@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 
@@ -234,3 +235,10 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, echo, att
     if best is None:
         raise failure
     return best
+
+
+def attempts_json(attempts: list) -> str:
+    """JSON text of the attempt dicts of :func:`solve_from_starts` (arrays as lists):
+    the estimate's attr ``starts``."""
+    return json.dumps([{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in a.items()}
+                       for a in attempts])
