@@ -43,28 +43,43 @@ def pushed_box_run(T=24, k0=8, w=0.1, rad=0.01, speed=0.05, m=0.3, mu=0.4, dt=0.
                prior={"size_bound": 0.3})
 
 
-def _problem_point(shape, seed=0):
+def _pose_observed(run: Run, seed=5) -> Run:
+    """The run with pose observations (its pushed path, noisy, one row missing), so that
+    the pose and Occam terms enter the derivative checks."""
+    rng = np.random.default_rng(seed)
+    x = run.finger_position[:, 0, 0] + 0.06
+    obs = np.column_stack([x, np.full(run.n_samples, 0.03), np.zeros(run.n_samples)])
+    obs = obs + rng.normal(size=obs.shape) * [5e-4, 5e-4, 0.01]
+    obs[3] = np.nan
+    return run.replace(pose_obs=obs, sigma_position=5e-4, sigma_angle=0.01)
+
+
+def _problem_point(shape, seed=0, observed=False):
     run = pushed_box_run()
+    if observed:
+        run = _pose_observed(run)
     est = ImplicitEstimator([run], shape)
     pr = est.problem
     rng = np.random.default_rng(seed)
     # a generic point near the start (perturbation 0.02 in scaled units: well inside
     # every smooth region, away from the start's special symmetric values)
     z = initial_guess(pr, [run], est.scales, est.s0) + rng.normal(size=pr.n_z) * 0.02
-    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0)
+    # the Occam term weighted 1 (its default is 0), so that its derivatives are checked
+    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0,
+                         weights_override={"occam": 1.0})
     return est, pr, z, p
 
 
-@pytest.mark.parametrize("shape", ["box", "polygon:5"])
-def test_gradient_and_constraint_jacobian_match_finite_differences(shape):
-    est, pr, z, p = _problem_point(shape)
+@pytest.mark.parametrize("shape,observed", [("box", False), ("polygon:5", False), ("box", True)])
+def test_gradient_and_constraint_jacobian_match_finite_differences(shape, observed):
+    est, pr, z, p = _problem_point(shape, observed=observed)
     assert_derivatives_match_finite_differences(pr, z, p)
 
 
-@pytest.mark.parametrize("shape", ["box", "polygon:5"])
-def test_exact_hessian_blocks_match_casadi(shape):
+@pytest.mark.parametrize("shape,observed", [("box", False), ("polygon:5", False), ("box", True)])
+def test_exact_hessian_blocks_match_casadi(shape, observed):
     """The O(T) block-assembled Hessian equals CasADi's Hessian of the whole Lagrangian."""
-    est, pr, z, p = _problem_point(shape)
+    est, pr, z, p = _problem_point(shape, observed=observed)
     lam_g = np.random.default_rng(2).normal(size=pr.g.shape[0])
     mine = np.asarray(ca.DM(pr.hess_lag["exact"](z, p, 0.7, lam_g)))
     # the objective through the compiled per-sample kernels (pr.f) and through the SX
@@ -78,8 +93,11 @@ def test_exact_hessian_blocks_match_casadi(shape):
     np.testing.assert_allclose(mine, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
 
 
-def test_gauss_newton_hessian_is_jtj():
-    est, pr, z, p = _problem_point("box")
+@pytest.mark.parametrize("observed", [False, True])
+def test_gauss_newton_hessian_is_jtj(observed):
+    """Gauss–Newton model: J_rᵀJ_r of the squared terms plus the exact Hessians of the
+    priors and of the penalty (Occam) term."""
+    est, pr, z, p = _problem_point("box", observed=observed)
     gn = np.asarray(ca.DM(pr.hess_lag["gauss-newton"](z, p, 1.0, np.zeros(pr.g.shape[0]))))
     w = pr.weight_sym
     r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * pr.residual_stack[t] for t in SQUARED_TERMS])
@@ -87,7 +105,10 @@ def test_gauss_newton_hessian_is_jtj():
     prior = pr.p_sym[pr.n_p + len(TERMS): pr.n_p + len(TERMS) + 6 + pr.n_shape]
     hp = ca.Function("hp", [pr.z_sym, pr.p_sym],
                      [ca.triu(ca.hessian(pr.prior_fun(pr.z_sym[: pr.n_theta], prior), pr.z_sym)[0])])
-    ref = np.triu(J.T @ J) + np.asarray(ca.DM(hp(z, p)))
+    hpen = ca.Function("hpen", [pr.z_sym, pr.p_sym], [ca.triu(ca.hessian(pr.f_penalty_reference, pr.z_sym)[0])])
+    pen = np.asarray(ca.DM(hpen(z, p)))
+    assert (np.abs(pen).max() > 0) == observed  # the Occam term acts on pose-observed runs only
+    ref = np.triu(J.T @ J) + np.asarray(ca.DM(hp(z, p))) + pen
     np.testing.assert_allclose(gn, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
 
 
@@ -337,3 +358,24 @@ def test_a_fit_at_a_parameter_bound_is_not_presented_as_identified():
     for name, true in (("mass", run.truth.mass), ("friction_ground", run.truth.friction_ground)):
         if abs(est.params[name] / true - 1) > 0.15:
             assert not est.identifiable[name], (name, est.params[name], true)
+
+
+@pytest.mark.slow
+def test_the_occam_term_stops_the_light_object_collapse_of_slow_pushes():
+    """With the Occam term (weights.occam = 1) the pushes that collapse to a massless
+    object above keep a real mass, and the product mu_g·m that the measured push force
+    fixes is right; the split itself is biased heavy (docs/estimation.md), so only the
+    product is held to the benchmark's 15 %."""
+    import dataclasses
+
+    from tacest.estimation.config import EstimatorConfig
+
+    run = _pose_observed_pushes(seed=4, speed=0.15, height=0.4)
+    base = EstimatorConfig()
+    cfg = dataclasses.replace(base, weights=dataclasses.replace(base.weights, occam=1.0))
+    est = estimate_runs([run], "box", cfg)
+    assert est.success
+    m, mu = est.params["mass"], est.params["friction_ground"]
+    assert m > 0.5 * run.truth.mass  # without the term: 0.001 kg
+    assert mu < 1.0  # without the term: 2.0, its bound
+    assert m * mu == pytest.approx(run.truth.mass * run.truth.friction_ground, rel=0.15)

@@ -70,9 +70,9 @@ SQUARED_TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration"
 #: loss terms of a run's first sample (rest, penetration, pose, finger gap) and the
 #: start-function outputs holding them
 START_TERM_OUTPUTS = (("dynamics", "rest"), ("penetration", "penetration"), ("pose", "pose"), ("contact", "contact"))
-#: penalty terms (non-negative, not squared); none at present: every term is a
-#: whitened residual, so the Gauss–Newton Hessian covers the whole loss
-PENALTY_TERMS = ()
+#: penalty terms (non-negative, not squared; their exact Hessian enters every Hessian
+#: model): the Occam term of a pose-observed trajectory (see pose_occam)
+PENALTY_TERMS = ("occam",)
 TERMS = SQUARED_TERMS + PENALTY_TERMS
 #: the terms that measure how far a fit violates its own model (rigid-body dynamics,
 #: contact and friction), as opposed to the measurement terms
@@ -217,6 +217,40 @@ def one_sided(x, sigma):
     return smooth_neg(x + sigma, sigma / SOFT_SHIFT) / sigma
 
 
+#: Newton steps of pose_occam's innovation equation: from its two asymptotes, 4 steps
+#: solve it to machine precision for every tracking index in [1e-8, 1e6]
+OCCAM_NEWTON_STEPS = 4
+
+
+def pose_occam(log_lam):
+    """Occam term (dimensionless) of one pose-observed degree of freedom per sample.
+
+    The loss fits each run's trajectory jointly with the parameters (a MAP of the
+    latent trajectory), which is biased where the parameters set how freely the
+    trajectory may move: the dynamics residual costs an object of mass m a velocity
+    change w with sd s = sigma_v m_ref / m, so a light object follows the pose noise
+    at no cost (docs/estimation.md, "Pose observations and light objects").  The
+    marginal likelihood of the pose observations, with the trajectory integrated out,
+    carries the missing term.  For a body moving freely (implicit Euler,
+    q_t = q_(t-1) + dt v_t, v_t = v_(t-1) + w_t), observed with noise sigma_p at every
+    sample, it is exact in the steady state of the Kalman filter: per sample
+    0.5 log(S / sigma_p²), S the innovation variance.  With the tracking index
+    lam = s dt / sigma_p and a = S / sigma_p² - 1, the Riccati equation reduces to
+    a⁴ = lam² (a + 1) (a + 2)², solved here by Newton steps in log a.
+
+    log_lam : log of the tracking index.  Returns 0.5 log(1 + a): ≈ (lam / 2)^½ for a
+    heavy body (physics tighter than the data), ≈ log lam for a light one (the data
+    resolve each velocity change: the object pays for the freedom it uses).
+    """
+    lam = ca.exp(log_lam)
+    u = ca.log(ca.sqrt(2 * lam) + lam * lam)  # asymptotes: a ≈ sqrt(2 lam), a ≈ lam²
+    for _ in range(OCCAM_NEWTON_STEPS):
+        a = ca.exp(u)
+        f = 2 * u - ca.log(a + 2) - 0.5 * ca.log1p(a) - log_lam
+        u = u - f / (2 - a / (a + 2) - 0.5 * a / (a + 1))
+    return 0.5 * ca.log1p(ca.exp(u))
+
+
 def ground_gap_indicator(phi, sigma_gap, eps):
     """Smoothed (phi / sigma_gap - 1)⁺, a softplus of width eps / SOFT_SHIFT (in units of
     sigma_gap): ≈ 0 for a vertex within one sigma_gap of the ground, ≈ phi / sigma_gap - 1
@@ -354,6 +388,7 @@ class Problem2D:
 
         obj_terms = {t: 0 for t in TERMS}
         r_stack = {t: [] for t in SQUARED_TERMS + ("kinematics",)}
+        penalty_sx = {t: [] for t in PENALTY_TERMS}
         g_list, lbg, ubg = [g_lift], [np.zeros(self.n_phys)], [np.zeros(self.n_phys)]
         # per Hessian model: (mapped local Hessians (n_y, n_y * N), global indices (N, n_y))
         hess_blocks = {mode: [] for mode in HESSIAN_MODES}
@@ -390,6 +425,7 @@ class Problem2D:
             r_stack["kinematics"].append(ca.vec(g_kin))
             for t in PENALTY_TERMS:
                 obj_terms[t] = obj_terms[t] + ca.sum2(res[t])
+                penalty_sx[t].append(ca.sum2(res_sx[t]))
             # sample 0: the object starts at rest and above the ground
             start_args = (Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)
             o0 = dict(zip(start.name_out(), start_k(*start_args)))
@@ -459,6 +495,9 @@ class Problem2D:
         self.f_reference = prior_sym[5] * f_prior
         for k, t in enumerate(SQUARED_TERMS):
             self.f_reference = self.f_reference + w_sym[TERMS.index(t)] * 0.5 * ca.sumsqr(ca.vertcat(*r_stack[t]))
+        #: the weighted penalty terms alone, through the SX functions (tests)
+        self.f_penalty_reference = sum(w_sym[TERMS.index(t)] * sum(penalty_sx[t]) for t in PENALTY_TERMS)
+        self.f_reference = self.f_reference + self.f_penalty_reference
         self.z_sym, self.p_sym = z, p_all
         V, mass, inertia, mu_g, mu_f = self._unpack_phys(self.phys_sx(theta, L_sym, m0_sym), L_sym, m0_sym)
         area, _, _ = polygon_area_centroid_j(V)
@@ -827,6 +866,11 @@ class Problem2D:
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         if r_rest:
             r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
+        # the Occam term of a pose-observed sample (pose_occam): tracking indices of the
+        # translations and the rotation, from the process sd of each velocity change
+        log_s = ca.log(sig_v * M_ref / M / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
+        log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
+        occam = w_pose * sum(pose_occam(log_lam[k]) for k in range(3))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {
@@ -839,6 +883,7 @@ class Problem2D:
             "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
             "dissipation": ca.vertcat(*diss) / g[G["sig_diss"]],
             "cone": ca.vertcat(*cone) / g[G["sig_comp"]],
+            "occam": occam,
             "g_kin": g_kin,
             # diagnostics only (not in the loss): tangential ground impulses (scaled) and
             # finger impulses on the object (N·s, world); the ground contacts' geometric
