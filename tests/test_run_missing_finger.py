@@ -84,3 +84,24 @@ def test_writer_refuses_an_inconsistent_mask(tmp_path):
     with pytest.raises(FileFormatError, match="/quality/missing"):
         write_run(run, tmp_path / "r.h5")
     assert not (tmp_path / "r.h5").exists()
+
+
+def test_the_starting_shapes_ignore_a_missing_fingers_placeholders():
+    """A finger's placeholder samples (/quality/missing_finger, contact 0 there) are
+    neither touching nor not touching for the 2-D starting-shape score: a placeholder
+    inside the object costs nothing, the same sample of a finger whose data arrived does."""
+    from tacest.estimation.initial import touch_inconsistency_batch
+
+    run = two_finger_run()
+    run.finger_position[:, 1] = [0.0, 0.0]  # finger 1 at the centre of the box below: inside
+    run.finger_position[:, 0] = [0.5, 0.0]  # finger 0 far outside, not touching: no cost
+    V = np.array([[[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]])
+    poses = np.zeros((1, 10, 3))
+    mf = np.zeros((10, 2), np.uint8)
+    mf[:, 1] = 1  # finger 1's data never arrived
+    run.missing_finger, run.missing = mf, mf.any(axis=1).astype(np.uint8)
+    assert touch_inconsistency_batch(run, V, poses)[0] == 0.0
+    mf[4, 1] = 0  # ... except at sample 4, where it reads "not touching" from inside
+    run.missing_finger = mf
+    # the fingertip (radius 0.01) overlaps the box by 0.06 m: 0.06² m²
+    assert touch_inconsistency_batch(run, V, poses)[0] == pytest.approx(0.06**2, rel=1e-9)

@@ -61,6 +61,17 @@ def touching(run: Run) -> np.ndarray:
     return run.contact.astype(bool) & ~run.finger_missing_mask
 
 
+def touch_inconsistency(run: Run, gaps: np.ndarray) -> np.ndarray:
+    """(N,) m²: how badly N candidate fingertip gaps (N, T, F) m disagree with the
+    contact flags: the sum over samples of max(gap, 0)² where a fingertip touched and
+    min(gap, 0)² where it did not (and its data arrived: placeholders of a missing
+    finger, /quality/missing_finger or /quality/missing, count neither way)."""
+    on = touching(run)
+    off = ~run.contact.astype(bool) & ~run.finger_missing_mask
+    return np.sum(np.where(on[None], np.maximum(gaps, 0), 0) ** 2, axis=(1, 2)) \
+        + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
+
+
 def pose_observation_columns(run: Run):
     """(obs (T, 3), weight (T, 1)): 2-D pose observations with the angle unwrapped and
     missing rows zeroed, and 1 where a row was observed (zeros without observations)."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacest.estimation.data import GRAVITY, Scales, touching
+from tacest.estimation.data import GRAVITY, Scales, touch_inconsistency, touching
 from tacest.geometry.polygon import convex_signed_distance
 from tacest.geometry.shapes import numeric_vertices
 from tacest.io.run import Run
@@ -174,16 +174,10 @@ DISTINCT_EXTENT_RATIO = 1.25
 def touch_inconsistency_batch(run: Run, V_bodies: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(N,) m²: how badly each of N shapes (N, K, 2) moved along its poses (N, T, 3)
     disagrees with the contact flags: the sum over samples of max(gap, 0)² where a finger
-    touched and min(gap, 0)² where it did not."""
+    touched and min(gap, 0)² where it did not (data.touch_inconsistency)."""
     if not run.n_fingers:
         return np.zeros(V_bodies.shape[0])
-    gaps = finger_gaps_batch(run, V_bodies, poses)
-    on = touching(run)
-    off = ~run.contact.astype(bool)
-    if run.missing is not None:
-        off &= ~run.missing.astype(bool)[:, None]
-    return np.sum(np.where(on[None], np.maximum(gaps, 0), 0) ** 2, axis=(1, 2)) \
-        + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
+    return touch_inconsistency(run, finger_gaps_batch(run, V_bodies, poses))
 
 
 #: cap (as a factor of the length scale L) on how far a shape placed on observed poses

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tacest.estimation.data import touching
+from tacest.estimation.data import touch_inconsistency, touching
 # the grid of candidate extents (factors of L) and the distinctness of starts, as in 2-D
 from tacest.estimation.initial import DISTINCT_EXTENT_RATIO, EXTENT_GRID
 from tacest.geometry.transforms import quat_to_matrix
@@ -244,15 +244,10 @@ def finger_gaps_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -> np.nda
 def touch_inconsistency_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(N,) m²: how badly each of N boxes (N, 3) m moved along its poses (N, T, 7)
     disagrees with the contact flags: the sum over samples of max(gap, 0)² where a
-    fingertip touched and min(gap, 0)² where it did not (and its data arrived)."""
+    fingertip touched and min(gap, 0)² where it did not (data.touch_inconsistency)."""
     if not run.n_fingers:
         return np.zeros(len(poses))
-    gaps = finger_gaps_3d(run, extents_m, poses)
-    valid = ~run.finger_missing_mask
-    on = touching(run)
-    off = ~run.contact.astype(bool) & valid
-    return np.sum(np.where(on[None], np.maximum(gaps, 0), 0) ** 2, axis=(1, 2)) \
-        + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
+    return touch_inconsistency(run, finger_gaps_3d(run, extents_m, poses))
 
 
 def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, n: int = 1) -> list[Start3D]:
