@@ -55,18 +55,25 @@ def _pose_observed(run: Run, seed=5) -> Run:
 
 
 def _problem_point(shape, seed=0, observed=False):
+    """An estimator and a generic point of its NLP; ``observed``: with pose observations
+    and the Occam term weighted 1 (its default is 0), so that its derivatives are checked."""
+    import dataclasses
+
+    from tacest.estimation.config import EstimatorConfig
+
     run = pushed_box_run()
+    config = None
     if observed:
         run = _pose_observed(run)
-    est = ImplicitEstimator([run], shape)
+        base = EstimatorConfig()
+        config = dataclasses.replace(base, weights=dataclasses.replace(base.weights, occam=1.0))
+    est = ImplicitEstimator([run], shape, config)
     pr = est.problem
     rng = np.random.default_rng(seed)
     # a generic point near the start (perturbation 0.02 in scaled units: well inside
     # every smooth region, away from the start's special symmetric values)
     z = initial_guess(pr, [run], est.scales, est.s0) + rng.normal(size=pr.n_z) * 0.02
-    # the Occam term weighted 1 (its default is 0), so that its derivatives are checked
-    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0,
-                         weights_override={"occam": 1.0})
+    p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0)
     return est, pr, z, p
 
 

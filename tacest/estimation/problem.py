@@ -318,6 +318,9 @@ class Problem2D:
         #: phys after the 2K + 4 physical entries)
         self.eff_index = {f"{e}.{n}": j for j, (e, n, *_) in enumerate(self.effect_params)}
         self.n_theta = self.n_shape + len(PHYS_NAMES) + self.n_eff
+        #: the Occam term (pose_occam) is part of the NLP only where it is weighted (the
+        #: default weight 0 leaves it out: no cost in every sample's function and Hessian)
+        self.with_occam = config.weights.occam > 0
         self._build()
 
     # ------------------------------------------------------------------------------
@@ -866,11 +869,13 @@ class Problem2D:
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         if r_rest:
             r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
-        # the Occam term of a pose-observed sample (pose_occam): tracking indices of the
-        # translations and the rotation, from the process sd of each velocity change
-        log_s = ca.log(sig_v * M_ref / M / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
-        log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
-        occam = w_pose * sum(pose_occam(log_lam[k]) for k in range(3))
+        occam = ca.SX.zeros(1)
+        if self.with_occam:
+            # the Occam term of a pose-observed sample (pose_occam): tracking indices of the
+            # translations and the rotation, from the process sd of each velocity change
+            log_s = ca.log(sig_v * M_ref / M / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
+            log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
+            occam = w_pose * sum(pose_occam(log_lam[k]) for k in range(3))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {
