@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacest.estimation.data import GRAVITY, Scales, touch_inconsistency, touching
+from tacest.estimation.data import GRAVITY, Scales, pose_observation_columns, touch_inconsistency, touching
 from tacest.geometry.polygon import convex_signed_distance
 from tacest.geometry.shapes import numeric_vertices
 from tacest.io.run import Run
@@ -95,16 +95,12 @@ def observed_trajectory(run: Run):
     the first and after the last observed row), then smoothed by a local quadratic over
     :data:`OBSERVED_SMOOTHING_S`; None without observations or with fewer than
     :data:`MIN_OBSERVED_ROWS` observed rows."""
-    if run.pose_obs is None:
+    obs, observed = pose_observation_columns(run)  # angle unwrapped over the observed rows
+    t_obs = np.nonzero(observed[:, 0])[0]
+    if len(t_obs) < MIN_OBSERVED_ROWS:
         return None
-    ok = np.all(np.isfinite(run.pose_obs), axis=1)
-    if ok.sum() < MIN_OBSERVED_ROWS:
-        return None
-    obs = run.pose_obs[ok].astype(float)
-    obs[:, 2] = np.unwrap(obs[:, 2])
-    t_obs = np.nonzero(ok)[0]
     t_all = np.arange(run.n_samples)
-    poses = np.stack([np.interp(t_all, t_obs, obs[:, j]) for j in range(3)], axis=1)
+    poses = np.stack([np.interp(t_all, t_obs, obs[t_obs, j]) for j in range(3)], axis=1)
     window = 2 * int(round(OBSERVED_SMOOTHING_S / run.dt / 2)) + 1
     if window >= 5 and run.n_samples >= window:
         from scipy.signal import savgol_filter
