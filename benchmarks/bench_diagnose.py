@@ -168,7 +168,7 @@ def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> tu
     > 0 the last ``tip`` of the ``pokes`` are tipping pokes (tip_poke), the first ones the
     random pokes of ``tacest record``; the files are named ``..._tip<N>``."""
     from tacest.io.run import read_run, write_run
-    from tacest.sim.record import SimOptions, append_run, record_sim, simulate_pokes, state_from_run
+    from tacest.sim.record import SimOptions, record_sim, simulate_aimed_pokes
 
     tag = f"_tip{tip}" if tip else ""
     full = folder / f"{effect}_{seed}{tag}_truth.h5"
@@ -176,11 +176,8 @@ def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> tu
     if not (full.exists() and bare.exists()):
         opts = SimOptions(object_spec="box", seed=seed, pokes=pokes - tip,
                           effects=[] if effect == "none" else [effect])
-        run = record_sim(opts)
         rng = np.random.default_rng([seed, TIP_STREAM])
-        for i in range(tip):
-            state = state_from_run(run)
-            run = append_run(run, simulate_pokes(state, tip_poke(rng, state)[None], opts, noise_key=i + 1))
+        run = simulate_aimed_pokes(lambda i, st: tip_poke(rng, st), tip, opts, run=record_sim(opts))
         write_run(run, full)
         write_run(run, bare, include_truth=False)
     truth = read_run(full).truth.effects
@@ -243,17 +240,11 @@ def _object_context(opts):
 def simulate_design(opts, pokes: int, seed: int, actions=None):
     """A recording of ``pokes`` effect pokes (each aimed at the object as it is then), or
     of the given poke vectors replayed as commanded (the clean twin); returns the Run."""
-    from tacest.sim.record import initial_state, simulate_pokes, state_from_run, append_run
+    from tacest.sim.record import initial_state, simulate_aimed_pokes
 
-    state = initial_state(opts)
     rng = np.random.default_rng([seed, DESIGN_STREAM])
-    run = None
-    for i in range(pokes):
-        st = state if run is None else state_from_run(run)
-        a = effect_poke(rng, st) if actions is None else actions[i]
-        part = simulate_pokes(st, np.asarray(a)[None], opts, noise_key=i + 1)
-        run = part if run is None else append_run(run, part)
-    return run
+    aim = (lambda i, st: effect_poke(rng, st)) if actions is None else (lambda i, st: actions[i])
+    return simulate_aimed_pokes(aim, pokes, opts, state=initial_state(opts))
 
 
 def visibility(run, twin) -> float:

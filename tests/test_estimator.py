@@ -306,20 +306,16 @@ def test_observed_trajectory_interpolates_unwraps_and_smooths_without_bias():
 def _pose_observed_pushes(seed: int, speed: float, height: float):
     """A clean box, pose observed at 0.5 mm, pushed twice (from +x, then from -x) at
     ``speed`` m/s, ``height`` × its height above the centroid, 5 cm past the touch."""
-    from tacest.sim.record import SimOptions, append_run, initial_state, simulate_pokes, state_from_run
+    from tacest.sim.record import SimOptions, initial_state, simulate_aimed_pokes
 
-    opts = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=5e-4)
-    state = initial_state(opts)
-    run = None
-    for i, side in enumerate((0.0, np.pi)):
-        st = state if run is None else state_from_run(run)
+    def aim(i, st):
         world = st.world()
         c, verts = world.centroid__world(), world.vertices__world()
         target = c + np.array([0.0, height * np.ptp(verts[:, 1])])
-        poke = np.array([0.0, side, target[0], target[1], 0.05, speed])
-        part = simulate_pokes(st, poke[None], opts, noise_key=i + 1)
-        run = part if run is None else append_run(run, part)
-    return run
+        return np.array([0.0, (0.0, np.pi)[i], target[0], target[1], 0.05, speed])
+
+    opts = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=5e-4)
+    return simulate_aimed_pokes(aim, 2, opts, state=initial_state(opts))
 
 
 def _max_tilt(run) -> float:

@@ -11,6 +11,8 @@ Public API::
     record_sim(opts, plan_path=None, append_to=None, echo=None) -> Run
     state_from_run(run) -> WorldState            continue from a run's last truth state
     append_run(old, new) -> Run                  concatenate a continuation
+    simulate_aimed_pokes(aim, n, opts, state=None, run=None) -> Run
+                                                 pokes aimed one at a time at the object as it is
 
 Per sample interval (time[k-1], time[k]] (docs/simulation.md): contact = the finger
 touched the object in any physics substep; force = the summed substep impulses of the
@@ -550,6 +552,23 @@ def append_run(old: Run, new: Run, names=POKE_NAMES) -> Run:
 
 # ---------------------------------------------------------------------------------
 # the recorder
+
+
+def simulate_aimed_pokes(aim: Callable, n: int, opts: SimOptions, state: WorldState = None,
+                         run: Run = None) -> Run:
+    """Simulate ``n`` pokes one after another, each aimed at the object as it is when
+    that poke starts, and return the whole run (``append_run`` of the parts).
+
+    aim(i, state) -> poke vector (POKE_NAMES) of poke i, from the WorldState it starts
+    from; state : the WorldState of the first poke when ``run`` is None; run : a Run
+    (with /truth) to continue from its last truth state.  Poke i draws its noise from
+    key i + 1 (simulate_pokes' noise_key).
+    """
+    for i in range(n):
+        st = state if run is None else state_from_run(run)
+        part = simulate_pokes(st, np.asarray(aim(i, st), float)[None], opts, noise_key=i + 1)
+        run = part if run is None else append_run(run, part)
+    return run
 
 
 def _plan_pokes(plan_path):
