@@ -118,12 +118,8 @@ def _local_estimator_class():
 
         def __init__(self, runs, shape_spec, config, echo, pinned_theta=None, pin="all", effects=()):
             # its own copy: solve_from may change the ridge of a retry
-            if effects:
-                super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo,
-                                 effects=tuple(effects))
-            else:
-                super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo)
-            self.effects = tuple(effects)
+            super().__init__(runs, shape_spec, copy.deepcopy(config or EstimatorConfig()), echo,
+                             effects=tuple(effects))
             self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
             self.pin = pin
             self.z = None
