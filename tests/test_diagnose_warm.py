@@ -6,6 +6,7 @@ estimator, 100 samples: about a second)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -192,3 +193,58 @@ def test_candidate_fit_keeps_the_better_of_warm_and_cold_starts(clean_run, monke
     d2 = diag_mod.diagnose([clean_run], "box",
                            options=diag_mod.DiagnoseOptions(effects=("linear_drag",), cold_starts=False))
     assert d2.effects[0].fits[0]["start"] == "warm"
+
+
+# ------------------------------------------------------------------------------------
+# the start at a typical strength (candidates.TYPICAL_STARTS)
+
+
+def test_observed_warm_runs_take_the_observations_as_recorded():
+    """Observed rows come from /pose_obs unsmoothed, unobserved rows (NaN) from the
+    fallback trajectory; velocities are backward differences; a run without pose
+    observations keeps its fallback."""
+    from tacest.diagnosis.fitting import observed_warm_runs
+
+    run = _bouncing_box(0.6, T=40)
+    run.pose_obs[10:13] = np.nan
+    fb = RunEstimate(pose=np.full((40, 3), 0.5), velocity=np.zeros((40, 3)))
+    (out,) = observed_warm_runs([run], [fb])
+    rows = np.all(np.isfinite(run.pose_obs), axis=1)
+    np.testing.assert_array_equal(out.pose[rows], run.pose_obs[rows])
+    np.testing.assert_array_equal(out.pose[~rows], fb.pose[~rows])
+    np.testing.assert_allclose(out.velocity[1:], np.diff(out.pose, axis=0) / run.dt)
+    blind = _bouncing_box(0.6, T=40)
+    blind.pose_obs = None
+    assert observed_warm_runs([blind], [fb])[0] is fb
+
+
+@pytest.mark.skipif(not local_supports_effects(), reason="ImplicitEstimator takes no effects= in this version")
+def test_typical_start_holds_the_parameters_first_then_frees_them():
+    """typical_start_fit on a box dropped 10 cm and bouncing with e = 0.6: its first fit
+    holds every parameter at the start's values (the plain fit's, e = 0.5) to within the
+    pin interval (PIN_HALF_WIDTH, relative) while the trajectory leaves the observations
+    it started from; the freed fit then gives e within 30 % (the discrete impact law's
+    bias, see test_diagnose) and an objective no worse than the warm start's."""
+    from tacest.diagnosis.fitting import fit_local, observed_warm_runs, weighted_objective
+    from tacest.estimation.config import EstimatorConfig
+
+    cfg = EstimatorConfig()
+    run = _bouncing_box(0.6)
+    base = fit_local([run], "box", cfg)
+    start = dataclasses.replace(base.estimate, params=dict(base.estimate.params, **{"restitution.e": 0.5}),
+                                model=["restitution"])
+    warm_runs = observed_warm_runs([run], list(base.estimate.runs))
+    held = fit_local([run], "box", cfg, warm=start, warm_runs=warm_runs, hold_warm=True, effects=("restitution",),
+                     accept_budget=True)
+    for k in ("mass", "inertia", "friction_ground", "friction_finger", "restitution.e"):
+        assert held.estimate.params[k] == pytest.approx(start.params[k], rel=1e-6, abs=1e-8), k
+    np.testing.assert_allclose(held.estimate.vertices, start.vertices, atol=1e-8)
+    # 10 µm: far below the observation noise (0.1 mm) the held fit smooths away
+    assert np.max(np.abs(held.estimate.runs[0].pose - warm_runs[0].pose)) > 1e-5
+    f = diag_mod.typical_start_fit([run], "box", cfg, "restitution", base.estimate, {"effects": ("restitution",)})
+    e = f.estimate.params["restitution.e"]
+    assert abs(e - 0.6) <= 0.3 * 0.6, e
+    warm = fit_local([run], "box", cfg, warm=base.estimate, warm_runs=list(base.estimate.runs),
+                     effects=("restitution",), accept_budget=True)
+    # 1.0: a third of one parameter's penalty (0.5 ln N = 2.3 at N = 100)
+    assert weighted_objective(f.estimate, cfg) <= weighted_objective(warm.estimate, cfg) + 1.0

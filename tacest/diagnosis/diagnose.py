@@ -43,7 +43,7 @@ import numpy as np
 
 from tacest.diagnosis import candidates as cands
 from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, estimator_supports_effects, fit_estimator,
-                                      fit_local, local_supports_effects, weighted_objective)
+                                      fit_local, local_supports_effects, observed_warm_runs, weighted_objective)
 from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
 from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
@@ -303,9 +303,12 @@ class _Context:
         # (estimate_runs, as the plain fit had), the lower objective kept (the plain
         # model gets the chosen start too: see the control in _fit_candidate)
         fits, errors = [], []
-        for how in ("warm", "cold"):
+        starts = ("warm", "cold") + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
+        for how in starts:
             try:
-                if how == "warm":
+                if how == "typical":
+                    f = typical_start_fit(runs, self.shape, self.budget_config, effects[0], warm.estimate, extra)
+                elif how == "warm":
                     f = fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
                                   warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True,
                                   **extra)
@@ -343,6 +346,21 @@ class _Context:
                            pin="physics", accept_budget=True, **extra)
         status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
         return weighted_objective(hf.estimate, self.config), status
+
+
+def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str, plain: Estimate,
+                      extra: dict) -> FitResult:
+    """Fit of effect ``name`` started at its typical strength (cands.TYPICAL_STARTS):
+    first the trajectories and impulses alone, from the pose observations as recorded
+    (the plain fit's trajectories where a run has none), every parameter held at the
+    plain fit's values and the effect's at its typical strength; then everything free
+    from there.  ``extra``: fit_local keywords of the candidate fit (effects=...)."""
+    params = dict(plain.params, **cands.TYPICAL_STARTS[name])
+    start = dataclasses.replace(plain, params=params, model=[name])
+    held = fit_local(runs, shape, config, warm=start, warm_runs=observed_warm_runs(runs, list(plain.runs)),
+                     hold_warm=True, accept_budget=True, effects=(name,))
+    return fit_local(runs, shape, config, warm=held.estimate, warm_runs=list(held.estimate.runs), accept_budget=True,
+                     **extra)
 
 
 def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, options: DiagnoseOptions = None,

@@ -244,6 +244,39 @@ def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
     return np.concatenate([core, eff])
 
 
+def _warm_theta(est, warm: Estimate) -> np.ndarray:
+    """Scaled theta of a warm estimate (theta_from_estimate), its shape clipped to the
+    estimator's bounds."""
+    theta = theta_from_estimate(est.problem, est.scales, warm)
+    ns = est.problem.n_shape
+    lo, hi = est.shape.bounds(est.size_bound / est.scales.L)
+    theta[:ns] = np.clip(theta[:ns], lo, hi)
+    return theta
+
+
+def observed_warm_runs(runs: list, fallback: list) -> list:
+    """Per run, a RunEstimate whose trajectory is the run's pose observations as
+    recorded (no smoothing: an impact or a bounce keeps its corner; rows not observed
+    take ``fallback[i]``'s poses), velocities by differences; ``fallback[i]`` itself for
+    a run without pose observations."""
+    from tacest.estimation.data import pose_observation_columns
+
+    out = []
+    for run, fb in zip(runs, fallback):
+        if run.pose_obs is None or fb is None:
+            out.append(fb)
+            continue
+        obs, seen = pose_observation_columns(run)
+        pose = np.array(fb.pose, float)
+        rows = seen[:, 0] > 0
+        pose[rows, :3] = obs[rows]
+        vel = np.zeros_like(pose)
+        vel[1:] = np.diff(pose, axis=0) / run.dt
+        out.append(RunEstimate(pose=pose, velocity=vel, impulses=dict(fb.impulses), source_file=fb.source_file,
+                               source_sha256=fb.source_sha256))
+    return out
+
+
 def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
     """Scaled decision vector: the warm estimate's parameters and, for every run i with
     warm_runs[i] (a RunEstimate of the same length), its trajectory and impulses; the
@@ -252,10 +285,8 @@ def _warm_z(est, runs: list, warm: Estimate, warm_runs: list) -> np.ndarray:
     from tacest.estimation.initial import initial_guess
 
     pr = est.problem
-    theta = theta_from_estimate(pr, est.scales, warm)
+    theta = _warm_theta(est, warm)
     ns = pr.n_shape
-    lo, hi = est.shape.bounds(est.size_bound / est.scales.L)
-    theta[:ns] = np.clip(theta[:ns], lo, hi)
     z = initial_guess(pr, runs, est.scales, theta[:ns])
     z[: pr.n_theta] = theta
     z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
@@ -325,7 +356,7 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
 
 def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = None, warm_runs: list = None,
               pinned: np.ndarray = None, pin: str = "all", echo=None, information: bool = False,
-              accept_budget: bool = False, effects=()) -> FitResult:
+              accept_budget: bool = False, effects=(), hold_warm: bool = False) -> FitResult:
     """Fit ``runs`` with the local back end (see module docstring).
 
     warm : Estimate whose parameters (and, per run, ``warm_runs[i]`` trajectories) start
@@ -336,7 +367,10 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
     accept_budget : keep the last iterate of a final stage that used up its iteration
         budget (config.solver.max_iter), reporting IPOPT's status (see BUDGET_STATUSES);
     effects : NLP augmentations (problem.NLP_EFFECTS) of the fitted model; parameters the
-        warm estimate lacks start at "no effect" (see theta_from_estimate).
+        warm estimate lacks start at "no effect" (see theta_from_estimate);
+    hold_warm : hold every parameter (shape, mass, inertia, frictions, effect parameters)
+        at the warm estimate's values: only trajectories and impulses are fitted (the
+        first half of a start at a given effect strength, see typical_start_fit).
     Raises SolveFailedError when IPOPT fails.
     """
     echo = echo or _noop
@@ -344,7 +378,11 @@ def fit_local(runs: list, shape: str, config: EstimatorConfig, warm: Estimate = 
     cls = _local_estimator_class()
     if pin not in PIN_MODES:
         raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
+    if hold_warm and (warm is None or pinned is not None):
+        raise TacestError("internal: hold_warm needs a warm estimate and no pinned theta")
     est = cls(runs, shape, config, echo, pinned_theta=pinned, pin=pin, effects=effects)
+    if hold_warm:
+        pinned = est.pinned_theta = _warm_theta(est, warm)
     notes = []
     warm_given = warm is not None and any(w is not None for w in (warm_runs or []))
     try:
