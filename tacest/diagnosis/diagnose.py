@@ -296,12 +296,17 @@ class _Context:
         if self.backend == "estimator":
             return fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=self.echo)
         extra = {"effects": tuple(effects), "information": True} if effects else {}
-        if self.backend != "warm" or not self.options.cold_starts:
+
+        def warm_fit():
             return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
                              warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
-        # warm back end: the warm start from the plain fit and the estimator's own starts
-        # (estimate_runs, as the plain fit had), the lower objective kept (the plain
-        # model gets the chosen start too: see the control in _fit_candidate)
+
+        if self.backend != "warm" or not self.options.cold_starts:
+            return warm_fit()
+        # warm back end: the warm start from the plain fit, the estimator's own starts
+        # (estimate_runs, as the plain fit had) and, for the effects of
+        # cands.TYPICAL_STARTS, a start at a typical strength; the lowest objective kept
+        # (the plain model gets the chosen start too: see the control in _fit_candidate)
         fits, errors = [], []
         starts = ("warm", "cold") + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
         for how in starts:
@@ -309,9 +314,7 @@ class _Context:
                 if how == "typical":
                     f = typical_start_fit(runs, self.shape, self.budget_config, effects[0], warm.estimate, extra)
                 elif how == "warm":
-                    f = fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
-                                  warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True,
-                                  **extra)
+                    f = warm_fit()
                 else:  # the plain fit's own budget (the configuration's), as the plain fit had
                     f = fit_estimator(runs, self.shape, self.config, effects=effects, echo=_noop)
                 f.notes.append(f"start: {how}")
@@ -719,7 +722,7 @@ def counts(score, folds_improved, folds_compared, gap_before, reduction, at_boun
 
 
 def _start_of(fit: FitResult) -> str:
-    """How a fit to all data started (``warm``, ``cold``), from its notes."""
+    """How a fit to all data started (``warm``, ``cold``, ``typical``), from its notes."""
     return next((n[7:] for n in fit.notes if n.startswith("start: ")), "warm")
 
 
