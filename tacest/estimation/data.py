@@ -72,6 +72,15 @@ def touch_inconsistency(run: Run, gaps: np.ndarray) -> np.ndarray:
         + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
 
 
+def finger_start_positions(run: Run) -> np.ndarray:
+    """(T, F, D) m: each fingertip's position at the start of the sample's interval, the
+    previous sample's (the first sample's own)."""
+    fp = run.finger_position
+    start = fp.copy()
+    start[1:] = fp[:-1]
+    return start
+
+
 def pose_observation_columns(run: Run):
     """(obs (T, 3), weight (T, 1)): 2-D pose observations with the angle unwrapped and
     missing rows zeroed, and 1 where a row was observed (zeros without observations)."""
@@ -100,7 +109,8 @@ def data_matrix(run: Run, F: int) -> np.ndarray:
         w_tact = valid.copy()
         contact = contact * w_tact
         cols += [fp.reshape(T, -1), finger_velocity(run).reshape(T, -1), contact, n_meas.reshape(T, -1),
-                 force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0)]
+                 force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0),
+                 finger_start_positions(run).reshape(T, -1)]
     cols += list(pose_observation_columns(run))
     D = np.concatenate(cols, axis=1)
     return D

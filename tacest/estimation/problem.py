@@ -17,7 +17,8 @@ so that a Gauss–Newton Hessian models the whole loss)::
 
     force          (lambda_f / dt - F_meas) / sigma_F                 where a force stream exists
     normal         c (n_meas - n_model) / sigma_n
-    contact        c phi_f / sigma_gap  +  (1 - c) min~(phi_f) (fingertip gap / no overlap)
+    contact        c phi_f / sigma_gap  +  (1 - c) min~(phi_f) (fingertip gap / no overlap,
+                   at the interval's end)
     pose           (q - q_obs) / sigma_pose                           where observed
     dynamics       eq. D1 residual M(v - v_prev) - dt f_ext - Jᵀλ, whitened as process
                    noise on the velocity change of a reference body (m_ref, I_ref)
@@ -34,6 +35,11 @@ so that a Gauss–Newton Hessian models the whole loss)::
                    0 when friction opposes the slip s at the cone's limit, or when sticking);
                    sigma_diss at the fingertips (slip from filtered positions), the tighter
                    sigma_diss_g at the ground vertices
+
+The flags, forces and normals of the tactile stream describe the interval (t-1, t]
+(SPEC), so a fingertip's impulse acts in the contact frame and at the lever of the
+interval's middle (pose and fingertip position averaged over its ends); the ground's
+impulses act at its end (implicit Euler).
 
 Ground and finger friction are both impulses (variables) inside the Coulomb cone with a
 maximal-dissipation residual, as in the violation-implicit loss of ContactNets: every
@@ -270,8 +276,11 @@ def ground_gap_indicator(phi, sigma_gap, eps):
 
 
 def contact_residual(phi_f, contact, weight, sigma_gap):
-    """Whitened contact-flag residual of one fingertip: its gap phi_f (m) where the flag is
-    1, its (smoothed) penetration where the flag is 0."""
+    """Whitened contact-flag residual of one fingertip: its gap phi_f (m) at the end of
+    the interval where the flag is 1, its (smoothed) penetration where the flag is 0.
+    (The flag covers the interval (t[k-1], t[k]], so at the last sample of a touch the
+    fingertip may have let go inside it; docs/estimation.md says why the end's gap is
+    kept there.)"""
     return weight * (contact * phi_f / sigma_gap + (1 - contact) * one_sided(phi_f, sigma_gap))
 
 
@@ -353,8 +362,9 @@ class Problem2D:
 
     def n_data(self, F):
         """Per-sample data length: c_f (2F), v_f (2F), contact (F), n_meas (2F),
-        F_meas (2F), w_force (F), w_tact (F), radius (F), q_obs (3), w_pose (1)."""
-        return 12 * F + 4
+        F_meas (2F), w_force (F), w_tact (F), radius (F), c_f_start (2F) (the fingertip
+        at the interval's start), q_obs (3), w_pose (1)."""
+        return 14 * F + 4
 
     def _build(self):
         self._layout()
@@ -740,9 +750,10 @@ class Problem2D:
         w_force = take(F)
         w_tact = take(F)
         radius = take(F)
+        c_f_start = ca.reshape(take(2 * F), 2, F)
         q_obs = take(3)
         w_pose = take(1)
-        return c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose
+        return c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose
 
     def finger_geometry(self, q, V, c_f, radius, sd_fun):
         """Gap phi_f (m), outward object normal n (2, world) and lever r (2, world, from
@@ -768,10 +779,11 @@ class Problem2D:
         dt, L, Lam = g[G["dt"]], g[G["L"]], g[G["Lam"]]
         eps = g[G["eps"]]
         V, mass, inertia, mu_g, mu_f = self._unpack_phys(phys, L, g[G["m0"]])
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose = self._unpack_data(d, F)
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose = \
+            self._unpack_data(d, F)
         # unscale: q = [x/L, y/L, angle], v = [vx/L, vy/L, omega] per second
         unscale = ca.vertcat(L, L, 1)
-        q = qs * unscale
+        q, q_start = qs * unscale, qp * unscale
         v, v_prev = vs * unscale, vp * unscale
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         t_g = perp(n_g)
@@ -841,7 +853,14 @@ class Problem2D:
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
         for f in range(F):
-            phi_f, n_w, lever = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
+            # the gap at the interval's end (the contact flag, see contact_residual); the
+            # contact frame n_w and lever of the impulse at its middle: the measured force
+            # and normal are averages over the interval (SPEC), and a fingertip sliding
+            # over a corner turns the normal within one interval (the end's frame put the
+            # average force outside the friction cone there)
+            phi_f, _, _ = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
+            _, n_w, lever = self.finger_geometry((q_start + q) / 2, V, (c_f_start[:, f] + c_f[:, f]) / 2,
+                                                 radius[f], sd_fun)
             t_w = perp(n_w)
             # finger impulse ON the object: a free world-frame vector, held in the friction
             # cone of the model's contact frame (eq. C2).  Fingertips often stick to the
@@ -926,7 +945,8 @@ class Problem2D:
         g = ca.SX.sym("g", len(G_NAMES))
         L = g[G["L"]]
         V, *_ = self._unpack_phys(phys, L, g[G["m0"]])
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, q_obs, w_pose = self._unpack_data(d, F)
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose = \
+            self._unpack_data(d, F)
         q = qs * ca.vertcat(L, L, 1)
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])

@@ -33,7 +33,8 @@ The quasi-static identity-Jacobian approximation (:meth:`ExpectedInformation.ide
 skips the dynamics: the object is assumed not to respond to the poke in a way that
 depends on θ (∂x_t/∂θ = 0) and to move rigidly with the start pose (∂x_t/∂s = I), so each
 sample's measurement residuals (normal, contact flag, pose observation) contribute
-J_tᵀJ_t with J_t = [∂r_t/∂θ, ∂r_t/∂q_t] along the predicted contact sequence; forces
+J_tᵀJ_t with J_t = [∂r_t/∂θ, ∂r_t/∂q_{t-1} + ∂r_t/∂q_t] (a fingertip's contact frame is
+that of the interval's middle) along the predicted contact sequence; forces
 (which only the dynamics connect to θ) add nothing.
 """
 
@@ -431,10 +432,13 @@ class ExpectedInformation:
         self.contact_state = contact_state_function(stage)
         self.stage_r_lg = ca.Function("stage_r_lg", [qp, vp, q, v, lg, lf, phys, d, g, w],
                                       [ca.densify(r), ca.densify(ca.jacobian(r, lg))])
-        # the measurement rows only, for the identity-Jacobian approximation (w.r.t. q, phys)
+        # the measurement rows only, for the identity-Jacobian approximation (w.r.t. the
+        # rigid shift s of every pose, ∂q_prev/∂s = ∂q/∂s = I: a fingertip's contact frame
+        # is the interval's middle, so both ends count; and phys)
         rm = ca.vertcat(*[rows[t] for t in MEASUREMENT_TERMS])
         self.stage_meas = ca.Function("stage_meas", [qp, vp, q, v, lg, lf, phys, d, g, w],
-                                      [ca.densify(ca.jacobian(rm, ca.vertcat(q, phys)))])
+                                      [ca.densify(ca.horzcat(ca.jacobian(rm, q) + ca.jacobian(rm, qp),
+                                                             ca.jacobian(rm, phys)))])
         self.start_rj = start_residual_jacobian(start)
         th = ca.SX.sym("theta", self.n_theta)
         self.phys_of_theta = ca.Function("phys_jac", [th], [pr.phys_sx(th, self.L, self.m0),
