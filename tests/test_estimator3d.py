@@ -145,19 +145,11 @@ def tosses():
     return runs
 
 
-def test_derivatives_match_finite_differences(tosses, monkeypatch):
-    """Residual Jacobian, gradient and exact Hessian of the 3-D NLP against central
-    differences, at a generic point near the start (the virtual-machine functions; the
-    compiled kernels are generated from the same expressions)."""
-    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
-    from tacest.estimation.estimator3d import Estimator3D
-
-    run = tosses[0]
-    # the last 8 samples: the box on the ground, so that the contact terms are live
-    short = run.replace(time=run.time[-8:] - run.time[-8], pose_obs=run.pose_obs[-8:], truth=None)
-    est = Estimator3D([short], "box")
+def _assert_derivatives_match_finite_differences(est, seed=3):
+    """Residual Jacobian, gradient and exact Hessian of est's NLP against central
+    differences at a generic point near its start; returns the Jacobian J."""
     pr = est.problem
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     p = est.params(0.5, 1.0, 1.0, ridge=0.0)
     z = est.ground_impulses_nnls(est.initial_guess(), p)
     # perturbation 0.01 (scaled units): inside the smooth regions, off symmetric values;
@@ -185,10 +177,44 @@ def test_derivatives_match_finite_differences(tosses, monkeypatch):
     assert np.abs(H - Hfd).max() <= 1e-6 * np.abs(Hfd).max()
     # the Gauss–Newton model is exactly Jᵀ J (ridge 0), upper triangle
     np.testing.assert_allclose(Hgn, np.triu(J.T @ J), atol=1e-9 * np.abs(Hgn).max())
+    return J
+
+
+def test_derivatives_match_finite_differences(tosses, monkeypatch):
+    """Residual Jacobian, gradient and exact Hessian of the 3-D NLP against central
+    differences, at a generic point near the start (the virtual-machine functions; the
+    compiled kernels are generated from the same expressions)."""
+    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
+    from tacest.estimation.estimator3d import Estimator3D
+
+    run = tosses[0]
+    # the last 8 samples: the box on the ground, so that the contact terms are live
+    short = run.replace(time=run.time[-8:] - run.time[-8], pose_obs=run.pose_obs[-8:], truth=None)
+    est = Estimator3D([short], "box")
+    pr = est.problem
+    J = _assert_derivatives_match_finite_differences(est)
     # the augmentations' columns (ground offset, rounded edges) are live, so the checks
     # above cover their derivatives: both move the vertex gaps of every sample
     for name in ("ground_offset", "edge_radius"):
         assert np.abs(J[: pr.n_res_data, pr.theta_index(name)]).max() > 1e-2
+
+
+def test_derivatives_with_a_pushing_fingertip_match_finite_differences(monkeypatch):
+    """The same checks on 8 samples of a fingertip pushing a box (no pose observations):
+    the finger terms (force, normal, contact, cone, dissipation; contact frame at the
+    interval's middle) are live and their Jacobian columns are checked."""
+    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
+    from tacest.estimation.estimator3d import Estimator3D
+    from tests.test_initial3d import _push_run
+
+    run = _push_run(yaw_deg=3.0)
+    a, b = 150, 158  # inside the push: touching at every sample
+    short = run.replace(time=run.time[a:b] - run.time[a], finger_position=run.finger_position[a:b],
+                        contact=run.contact[a:b], force=run.force[a:b], normal=run.normal[a:b])
+    est = Estimator3D([short], "box")
+    J = _assert_derivatives_match_finite_differences(est, seed=4)
+    lf = slice(est.problem.lf_offset, est.problem.lf_offset + 3 * (short.n_samples - 1))
+    assert np.abs(J[:, lf]).max() > 1e-2  # the finger impulses reach the residuals
 
 
 def test_noiseless_tosses_give_back_the_box(tosses):
