@@ -28,7 +28,7 @@ from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inert
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_start_positions, finger_velocity, touching
+from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_velocity, touching
 from tacest.estimation.initial3d import start_candidates_3d
 from tacest.estimation.problem import PHYSICS_TERMS
 from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
@@ -146,7 +146,6 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
         valid = ~run.finger_missing_mask  # (T, F)
         on = touching(run) & valid
         vel = finger_velocity(run)
-        start = finger_start_positions(run)
         for f in range(run.n_fingers):
             o = len(D_NAMES) + len(DF_NAMES) * f
             D[o: o + 3] = run.finger_position[:, f].T
@@ -158,7 +157,6 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
                 D[o + 13] = valid[:, f]
             D[o + 14] = valid[:, f]
             D[o + 15] = run.finger_radius[f]
-            D[o + 16: o + 19] = start[:, f].T
     for f in range(run.n_fingers, F):  # padding: a finger far away with no weight
         D[len(D_NAMES) + len(DF_NAMES) * f + 15] = 1.0
     return D

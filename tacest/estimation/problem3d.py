@@ -53,8 +53,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from tacest.dynamics.rigid3d import (cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector,
-                                     quat_rotation)
+from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.kernels import compile_functions
 from tacest.estimation.problem import CONE_TOLERANCE, SLIP_EPS, contact_residual, one_sided, smooth_pos
@@ -93,7 +92,7 @@ D_NAMES = ("dt", "Lam", "nx", "ny", "nz", "h", "sig_pos", "sig_ang", "w_pose", "
 DI = {n: i for i, n in enumerate(D_NAMES)}
 #: per finger data rows
 DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", "fx", "fy", "fz", "w_force",
-            "w_tact", "radius", "sx", "sy", "sz")  # s: the fingertip at the interval's start
+            "w_tact", "radius")
 #: shared settings
 G3_NAMES = ("L", "m0", "sig_proc", "sig_pen", "sig_gap", "sig_comp", "eps", "comp_mult", "dyn_mult",
             "sig_force", "sig_normal", "sig_diss", "sig_rest")
@@ -315,24 +314,16 @@ class StageModel3D:
             pen.append(one_sided(phi[k], g[G3["sig_pen"]]))
         r_force, r_normal, r_contact, cone, diss, imp_f_out = [], [], [], [], [], []
         sd_fun = shape_sd_and_normal_function(self.shape) if F else None
-        if F:  # the pose at the interval's middle (quaternions summed on the short arc)
-            p_prev, q_prev = xb[0:3] * L, xb[3:7]
-            p_mid = (p_prev + p) / 2
-            R_mid = quat_rotation(q + ca.if_else(ca.dot(q_prev, q) < 0, -q_prev, q_prev))
         for f in range(F):
             o = len(D_NAMES) + len(DF_NAMES) * f
             c_f, v_f = d[o: o + 3], d[o + 3: o + 6]
             contact, n_meas, F_meas = d[o + 6], d[o + 7: o + 10], d[o + 10: o + 13]
             w_force, w_tact, radius = d[o + 13], d[o + 14], d[o + 15]
-            # the gap at the interval's end (the contact flag); the contact frame and the
-            # contact point at its middle, as in 2-D (the measured force and normal are
-            # averages over the interval, SPEC; docs/estimation.md)
-            phi_f, _, _ = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun)
-            _, n_w, r_b = self.finger_geometry(p_mid, R_mid, s, L, (c_f + d[o + 16: o + 19]) / 2, radius, sd_fun)
+            phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun)
             imp_s = lf[3 * f: 3 * f + 3]
             lam_n = -ca.dot(imp_s, n_w)
             lam_t = imp_s + lam_n * n_w  # tangential part
-            u_rel = v + ca.mtimes(R_mid, cross(w, r_b)) - v_f
+            u_rel = v + ca.mtimes(R, cross(w, r_b)) - v_f
             s_t = (u_rel - ca.dot(u_rel, n_w) * n_w) / L  # object lengths per second
             # eq. C3 at the fingertip: zero when lambda_t opposes the slip at the cone's edge
             diss.append(mu_f * lam_n * ca.sqrt(ca.dot(s_t, s_t) + (SLIP_EPS / L) ** 2) + ca.dot(lam_t, s_t))
@@ -341,7 +332,7 @@ class StageModel3D:
             cone.append(one_sided(mu_f * lam_n - ca.sqrt(ca.dot(lam_t, lam_t) + 1e-12), CONE_TOLERANCE)
                         * CONE_TOLERANCE)
             imp_world += imp_s
-            torque_b += cross(r_b, ca.mtimes(R_mid.T, imp_s))
+            torque_b += cross(r_b, ca.mtimes(R.T, imp_s))
             imp_f_out.append(Lam * imp_s)
             r_force.append(w_force * (Lam * imp_s / dt - F_meas) / g[G3["sig_force"]])
             r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
