@@ -201,8 +201,8 @@ def test_derivatives_match_finite_differences(tosses, monkeypatch):
 
 def test_derivatives_with_a_pushing_fingertip_match_finite_differences(monkeypatch):
     """The same checks on 8 samples of a fingertip pushing a box (no pose observations):
-    the finger terms (force, normal, contact, cone, dissipation; contact frame at the
-    interval's middle) are live and their Jacobian columns are checked."""
+    the finger terms (force, normal, contact, cone, dissipation) are live and their
+    Jacobian columns are checked."""
     monkeypatch.setenv("TACEST_NO_COMPILE", "1")
     from tacest.estimation.estimator3d import Estimator3D
     from tests.test_initial3d import _push_run
