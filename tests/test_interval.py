@@ -11,14 +11,11 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import finger_start_positions
 from tacest.estimation.problem import G, G_NAMES, Problem2D, RunStructure
 from tacest.geometry.shapes import make_shape
+from tacest.geometry.transforms import rot2
 from tests.test_estimator import pushed_box_run
 
 L, M0, HALF, RADIUS = 0.1, 0.5, 0.05, 0.01  # m, kg, m (box half-width), m (fingertip)
 SIG_NORMAL, SIG_GAP = 0.1, 1e-3
-
-
-def _rot(a):
-    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
 
 
 def _stage(angle_start, angle_end, n_meas):
@@ -30,7 +27,7 @@ def _stage(angle_start, angle_end, n_meas):
     centre = np.array([0.0, HALF])
 
     def fingertip(a):
-        return centre + _rot(a) @ np.array([-HALF - RADIUS, 0.0])
+        return centre + rot2(a) @ np.array([-HALF - RADIUS, 0.0])
 
     V = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) * HALF  # CCW, body frame
     phys = np.concatenate([V[:, 0] / L, V[:, 1] / L, [1.0, 1.0 / 6, 0.5, 0.5]])
@@ -53,11 +50,11 @@ def test_the_contact_frame_is_the_interval_middles():
     fits the measured average exactly; the end's normal (turned 0.2) is off by 2 sin(0.05)
     = 0.1 (one sigma_normal), the start's likewise."""
     left = np.array([-1.0, 0.0])
-    mid = _stage(0.0, 0.2, _rot(0.1) @ left)
+    mid = _stage(0.0, 0.2, rot2(0.1) @ left)
     # exact geometry: only rounding (1e-12 in units of sigma_normal)
     assert np.abs(mid["normal"]).max() < 1e-12
     for a in (0.0, 0.2):
-        off = _stage(0.0, 0.2, _rot(a) @ left)
+        off = _stage(0.0, 0.2, rot2(a) @ left)
         assert np.linalg.norm(off["normal"]) == pytest.approx(2 * np.sin(0.05) / SIG_NORMAL, rel=1e-9)
 
 
