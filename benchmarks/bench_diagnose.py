@@ -373,11 +373,15 @@ def rederive_verdict(r: dict) -> str:
     from tacest.diagnosis.diagnose import counts
 
     best, best_score = "none", -math.inf
+    held = r.get("heldout") or {}
     for e in r.get("effects", []):
         if e.get("status") != "ok":
             continue
+        # results cached before candidates stored their floor: the held-out floor of all
+        # folds, which is theirs when they were compared on every fold
+        floor = e.get("floor", held.get("floor") if e.get("folds_compared") == held.get("folds_valid") else None)
         if counts(e.get("score"), e.get("folds_improved"), e.get("folds_compared"), e.get("gap_before"),
-                  e.get("reduction"), e.get("at_bound") or (), e.get("name")) and e["score"] > best_score:
+                  e.get("improvement"), floor, e.get("at_bound") or (), e.get("name")) and e["score"] > best_score:
             best, best_score = e["name"], e["score"]
     return best
 

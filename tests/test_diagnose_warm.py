@@ -43,12 +43,29 @@ def test_params_at_bound_flags_the_far_bound_only():
 
 
 def test_counts_guards():
-    ok = dict(score=50.0, folds_improved=3, folds_compared=3, gap_before=100.0, reduction=0.6)
+    # floor 400: sqrt 20, so the plausible gap is the held-out gap + 40
+    ok = dict(score=50.0, folds_improved=3, folds_compared=3, gap_before=100.0, improvement=60.0, floor=400.0)
     assert diag_mod.counts(**ok, name="linear_drag")
     assert not diag_mod.counts(**ok, at_bound=["linear_drag.b"], name="linear_drag")
     for name in diag_mod.EQUIVALENT_TO_PLAIN:
         assert not diag_mod.counts(**ok, name=name)
-    assert not diag_mod.counts(**{**ok, "reduction": 0.1}, name="linear_drag")
+    # a sliver of a large misfit: 27 < 0.2 x (100 + 40) = 28
+    assert not diag_mod.counts(**{**ok, "improvement": 27.0, "score": 24.0}, name="linear_drag")
+    assert diag_mod.counts(**{**ok, "improvement": 29.0, "score": 26.0}, name="linear_drag")
+    assert not diag_mod.counts(**{**ok, "folds_improved": 1}, name="linear_drag")
+    assert not diag_mod.counts(**{**ok, "floor": float("nan")}, name="linear_drag")
+
+
+def test_counts_credits_an_effect_within_the_floors_spread():
+    """A plain model slightly below the floor (gap -13 against a floor of 540, whose
+    sampling spread is sqrt(540) = 23) may still miss an effect that the paired held-out
+    comparison detects: it counts when it closes a fifth of the gap + 2 sigma (46 - 13 =
+    33, so 6.7 needed); a plain model more than 2 sigma below the floor has nothing to
+    explain, and a candidate below a fifth of the plausible gap does not count."""
+    base = dict(score=9.7, folds_improved=2, folds_compared=3, gap_before=-13.4, improvement=12.6, floor=540.0)
+    assert diag_mod.counts(**base, name="angular_damping")
+    assert not diag_mod.counts(**{**base, "improvement": 6.0, "score": 3.1}, name="angular_damping")
+    assert not diag_mod.counts(**{**base, "gap_before": -50.0}, name="angular_damping")
 
 
 # ------------------------------------------------------------------------------------

@@ -19,9 +19,12 @@ where every fit succeeded) and penalty = 0.5 · ln(N) per parameter, N the numbe
 held-out samples (BIC's price in the objective's units, a negative log-likelihood
 under the configured noise model).  It counts only if its score is positive and, in at
 least half of the folds, it beats the plain model by more than the fold's share of the
-penalty (its share of the held-out samples), the plain model's held-out gap is above
-the floor, and the candidate closes at least MIN_REDUCTION (20 %) of it; the verdict is
-the best such candidate, or ``none``.
+penalty (its share of the held-out samples), and it closes at least MIN_REDUCTION
+(20 %) of the gap the plain model may have: its held-out gap plus FLOOR_SIGMAS (2)
+standard deviations of the floor (sqrt(floor): the floor is the expectation of a sum of
+squares, whose sampling spread is at most its square root), so ``none`` is the verdict
+when the plain model is more than 2 sigma below the floor or nothing closes a fifth of
+its plausible gap; the verdict is the best such candidate, or ``none``.
 
 Fairness.  Every candidate gets the same data, folds, iteration budget
 (``fit_iterations`` per IPOPT stage), warm start (from the plain model's fit to all
@@ -55,6 +58,14 @@ from tacest.io.estimate import CORE_PARAMS, Estimate
 
 #: smallest share of the plain model's held-out gap a candidate must close to be blamed
 MIN_REDUCTION = 0.2
+#: the gap a candidate is measured against is the plain model's held-out gap plus this
+#: many standard deviations of the floor, sqrt(floor): the floor is the expected value of
+#: a sum of n squared whitened residuals, 0.5 s^2 n at level s <= 1, whose standard
+#: deviation s^2 sqrt(n/2) = s sqrt(floor) is at most sqrt(floor).  A plain model within
+#: that spread of the floor may still miss a real effect, which the paired held-out
+#: comparison (noise common to both fits cancels) detects far more precisely than the
+#: floor does (docs/diagnosis.md, "Which")
+FLOOR_SIGMAS = 2.0
 #: an effect parameter within this fraction of its range from a hard bound of its
 #: augmentation (problem.NLP_EFFECTS; not the "no effect" end) is "at its bound": the fit
 #: pushed it as far as the augmentation allows, so what it explains is not the effect
@@ -127,7 +138,8 @@ class CandidateResult:
     effect parameters and their one-sigma uncertainty (NaN: not available);
     fits : [{value, objective, status, wall_time}] fits to all data;
     heldout : {fold: objective}; gap_before / gap_after / reduction / improvement /
-    penalty / score : see the module doc; folds_improved : folds where it beat the
+    penalty / score : see the module doc; floor : the held-out floor of the folds
+    compared; folds_improved : folds where it beat the
     plain model by more than the fold's share of the penalty.
     """
 
@@ -142,6 +154,7 @@ class CandidateResult:
     fits: list = field(default_factory=list)
     full_objective: float = float("nan")
     heldout: dict = field(default_factory=dict)
+    floor: float = float("nan")
     gap_before: float = float("nan")
     gap_after: float = float("nan")
     reduction: float = float("nan")
@@ -160,6 +173,7 @@ class CandidateResult:
         return {
             "name": self.name, "kind": self.kind, "status": self.status, "message": self.message,
             "gap_before": _num(self.gap_before), "gap_after": _num(self.gap_after), "reduction": _num(self.reduction),
+            "floor": _num(self.floor),
             "params": {k: _num(v) for k, v in self.params.items()},
             "params_std": {k: _num(v) for k, v in self.params_std.items()},
             "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
@@ -528,7 +542,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         w = winners[0]
         verdict = w.name
         closes = f"closes {w.reduction:.0%} of the held-out gap" if np.isfinite(w.reduction) else \
-            "improves the held-out fit (the plain model's gap is not above the floor)"
+            ("improves the held-out fit (the plain model's gap is below the floor, within "
+             f"{FLOOR_SIGMAS:g} sigma of it)")
         reason = (f"{w.name} {closes} ({w.gap_before:.4g} -> {w.gap_after:.4g}), "
                   f"improvement {w.improvement:.4g} > penalty {w.penalty:.3g} for {w.n_params} parameter(s), "
                   f"better in {w.folds_improved} of {w.folds_compared} folds")
@@ -536,7 +551,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         verdict = "none"
         best = ranked[0] if ok else None
         reason = ("no candidate improves the held-out fit by more than its parameter penalty, in total and in "
-                  f"at least half of the folds, closing at least {MIN_REDUCTION:.0%} of a gap above the floor" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
+                  f"at least half of the folds, closing at least {MIN_REDUCTION:.0%} of the plain model's gap "
+                  f"plus {FLOOR_SIGMAS:g} sigma of the floor" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
                                     f"{best.penalty:.3g})" if best else ""))
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
@@ -635,6 +651,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     before = sum(plain[j] for j in common)
     after = sum(c.heldout[j] for j in common)
     fl = sum(floor_fold[j] for j in common)
+    c.floor = fl
     c.gap_before = before - fl
     c.gap_after = after - fl
     c.improvement = before - after
@@ -650,8 +667,8 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     c.folds_improved = sum(1 for j in common if plain[j] - c.heldout[j] > c.penalty * fold_share[j])
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
-    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.reduction, c.at_bound,
-                           c.name)
+    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
+                           c.at_bound, c.name)
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):
@@ -706,19 +723,21 @@ def params_at_bound(theta, effects, K: int) -> list:
 EQUIVALENT_TO_PLAIN = ("force_scale",)
 
 
-def counts(score, folds_improved, folds_compared, gap_before, reduction, at_bound=(), name=None) -> bool:
+def counts(score, folds_improved, folds_compared, gap_before, improvement, floor, at_bound=(), name=None) -> bool:
     """The verdict rule for one candidate (module doc): score > 0, better than the plain
-    model by its share of the penalty in at least half of the folds, a held-out gap above
-    the floor, at least MIN_REDUCTION of it closed (the candidate must close a real part
+    model by its share of the penalty in at least half of the folds, at least
+    MIN_REDUCTION of the plain model's plausible gap closed (its held-out gap plus
+    FLOOR_SIGMAS sqrt(floor), which must be positive: a candidate must close a real part
     of the gap, not a sliver of a large misfit), and no effect parameter at a hard bound
     of its augmentation (params_at_bound)."""
-    vals = [score, folds_improved, folds_compared, gap_before, reduction]
+    vals = [score, folds_improved, folds_compared, gap_before, improvement, floor]
     if any(v is None or not np.isfinite(float(v)) for v in vals):
         return False
     if at_bound or name in EQUIVALENT_TO_PLAIN:
         return False
-    return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and gap_before > 0
-                and reduction >= MIN_REDUCTION)
+    plausible_gap = gap_before + FLOOR_SIGMAS * math.sqrt(max(float(floor), 0.0))
+    return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and plausible_gap > 0
+                and improvement >= MIN_REDUCTION * plausible_gap)
 
 
 def _start_of(fit: FitResult) -> str:
