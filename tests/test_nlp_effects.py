@@ -137,3 +137,23 @@ def test_fixed_holds_every_parameter_and_fits_the_trajectories():
     assert refit.success, refit.solver_status
     for k in ("mass", "friction_ground", "linear_drag.b"):
         assert refit.params[k] == pytest.approx(free.params[k], rel=1e-8, abs=1e-8 * sc.m0), k
+
+
+@pytest.mark.parametrize("shape", ["box", "polygon:5"])
+def test_effect_parameters_round_trip_through_physical_units(shape):
+    """augment.effect_params (scaled theta -> an estimate's /params, physical units) and
+    augment.effect_theta (back, from the effect names and vertex count alone) are
+    inverses for every effect at once: the fixed= fits and the diagnosis' bound check
+    read effect parameters through effect_theta.  Tolerance 1e-12 relative: a product
+    and a quotient by the same unit (or exp and log) in double precision."""
+    from tacest.estimation.augment import effect_params, effect_theta
+
+    est, pr, z, _ = _point(shape, ALL)
+    theta = z[: pr.n_theta]
+    L, m0, mu_g = est.scales.L, est.scales.m0, float(theta[pr.n_shape + 2])
+    params = dict(effect_params(pr, theta, L, m0), friction_ground=mu_g)
+    u = effect_theta(ALL, pr.K, params, L, m0, mu_g)
+    a = pr.n_shape + len(PHYS_NAMES)
+    np.testing.assert_allclose(u, theta[a: a + pr.n_eff], rtol=1e-12, atol=1e-14)
+    with pytest.raises(TacestError, match="linear_drag.b"):
+        effect_theta(ALL, pr.K, {k: v for k, v in params.items() if k != "linear_drag.b"}, L, m0, mu_g)

@@ -675,17 +675,13 @@ def _theta_of_estimate(est: Estimate, effects, K: int):
     """Scaled theta whose effect block is that of an estimate's effect parameters (the
     entries before it are zeros: params_at_bound reads the effect block only); None when
     the estimate lacks the scales or a parameter."""
-    from types import SimpleNamespace
-
     from tacest.estimation.augment import effect_theta
-    from tacest.estimation.problem import PHYS_NAMES, effect_parameters
+    from tacest.estimation.problem import PHYS_NAMES
 
-    rows = effect_parameters(tuple(effects), int(K))
-    pr = SimpleNamespace(eff_index={f"{e}.{n}": j for j, (e, n, *_) in enumerate(rows)}, n_eff=len(rows), K=int(K))
     try:
         L = float(est.extra_attrs["length_scale"])
         m0 = float(est.extra_attrs["mass_scale"])
-        u = effect_theta(pr, est.params, L, m0, float(est.params["friction_ground"]))
+        u = effect_theta(effects, K, est.params, L, m0, float(est.params["friction_ground"]))
     except (KeyError, TypeError, ValueError, TacestError):
         return None
     return np.concatenate([np.zeros(2 + len(PHYS_NAMES)), u])

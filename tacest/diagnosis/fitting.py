@@ -240,7 +240,8 @@ def theta_from_estimate(problem, scales, estimate: Estimate) -> np.ndarray:
     if set(problem.effects) <= set(estimate.model or ()):
         from tacest.estimation.augment import effect_theta
 
-        eff = effect_theta(problem, estimate.params, scales.L, scales.m0, float(estimate.params["friction_ground"]))
+        eff = effect_theta(problem.effects, problem.K, estimate.params, scales.L, scales.m0,
+                           float(estimate.params["friction_ground"]))
     return np.concatenate([core, eff])
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.estimation.problem import COMPLIANCE_UNIT, PHYS_NAMES
+from tacest.estimation.problem import COMPLIANCE_UNIT, PHYS_NAMES, effect_parameters
 
 GRAVITY = 9.81
 
@@ -83,12 +83,15 @@ def effect_params(problem, theta, L: float, m0: float) -> dict:
     return out
 
 
-def effect_theta(problem, params: dict, L: float, m0: float, friction_ground: float) -> np.ndarray:
-    """Scaled effect block (n_eff,) from an estimate's /params (the inverse of
-    effect_params); a TacestError naming the missing parameter."""
-    u = np.zeros(problem.n_eff)
-    for k, j in problem.eff_index.items():
-        eff, name = k.split(".", 1)
+def effect_theta(effects, n_vertices: int, params: dict, L: float, m0: float, friction_ground: float) -> np.ndarray:
+    """Scaled effect block (n_eff,) of the NLP with ``effects`` on a shape of
+    ``n_vertices`` vertices (problem.effect_parameters order) from an estimate's
+    /params (the inverse of effect_params); a TacestError naming the missing parameter."""
+    K = int(n_vertices)
+    rows = effect_parameters(tuple(effects), K)
+    u = np.zeros(len(rows))
+    for j, (eff, name, *_) in enumerate(rows):
+        k = f"{eff}.{name}"
         if k == "force_scale.log_gain":
             key = "force_scale.gain"
         elif eff == "face_friction":
@@ -102,9 +105,9 @@ def effect_theta(problem, params: dict, L: float, m0: float, friction_ground: fl
             u[j] = np.log(float(v))
         elif eff == "face_friction":
             vals = np.asarray(v, float).reshape(-1)
-            if vals.size != problem.K:
+            if vals.size != K:
                 raise TacestError(f"the fixed estimate's face_friction.values has {vals.size} entries, "
-                                  f"the shape has {problem.K} faces")
+                                  f"the shape has {K} faces")
             u[j] = vals[int(name[1:])] - friction_ground
         else:
             u[j] = float(v) / _unit(k, L, m0)

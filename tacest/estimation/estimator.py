@@ -353,8 +353,8 @@ def fixed_theta_of(est: "ImplicitEstimator", fixed: Estimate) -> np.ndarray:
     from tacest.estimation.augment import effect_theta
 
     core = core_theta_of(est.problem, est.scales, fixed, "the fixed estimate")
-    theta = np.concatenate([core, effect_theta(est.problem, fixed.params, est.scales.L, est.scales.m0,
-                                               float(fixed.params["friction_ground"]))])
+    theta = np.concatenate([core, effect_theta(est.problem.effects, est.problem.K, fixed.params, est.scales.L,
+                                               est.scales.m0, float(fixed.params["friction_ground"]))])
     if not np.all(np.isfinite(theta)):
         raise TacestError("the fixed estimate has non-finite parameters")
     return theta
