@@ -16,9 +16,10 @@ ground, not with each other.
 
 pymunk conventions used (pymunk 7, checked by tests/test_sim.py): ``Body.each_arbiter``
 hands each arbiter with this body's shape first, ``Arbiter.normal`` points from the
-first shape into the second (here: out of the object into the finger), and
-``Arbiter.total_impulse`` is the impulse of the step on the first shape (here: on the
-object).  Shape friction and elasticity multiply; the ground's are 1, the object's
+first shape into the second, and ``Arbiter.total_impulse`` is the impulse of the step on
+the first shape.  The world visits each finger's arbiters (finger first) and reports
+the object's view: the normal out of the object into the finger, the impulse on the
+object (both the arbiter's, negated).  Shape friction and elasticity multiply; the ground's are 1, the object's
 are the true ground coefficients, and each finger's friction is
 friction_finger / (object's friction) so that object-finger contacts get exactly
 friction_finger.
@@ -152,7 +153,6 @@ class World:
         radius = np.broadcast_to(np.asarray(finger_radius, float), (len(p_finger),))
         self.finger_radius = radius.copy()
         self.fingers, self.finger_shapes, self.controls = [], [], []
-        self._finger_index = {}
         no_self_collision = pymunk.ShapeFilter(group=1)
         error_bias = math.exp(-1.0 / FINGER_ERROR_TIME)  # pymunk: error fraction left after 1 s
         for f, (p, r) in enumerate(zip(p_finger, radius)):
@@ -171,7 +171,7 @@ class World:
             self.fingers.append(body)
             self.finger_shapes.append(shape)
             self.controls.append(control)
-            self._finger_index[shape] = f
+        self._finger_callbacks = [self._finger_callback(f) for f in range(len(self.fingers))]
         self._set_friction(self._ground_mu())
         self._reset_accumulators()
 
@@ -266,24 +266,36 @@ class World:
         self.space.step(h)
         for control, p in zip(self.controls, p_control_next__world):
             control.position = (float(p[0]), float(p[1]))
-        body.each_arbiter(self._on_arbiter)
+        # each finger's arbiters (with the object or the ground), not the object's: the
+        # object rests on the ground at nearly every substep, and visiting that arbiter
+        # from Python cost as much as the physics step itself
+        for callback, finger in zip(self._finger_callbacks, self.fingers):
+            finger.each_arbiter(callback)
 
-    def _on_arbiter(self, arb):
-        # arbiter shapes: (object shape, other shape); see the module docstring
-        f = self._finger_index.get(arb.shapes[1])
-        if f is None or not arb.contact_point_set.points:
-            return
-        j = arb.total_impulse
-        n = arb.normal
-        self._touch[f] = True
-        acc = self._impulse[f]
-        acc[0] += j.x
-        acc[1] += j.y
-        w = abs(j.x * n.x + j.y * n.y)
-        nacc = self._normal[f]
-        nacc[0] += w * n.x
-        nacc[1] += w * n.y
-        self._last_normal[f] = (n.x, n.y)
+    def _finger_callback(self, f):
+        """Arbiter callback of finger f: accumulates what the finger feels of the object."""
+        obj = self.shape
+
+        def on_arbiter(arb):
+            # arbiter shapes: (finger shape, other shape); normal from the finger into the
+            # object, impulse on the finger: both negated (exactly) to the object's view
+            # of the module docstring
+            if arb.shapes[1] is not obj or not arb.contact_point_set.points:
+                return
+            j = arb.total_impulse
+            n = arb.normal
+            jx, jy, nx, ny = -j.x, -j.y, -n.x, -n.y
+            self._touch[f] = True
+            acc = self._impulse[f]
+            acc[0] += jx
+            acc[1] += jy
+            w = abs(jx * nx + jy * ny)
+            nacc = self._normal[f]
+            nacc[0] += w * nx
+            nacc[1] += w * ny
+            self._last_normal[f] = (nx, ny)
+
+        return on_arbiter
 
     def _reset_accumulators(self):
         F = len(self.fingers)
