@@ -2,7 +2,7 @@
 
     nice -n 5 .venv/bin/python benchmarks/bench_plan.py [--seeds 10] [--cases box,polygon]
         [--policies eig,random] [--pokes 8] [--cache DIR (default /tmp/tacest_bench_plan)] [--timeout 7200] [--report-only]
-        [--plot OUT.png] [--json OUT.json] [--quiet]
+        [--plot OUT.png] [--json OUT.json] [--quiet] [--retime N]
 
 For every case, seed and policy it runs one closed loop in the pymunk world
 (tacest.planning.explore.explore, 2-D, tacest record's default sensor noise):
@@ -34,6 +34,12 @@ equal, and the line says so; a target against a ``fail`` median is UNDETERMINED)
 2. EIG reaches random's median Chamfer after ``pokes`` pokes within 4 pokes;
 3. planning one poke (CEM included) takes <= 10 s (median and maximum over every EIG
    plan of the loops).
+
+``--retime N``: after the report, plan again (EIG, the loops' settings) from the
+estimates the cached EIG loops of the first N seeds wrote after pokes 1 .. pokes-1, one
+plan at a time in this process, and print the median and maximum wall time: the
+loops' own plan times depend on how many loops share the machine, these on the machine
+alone (run it with nothing else running).
 
 Exit status 0 whether or not the targets are met (1 only for bad arguments).
 """
@@ -281,6 +287,39 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
     return summary
 
 
+def retime(cache: Path, cases, seeds, pokes: int) -> dict:
+    """Wall times (s) of EIG plans from the cached EIG loops' estimates, one at a time:
+    {case: [seconds, ...]} (see --retime)."""
+    from tacest.diagnosis.slicing import slice_run
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+    from tacest.planning.explore import _plan_seed
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    out = {}
+    for case in cases:
+        times = []
+        for seed in seeds:
+            folder = cache / f"{case}-{seed}-eig"
+            if not (folder / "run.h5").exists():
+                continue
+            run = read_run(folder / "run.h5")
+            for n in range(1, pokes):
+                path = folder / f"estimate_{n}.h5"
+                if not path.exists():
+                    continue
+                est = read_estimate(path)
+                piece = slice_run(run, 0, len(est.runs[0].pose))
+                t0 = time.perf_counter()
+                plan_next(est, [piece], PlanSettings(method="eig", seed=_plan_seed(seed, n)))
+                times.append(time.perf_counter() - t0)
+        out[case] = times
+        if times:
+            print(f"{case}: EIG planning, one plan at a time: median {np.median(times):.2f} s, max "
+                  f"{np.max(times):.2f} s over {len(times)} plans (load average now {os.getloadavg()[0]:.2f})")
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -294,6 +333,7 @@ def main(argv=None):
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--retime", type=int, default=0, metavar="N")
     ap.add_argument("--worker", nargs=5, metavar=("CASE", "SEED", "POLICY", "POKES", "DIR"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -332,9 +372,11 @@ def main(argv=None):
             if sums:
                 out = Path(args.plot)
                 plot_learning_curve(out.with_name(f"{out.stem}_{case}{out.suffix}"), sums)
+    retimed = retime(cache, cases, seeds[: args.retime], args.pokes) if args.retime > 0 else {}
     if args.json:
         Path(args.json).write_text(json.dumps({"cases": summary, "seeds": seeds, "pokes": args.pokes,
-                                               "results": {"-".join(map(str, k)): v for k, v in results.items()}},
+                                               "results": {"-".join(map(str, k)): v for k, v in results.items()},
+                                               "retimed_plan_times": retimed},
                                               indent=1, default=lambda o: None) + "\n")
     return 0
 
