@@ -73,8 +73,12 @@ def test_ctrl_c_ends_the_cli_recording_with_a_valid_file(tmp_path):
     out = tmp_path / "rec.h5"
     emu, port = _start_emulator("--samples", "200000", "--dt", "0.001", "--rate", "1000")
     try:
+        # SIGINT as at a terminal: a test run started in the background of a
+        # non-interactive shell ignores SIGINT, its children inherit that, and Python then
+        # installs no KeyboardInterrupt handler (the recorder never saw the Ctrl-C)
         rec = subprocess.Popen(CLI + ["record", "--source", "serial", "--port", port, "-o", str(out)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         # wait until the first snapshot is on disk, then a little more
         t_end = time.monotonic() + 30
         while not out.exists() and time.monotonic() < t_end:
