@@ -293,7 +293,7 @@ def retime(cache: Path, cases, seeds, pokes: int) -> dict:
     from tacest.diagnosis.slicing import slice_run
     from tacest.io.estimate import read_estimate
     from tacest.io.run import read_run
-    from tacest.planning.explore import _plan_seed
+    from tacest.planning.explore import plan_seed
     from tacest.planning.planner import PlanSettings, plan_next
 
     out = {}
@@ -311,7 +311,7 @@ def retime(cache: Path, cases, seeds, pokes: int) -> dict:
                 est = read_estimate(path)
                 piece = slice_run(run, 0, len(est.runs[0].pose))
                 t0 = time.perf_counter()
-                plan_next(est, [piece], PlanSettings(method="eig", seed=_plan_seed(seed, n)))
+                plan_next(est, [piece], PlanSettings(method="eig", seed=plan_seed(seed, n)))
                 times.append(time.perf_counter() - t0)
         out[case] = times
         if times:

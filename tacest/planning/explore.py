@@ -171,7 +171,7 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
             if est is None:
                 source = start_guess_estimate([run], shape, config)
                 step["planned_from"] = "start guess"
-            settings = PlanSettings(method=opts.policy, score=opts.score, seed=_plan_seed(opts.seed, n),
+            settings = PlanSettings(method=opts.policy, score=opts.score, seed=plan_seed(opts.seed, n),
                                     vary=tuple(opts.vary), iterations=opts.iterations, population=opts.population)
             plan = plan_next(source, [run], settings)
             write_plan(plan, plan_path)
@@ -226,7 +226,7 @@ def start_guess_estimate(runs, shape: str, config):
                     solver_status="start guess", success=False, information=None, config=config.to_dict())
 
 
-def _plan_seed(seed: int, n: int) -> int:
+def plan_seed(seed: int, n: int) -> int:
     """A planner seed per (loop seed, step), independent of the simulator's streams."""
     return int(np.random.SeedSequence([int(seed), 7, int(n)]).generate_state(1)[0])
 

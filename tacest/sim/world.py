@@ -19,10 +19,10 @@ hands each arbiter with this body's shape first, ``Arbiter.normal`` points from 
 first shape into the second, and ``Arbiter.total_impulse`` is the impulse of the step on
 the first shape.  The world visits each finger's arbiters (finger first) and reports
 the object's view: the normal out of the object into the finger, the impulse on the
-object (both the arbiter's, negated).  Shape friction and elasticity multiply; the ground's are 1, the object's
-are the true ground coefficients, and each finger's friction is
-friction_finger / (object's friction) so that object-finger contacts get exactly
-friction_finger.
+object (both the arbiter's, negated).  Shape friction and elasticity multiply; the
+ground's are 1, the object's are the true ground coefficients, and each finger's
+friction is friction_finger / (object's friction) so that object-finger contacts get
+exactly friction_finger.
 """
 
 from __future__ import annotations
