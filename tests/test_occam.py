@@ -84,3 +84,49 @@ def test_occam_term_recovers_how_freely_a_body_moves_where_the_joint_fit_collaps
     assert np.argmin(joint) == len(grid) - 1  # collapses to the freest end of the grid
     # 4000 samples fix log s to a few percent; 25 % is two grid steps
     assert grid[np.argmin(with_occam)] == pytest.approx(0.05, rel=0.25)
+
+
+# ------------------------------------------------------------------------------------
+# the directions a contact holds (problem.occam_free_weights)
+
+#: a box of half-extents (A, B) m resting on its bottom face, ground normal +y; levers of
+#: its two bottom vertices, and the half length that puts the angle in length units
+A, B = 0.04, 0.05
+UP = np.array([0.0, 1.0])
+BOTTOM = [(UP, np.array([-A, -B])), (UP, np.array([A, -B]))]
+HALF = 0.05
+
+
+def _free(rows, weights, half=HALF):
+    from tacest.estimation.problem import occam_free_weights
+
+    return np.asarray(ca.DM(occam_free_weights(rows, weights, half))).ravel()
+
+
+def test_occam_free_weights_hold_what_the_contacts_hold():
+    from tacest.estimation.problem import OCCAM_HELD_EPS as EPS
+
+    # nothing touching: every direction free, exactly
+    np.testing.assert_allclose(_free(BOTTOM, [0.0, 0.0]), [1.0, 1.0, 1.0], rtol=0, atol=1e-15)
+    # resting on a face: height and angle held (each touching row takes a direction to
+    # about EPS / (weight + EPS); two rows share two directions: below 2 EPS), x free
+    x, y, ang = _free(BOTTOM, [1.0, 1.0])
+    assert x == pytest.approx(1.0, abs=1e-12)
+    assert y < 2 * EPS and ang < 2 * EPS
+    # a finger pushing the side along x holds x too
+    side = (np.array([1.0, 0.0]), np.array([-A, 0.02]))
+    assert np.all(_free(BOTTOM + [side], [1.0, 1.0, 1.0]) < 2 * EPS)
+    # on one vertex (tipping): one combination of height and angle held, one free
+    x, y, ang = _free(BOTTOM, [0.0, 1.0])
+    assert x == pytest.approx(1.0, abs=1e-12)
+    assert 0.1 < y < 0.9 and 0.1 < ang < 0.9
+    # a contact of weight 0.05 (a vertex 2 sig_gap above the ground) holds little
+    assert np.all(_free(BOTTOM, [0.0025, 0.0025]) > 0.8)
+
+
+def test_occam_free_weights_are_invariant_to_the_length_scale():
+    """Levers and the half length in other units (mm for m): the same freedoms, to rounding."""
+    scaled = [(n, 1000.0 * r) for n, r in BOTTOM + [(np.array([1.0, 0.0]), np.array([-A, 0.02]))]]
+    np.testing.assert_allclose(_free(scaled, [1.0, 0.3, 0.5], 1000.0 * HALF),
+                               _free(BOTTOM + [(np.array([1.0, 0.0]), np.array([-A, 0.02]))], [1.0, 0.3, 0.5]),
+                               rtol=1e-12)

@@ -46,7 +46,8 @@ import numpy as np
 
 from tacest.diagnosis import candidates as cands
 from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, estimator_supports_effects, fit_estimator,
-                                      fit_local, local_supports_effects, observed_warm_runs, weighted_objective)
+                                      fit_local, local_supports_effects, observed_warm_runs, occam_objective,
+                                      weighted_objective)
 from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
 from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
@@ -138,8 +139,10 @@ class CandidateResult:
     effect parameters and their one-sigma uncertainty (NaN: not available);
     fits : [{value, objective, status, wall_time}] fits to all data;
     heldout : {fold: objective}; gap_before / gap_after / reduction / improvement /
-    penalty / score : see the module doc; floor : the held-out floor of the folds
-    compared; folds_improved : folds where it beat the
+    penalty / score : see the module doc; floor : the held-out (chi-square) noise
+    floor of the folds compared; occam : the plain model's Occam term there (0 unless
+    ``weights.occam`` is set), part of what a right model scores: the gaps are measured
+    from floor + occam, the floor's spread from the floor alone; folds_improved : folds where it beat the
     plain model by more than the fold's share of the penalty.
     """
 
@@ -155,6 +158,7 @@ class CandidateResult:
     full_objective: float = float("nan")
     heldout: dict = field(default_factory=dict)
     floor: float = float("nan")
+    occam: float = 0.0
     gap_before: float = float("nan")
     gap_after: float = float("nan")
     reduction: float = float("nan")
@@ -173,7 +177,7 @@ class CandidateResult:
         return {
             "name": self.name, "kind": self.kind, "status": self.status, "message": self.message,
             "gap_before": _num(self.gap_before), "gap_after": _num(self.gap_after), "reduction": _num(self.reduction),
-            "floor": _num(self.floor),
+            "floor": _num(self.floor), "occam": _num(self.occam),
             "params": {k: _num(v) for k, v in self.params.items()},
             "params_std": {k: _num(v) for k, v in self.params_std.items()},
             "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
@@ -340,7 +344,13 @@ class _Context:
         return min(fits, key=lambda t: t[0])[1]
 
     def fold_objective(self, fold: Fold, name: str, value, effects, cfit: FitResult) -> tuple:
-        """(held-out objective, status text) of one candidate in one fold."""
+        """(held-out objective, status text, its Occam part) of one candidate in one fold.
+
+        The objective includes the Occam term of pose-observed samples where the
+        configuration weights it (``weights.occam``): with the parameters held it is a
+        constant of the held-out data given them (the price of the trajectory's freedom
+        in the marginal likelihood), and it is returned apart so that the noise floor can
+        carry the plain model's (see diagnose, step 4)."""
         tr_runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
         train = [p.cut(tr_runs) for p in fold.train]
         held = [p.cut(tr_runs) for p in fold.heldout]
@@ -362,7 +372,7 @@ class _Context:
                            warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.heldout], pinned=tf.theta,
                            pin="physics", accept_budget=True, **extra)
         status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
-        return weighted_objective(hf.estimate, self.config), status
+        return weighted_objective(hf.estimate, self.config), status, occam_objective(hf.estimate, self.config)
 
 
 def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str, plain: Estimate,
@@ -489,9 +499,10 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     echo(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
     base_fold = {}
     base_fold_status = {}
+    base_fold_occam = {}
     for fold in folds:
         try:
-            obj, st = ctx.fold_objective(fold, "none", None, (), base)
+            obj, st, base_fold_occam[fold.index] = ctx.fold_objective(fold, "none", None, (), base)
             base_fold[fold.index] = obj
             base_fold_status[fold.index] = st
         except (SolveFailedError, CandidateUnavailable) as exc:
@@ -515,7 +526,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             continue
         t0 = time.perf_counter()
         try:
-            _fit_candidate(ctx, c, spec, base, base_full_obj, folds, base_fold, floor_fold, penalty_per_param,
+            _fit_candidate(ctx, c, spec, base, base_full_obj, folds, base_fold, floor_fold, base_fold_occam,
+                           penalty_per_param,
                            fold_share)
         except CandidateUnavailable as exc:
             c.status, c.message = "unavailable", str(exc)
@@ -530,10 +542,14 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     ok = [c for c in cres if c.status == "ok" and np.isfinite(c.score)]
     ranked = sorted(ok, key=lambda c: -c.score) + [c for c in cres if c not in ok]
     winners = [c for c in ranked if c.significant]
-    base_gap = sum(base_fold.values()) - sum(floor_fold[j] for j in base_fold)
+    # the gap from what a right model scores: the chi-square floor of the squared terms
+    # plus the plain model's Occam term (a constant given its parameters, not noise)
+    base_occam = sum(base_fold_occam[j] for j in base_fold)
+    base_gap = sum(base_fold.values()) - sum(floor_fold[j] for j in base_fold) - base_occam
     heldout_info.update({"folds_valid": len(base_fold), "samples": n_heldout_samples,
                          "penalty_per_parameter": penalty_per_param, "objective_plain": sum(base_fold.values()),
-                         "floor": sum(floor_fold[j] for j in base_fold), "gap_plain": base_gap,
+                         "floor": sum(floor_fold[j] for j in base_fold), "occam_plain": base_occam,
+                         "gap_plain": base_gap,
                          "fold_objective_plain": {str(k): v for k, v in base_fold.items()},
                          "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
     if not base_fold:
@@ -565,7 +581,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
 
 
 def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, base_full_obj, folds, base_fold,
-                   floor_fold, penalty_per_param, fold_share):
+                   floor_fold, occam_fold, penalty_per_param, fold_share):
     """Fill ``c``: choose parameters on all data, then the held-out comparison."""
     opts = ctx.options
     if spec.kind == "transform":
@@ -625,7 +641,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
         if fold.index not in base_fold:
             continue
         try:
-            o, _ = ctx.fold_objective(fold, name, value, effects, cfit)
+            o, _, _ = ctx.fold_objective(fold, name, value, effects, cfit)
             c.heldout[fold.index] = o
         except SolveFailedError as exc:
             ctx.notes.append(f"{c.name}, fold {fold.index}: held-out comparison failed ({exc}); fold not counted")
@@ -643,17 +659,17 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     for j in common:
         fold = next(f for f in folds if f.index == j)
         try:
-            o, _ = ctx.fold_objective(fold, "none", None, (), control)
+            o, _, _ = ctx.fold_objective(fold, "none", None, (), control)
             c.control[j] = o
         except SolveFailedError as exc:
             ctx.notes.append(f"{c.name}, fold {j}: the plain model from its start failed ({exc})")
     plain = {j: min(base_fold[j], c.control.get(j, math.inf)) for j in common}
     before = sum(plain[j] for j in common)
     after = sum(c.heldout[j] for j in common)
-    fl = sum(floor_fold[j] for j in common)
-    c.floor = fl
-    c.gap_before = before - fl
-    c.gap_after = after - fl
+    c.floor = sum(floor_fold[j] for j in common)
+    c.occam = sum(occam_fold[j] for j in common)
+    c.gap_before = before - c.floor - c.occam
+    c.gap_after = after - c.floor - c.occam
     c.improvement = before - after
     # capped at 1: a candidate that brings the held-out objective below the floor closes
     # the whole gap; undefined (NaN) when the plain model has no gap above the floor

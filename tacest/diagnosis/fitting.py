@@ -91,6 +91,12 @@ def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None) 
     return total
 
 
+def occam_objective(est: Estimate, config: EstimatorConfig) -> float:
+    """The Occam part of :func:`weighted_objective` (0 where ``weights.occam`` is 0)."""
+    w = float(config.weights.occam)
+    return w * sum(float(np.sum(r.residuals["occam"])) for r in est.runs if "occam" in r.residuals) if w else 0.0
+
+
 @dataclass
 class FitResult:
     """One fit: the estimate, the runs it was fitted to (after any transform), the

@@ -48,7 +48,7 @@ class Weights:
     complementarity: float = 1.0
     dissipation: float = 1.0
     cone: float = 1.0  #: fingertip friction cone, a smooth penalty whitened like complementarity
-    occam: float = 0.0  #: Occam term of pose-observed trajectories (problem.pose_occam); 0 (default) drops it
+    occam: float = 1.0  #: Occam term of pose-observed trajectories (problem.pose_occam; 1 = as derived, 0 drops it)
 
 
 @dataclass

@@ -39,6 +39,10 @@ PIN_HALF_WIDTH = 1e-9
 #: distance (log mass, or friction) from a bound within which a fitted parameter counts
 #: as ended at that bound (IPOPT's interior point stops within ~1e-8 of an active bound)
 AT_BOUND_TOLERANCE = 1e-3
+#: a mass or friction whose first-order shift without the Occam term (the data alone)
+#: exceeds this many of its std is reported as not identifiable: at 2 the data's own
+#: optimum lies outside the value's 95 % interval
+OCCAM_SHIFT_SIGMAS = 2.0
 
 
 def _noop(*_a, **_k):
@@ -448,7 +452,8 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res,
                                     source_file=src, source_sha256=sha))
     # held fixed: no parameter is estimated, so there is no information to report
-    info, names, std = observed_information(est, out.z) if fixed is None else (None, [], {})
+    info, names, std, shift = (observed_information(est, out.z, penalty_shift=True) if fixed is None
+                               else (None, [], {}, {}))
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
     if effects:
         from tacest.estimation.augment import effect_params
@@ -477,6 +482,15 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         if hit and identifiable.get(k) and fixed is None:
             identifiable[k] = False
             echo(f"warning: {k} = {params[k]:.4g} ended at its bound: the data do not determine it")
+    # a parameter the Occam term, not the data, put where it is: without the term the
+    # data alone would move it by more than OCCAM_SHIFT_SIGMAS of its std (on slow
+    # sliding pushes the data cannot split the push force into mass and ground friction,
+    # docs/estimation.md, "Pose observations and light objects")
+    for k in ("mass", "friction_ground", "friction_finger"):
+        if identifiable.get(k) and abs(shift.get(k, 0.0)) > OCCAM_SHIFT_SIGMAS * std.get(k, np.inf):
+            identifiable[k] = False
+            echo(f"warning: {k} = {params[k]:.4g} is set by the Occam term, not the data (without it the data "
+                 f"would move it by {shift[k]:+.3g}, std {std[k]:.3g})")
     for k in std:  # effect parameters: identifiable where the data bound them
         if "." in k:
             identifiable[k] = bool(np.isfinite(std[k]))

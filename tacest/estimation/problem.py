@@ -263,6 +263,40 @@ def pose_occam(log_lam):
     return 0.5 * ca.log1p(ca.exp(u))
 
 
+#: free-direction weights of the Occam term (occam_free_weights): a contact row of
+#: weight s takes a direction's freedom to OCCAM_HELD_EPS / (s + OCCAM_HELD_EPS), 3 % for
+#: a touching contact (s = 1)
+OCCAM_HELD_EPS = 0.03
+#: sharpness of a ground vertex's touch weight exp(-OCCAM_TOUCH_SHARPNESS x (gap in
+#: sig_gap - 1)+): 1 within one sig_gap of the ground, 0.05 at two, 0.0025 at three, so
+#: that a vertex off the ground holds nothing
+OCCAM_TOUCH_SHARPNESS = 3.0
+
+
+def occam_free_weights(rows, weights, half_length):
+    """Per-degree-of-freedom freedom (3,) of the object at one sample, for the Occam term.
+
+    The Occam term (pose_occam) prices the freedom of a body that moves by process noise
+    alone.  A direction held by a contact is not free: there the contact impulse, not the
+    mass, absorbs any velocity change, so the mass does not set how freely it moves (a box
+    resting on a face is held in height and angle whatever its mass; a finger pushing it
+    holds it along the push).  Counting such directions as free prices light objects
+    wrongly and pulled slow sliding pushes to twice their mass (docs/estimation.md).
+
+    rows : list of (normal (2,) world, lever (2,) world m) of the contacts; weights :
+    list of their weights in [0, 1] (a ground vertex's touch, a finger's flag);
+    half_length : m, the length that puts the angle in length units (L/2, as the
+    dynamics residual).  Each contact constrains the generalized direction
+    a = [n_x, n_y, (r × n) / half_length]; with A = Σ s a aᵀ the freedom of degree j is
+    the diagonal of ε (A + ε I)⁻¹ (ε = OCCAM_HELD_EPS): 1 where nothing holds it,
+    ε / (s + ε) along a held axis.  Smooth in the contact weights and geometry."""
+    A = OCCAM_HELD_EPS * ca.SX.eye(3)
+    for (n, r), w in zip(rows, weights):
+        a = ca.vertcat(n[0], n[1], (r[0] * n[1] - r[1] * n[0]) / half_length)
+        A = A + w * (a @ a.T)
+    return OCCAM_HELD_EPS * ca.diag(ca.inv(A))
+
+
 def ground_gap_indicator(phi, sigma_gap, eps):
     """Smoothed (phi / sigma_gap - 1)⁺, a softplus of width eps / SOFT_SHIFT (in units of
     sigma_gap): ≈ 0 for a vertex within one sigma_gap of the ground, ≈ phi / sigma_gap - 1
@@ -852,6 +886,7 @@ class Problem2D:
             pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
+        finger_rows = []  # (normal, lever) of each finger's contact frame, for the Occam term
         for f in range(F):
             # the gap at the interval's end (the contact flag, see contact_residual); the
             # contact frame n_w and lever of the impulse at its middle: the measured force
@@ -862,6 +897,7 @@ class Problem2D:
             _, n_w, lever = self.finger_geometry((q_start + q) / 2, V, (c_f_start[:, f] + c_f[:, f]) / 2,
                                                  radius[f], sd_fun)
             t_w = perp(n_w)
+            finger_rows.append((n_w, lever))
             # finger impulse ON the object: a free world-frame vector, held in the friction
             # cone of the model's contact frame (eq. C2).  Fingertips often stick to the
             # object, and the measured fingertip velocity is noisy, so friction here is
@@ -903,7 +939,14 @@ class Problem2D:
             # translations and the rotation, from the process sd of each velocity change
             log_s = ca.log(sig_v * M_ref / M / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
             log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
-            occam = w_pose * sum(pose_occam(log_lam[k]) for k in range(3))
+            # priced only in the directions no contact holds (occam_free_weights: the
+            # ground vertices by how close they are to the ground, the fingers by their
+            # flag): there a contact impulse, not the mass, absorbs a velocity change
+            touch = [ca.exp(-OCCAM_TOUCH_SHARPNESS * ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps))
+                     for k in range(K)]
+            free = occam_free_weights([(n_g, levers[k]) for k in range(K)] + finger_rows,
+                                      touch + [contact[f] for f in range(F)], L / 2)
+            occam = w_pose * sum(free[k] * pose_occam(log_lam[k]) for k in range(3))
         g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         outs = {

@@ -230,10 +230,18 @@ def schur_information(A, B) -> np.ndarray:
     A : (m, n_a) dense or sparse Jacobian columns of the kept variables;
     B : (m, n_x) sparse Jacobian columns of the nuisance variables.
     """
+    return _schur(A, B)[0]
+
+
+def _schur(A, B, g_a=None, g_b=None):
+    """(schur_information(A, B), reduced gradient): with a gradient (g_a (n_a,), g_b
+    (n_x,)) of some other function of the same variables, also its gradient with the
+    nuisance variables moved along the data's best response, g_a − AᵀB (BᵀB + δI)⁻¹ g_b
+    (same scaling and ridge); None without one."""
     A = sp.csc_matrix(A)
     I_aa = (A.T @ A).toarray()
     if B.shape[1] == 0:
-        return 0.5 * (I_aa + I_aa.T)
+        return 0.5 * (I_aa + I_aa.T), (None if g_a is None else np.asarray(g_a, float))
     B = sp.csc_matrix(B)
     norms = np.sqrt(np.asarray(B.multiply(B).sum(axis=0)).ravel())
     norms[norms == 0] = 1.0
@@ -242,7 +250,10 @@ def schur_information(A, B) -> np.ndarray:
     I_xa = (Bs.T @ A).toarray()
     lu = spla.splu((I_xx + RIDGE * sp.identity(I_xx.shape[0], format="csc")).tocsc())
     I_s = I_aa - I_xa.T @ lu.solve(I_xa)
-    return 0.5 * (I_s + I_s.T)
+    g_r = None
+    if g_a is not None:
+        g_r = np.asarray(g_a, float) - I_xa.T @ lu.solve(np.asarray(g_b, float) / norms)
+    return 0.5 * (I_s + I_s.T), g_r
 
 
 def information_names(est):
@@ -259,13 +270,29 @@ def information_names(est):
         + ["final_x", "final_y", "final_angle"]
 
 
-def observed_information(est, z, lbx=None, ubx=None):
+def penalty_gradient_function(problem):
+    """CasADi Function (z, p) -> gradient (n_z,) of the weighted penalty (Occam) terms of
+    the objective; cached per problem."""
+    if getattr(problem, "_gpen", None) is None:
+        problem._gpen = ca.Function("gpen", [problem.z_sym, problem.p_sym],
+                                    [ca.gradient(problem.f_penalty_reference, problem.z_sym)])
+    return problem._gpen
+
+
+def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False):
     """(I (n, n), names (n,), std {name: sigma}) at the solution z of an ImplicitEstimator.
 
     Parameters are in physical units: lengths m, mass kg, inertia as log ratio to the
     uniform-density value, friction dimensionless, effect parameters as in
     tacest.estimation.augment, final pose m / rad.  Fixed variables
     (bounds equal) get zero information and infinite std.
+
+    With ``penalty_shift``, a fourth item {name: shift}: how far the data alone would
+    move each parameter from z, to first order, without the penalty (Occam) terms of the
+    objective, I⁻¹ ∇penalty (the penalty's gradient with the nuisance variables
+    following the data, :func:`_schur`), in the units above.  At the fit the data's and
+    the penalty's gradients cancel: a shift of several std says the penalty, not the
+    data, put the parameter where it is (see the estimator's identifiability check).
     """
     pr = est.problem
     rj = residual_jacobian_function(pr)
@@ -285,7 +312,12 @@ def observed_information(est, z, lbx=None, ubx=None):
     is_keep[keep] = True
     is_keep[pr.phys_offset: pr.phys_offset + pr.n_phys] = True  # folded into theta, not nuisance
     nuis = np.nonzero(~is_keep & ~fixed)[0]
-    I_s = schur_information(J[:, keep], J[:, nuis])
+    g_a = g_b = None
+    if penalty_shift:
+        gp = np.asarray(penalty_gradient_function(pr)(z, est.p_final), float).reshape(1, -1)
+        gp = np.asarray(fold_lifted_parameters(pr, sp.csc_matrix(gp), z, est.p_final).todense()).ravel()
+        g_a, g_b = gp[keep], gp[nuis]
+    I_s, g_r = _schur(J[:, keep], J[:, nuis], g_a, g_b)
     # scaled -> physical units: z_scaled = D · physical  =>  I_phys = D I D
     L = est.scales.L
     V, mass, *_ = est.physical(z)
@@ -312,4 +344,13 @@ def observed_information(est, z, lbx=None, ubx=None):
             std[name] = float(np.sqrt(cov[k, k])) if free[k] and cov[k, k] > 0 else float("inf")
     except np.linalg.LinAlgError:
         std = {name: float("nan") for name in names}
-    return I_phys, names, std
+        cov = None
+    if not penalty_shift:
+        return I_phys, names, std
+    shift = {name: float("nan") for name in names}
+    if cov is not None and g_r is not None:
+        # in physical units: I_phys = D I_s D, the gradient g_phys = D g_r
+        delta = cov[np.ix_(free, free)] @ (d[free] * g_r[free])
+        for k, value in zip(np.nonzero(free)[0], delta):
+            shift[names[k]] = float(value)
+    return I_phys, names, std, shift
