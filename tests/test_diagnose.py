@@ -21,13 +21,14 @@ import pytest
 
 from tacest.diagnosis import diagnose as diag_mod
 from tacest.diagnosis.candidates import candidate, latency_mismatch, parse_effect_list
-from tacest.diagnosis.fitting import FitResult, estimator_supports_effects
+from tacest.diagnosis.fitting import FitResult, estimator_supports_effects, occam_objective
 from tacest.diagnosis.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
                                     residual_dof, window_tests)
 from tacest.diagnosis.heldout import make_folds, make_pieces
 from tacest.diagnosis.slicing import join_runs, slice_run, slice_run_estimate, split_at_actions
 from tacest.diagnosis.transforms import undo_latency, undo_time_scale
 from tacest.errors import TacestError
+from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.initial import finger_gaps
 from tacest.io.estimate import Estimate, RunEstimate, write_estimate
 from tacest.io.h5util import sha256_file
@@ -576,7 +577,10 @@ def test_restitution_augmentation_recovers_e_from_an_observed_bounce(true_e):
     # the sample intervals around an impact that happens inside one; measured e = 0.24,
     # 0.41, 0.54 for 0.3, 0.5, 0.7 (-19 to -23 %)
     assert abs(e - true_e) <= 0.3 * true_e, (e, true_e)
-    assert est.objective < 0.6 * plain.objective, (est.objective, plain.objective)
+    # the misfit itself, without the Occam term (a price of the trajectory's freedom
+    # that both fits pay, about the same: it is no misfit to explain)
+    fit, fit_plain = (x.objective - occam_objective(x, EstimatorConfig()) for x in (est, plain))
+    assert fit < 0.6 * fit_plain, (fit, fit_plain)
 
 
 NLP_EFFECTS = {  # effect: (record spec, parameter(s), relative tolerance)

@@ -75,7 +75,7 @@ class ImplicitEstimator:
         self.echo = echo or _noop
         self.shape = make_shape(shape_spec, dim=2)
         self.scales: Scales = choose_scales(runs, self.config)
-        self.structures = [RunStructure(T=r.n_samples, F=r.n_fingers) for r in runs]
+        self.structures = [RunStructure(T=r.n_samples, F=r.n_fingers, observed=r.pose_obs is not None) for r in runs]
         self.has_force = any(r.force is not None for r in runs)
         size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
         self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound

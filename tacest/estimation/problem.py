@@ -183,10 +183,12 @@ def check_effects(effects) -> tuple:
 
 @dataclass(frozen=True)
 class RunStructure:
-    """What fixes the NLP's structure for one run: samples T and fingers F."""
+    """What fixes the NLP's structure for one run: samples T, fingers F, and whether
+    its poses are observed (the Occam term is built only for problems with such runs)."""
 
     T: int
     F: int
+    observed: bool = False
 
 
 def consecutive_slices(vector):
@@ -367,9 +369,10 @@ class Problem2D:
         #: phys after the 2K + 4 physical entries)
         self.eff_index = {f"{e}.{n}": j for j, (e, n, *_) in enumerate(self.effect_params)}
         self.n_theta = self.n_shape + len(PHYS_NAMES) + self.n_eff
-        #: the Occam term (pose_occam) is part of the NLP only where it is weighted (the
-        #: default weight 0 leaves it out: no cost in every sample's function and Hessian)
-        self.with_occam = config.weights.occam > 0
+        #: the Occam term (pose_occam) is part of the NLP only where it is weighted and
+        #: some run's poses are observed (it prices pose-observed samples only; without
+        #: it no sample's function and Hessian carries it)
+        self.with_occam = config.weights.occam > 0 and any(s.observed for s in structures)
         self._build()
 
     # ------------------------------------------------------------------------------
@@ -937,12 +940,20 @@ class Problem2D:
         if self.with_occam:
             # the Occam term of a pose-observed sample (pose_occam): tracking indices of the
             # translations and the rotation, from the process sd of each velocity change
-            log_s = ca.log(sig_v * M_ref / M / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
+            # (M floored far below any real mass: a trial step of the solver through a
+            # degenerate shape may make the inertia <= 0, and the log NaN)
+            M_pos = ca.fmax(M, 1e-9 * M_ref)
+            log_s = ca.log(sig_v * M_ref / M_pos / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
             log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
             # priced only in the directions no contact holds (occam_free_weights: the
-            # ground vertices by how close they are to the ground, the fingers by their
-            # flag): there a contact impulse, not the mass, absorbs a velocity change
-            touch = [ca.exp(-OCCAM_TOUCH_SHARPNESS * ground_gap_indicator(phi_c[k], g[G["sig_gap"]], eps))
+            # ground vertices by how close they are to the ground at the observed pose,
+            # the fingers by their flag): there a contact impulse, not the mass, absorbs
+            # a velocity change.  The observed pose, not the fitted one: with the fitted
+            # gaps the term paid a light object to put its vertices on the ground (a
+            # bouncing box's fit then oscillated between held and free and never
+            # converged)
+            phi_obs, _, _ = ground_contacts(q_obs, v, V, n_g, g[G["h"]])
+            touch = [ca.exp(-OCCAM_TOUCH_SHARPNESS * ground_gap_indicator(phi_obs[k], g[G["sig_gap"]], eps))
                      for k in range(K)]
             free = occam_free_weights([(n_g, levers[k]) for k in range(K)] + finger_rows,
                                       touch + [contact[f] for f in range(F)], L / 2)
