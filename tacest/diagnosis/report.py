@@ -112,7 +112,8 @@ def markdown(diag, figures: list) -> str:
     h = diag.heldout
     L.append("## Which effect, and how far (held-out data)")
     L.append("")
-    L.append(f"Held-out design: {h.get('design', '–')}. The gap is the held-out objective above its noise floor; "
+    L.append(f"Held-out design: {h.get('design', '–')}. The gap is the held-out objective above its noise floor "
+             "(plus the plain model's Occam term where poses are observed); "
              f"a candidate counts if its improvement exceeds {_f(h.get('penalty_per_parameter'))} per added "
              "parameter, in total and, by each fold's share of that penalty, in at least half of the folds.")
     L.append("")
