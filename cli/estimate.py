@@ -31,6 +31,10 @@ def estimate(runs, output, shape, method, config_path, quiet):
     write_estimate(est, Path(output))
     if not quiet:
         p = est.params
+
+        def note(name):  # without a force stream, at a bound, or set by the Occam term (warnings above)
+            return "" if est.identifiable.get(name, True) else " (not identifiable)"
+
         click.echo(f"wrote {output}: {est.solver_status} ({est.iterations} iterations, {est.wall_time:.1f} s); "
-                   f"mass {p['mass']:.4g} kg{'' if est.identifiable.get('mass', True) else ' (not identifiable: prior)'}, "
-                   f"friction ground {p['friction_ground']:.3g}, finger {p['friction_finger']:.3g}", err=True)
+                   f"mass {p['mass']:.4g} kg{note('mass')}, friction ground {p['friction_ground']:.3g}"
+                   f"{note('friction_ground')}, finger {p['friction_finger']:.3g}{note('friction_finger')}", err=True)
