@@ -527,8 +527,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         t0 = time.perf_counter()
         try:
             _fit_candidate(ctx, c, spec, base, base_full_obj, folds, base_fold, floor_fold, base_fold_occam,
-                           penalty_per_param,
-                           fold_share)
+                           penalty_per_param, fold_share)
         except CandidateUnavailable as exc:
             c.status, c.message = "unavailable", str(exc)
         c.wall_time = time.perf_counter() - t0

@@ -75,9 +75,10 @@ def estimator_supports_effects() -> bool:
     return "effects" in params and "fixed" in params
 
 
-def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None) -> float:
-    """Σ over runs, samples and loss terms of weight × per-sample residual value (the
-    NLP objective without its parameter priors), from an estimate's residuals."""
+def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None, terms=None) -> float:
+    """Σ over runs, samples and loss terms (``terms``, default every one) of weight ×
+    per-sample residual value (the NLP objective without its parameter priors), from an
+    estimate's residuals."""
     from tacest.estimation.problem import TERMS
 
     w = config.weights
@@ -85,7 +86,7 @@ def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None) 
     idx = range(len(est.runs)) if runs_index is None else runs_index
     for i in idx:
         res = est.runs[i].residuals
-        for t in TERMS:
+        for t in TERMS if terms is None else terms:
             if t in res:
                 total += float(getattr(w, t)) * float(np.sum(res[t]))
     return total
@@ -93,8 +94,9 @@ def weighted_objective(est: Estimate, config: EstimatorConfig, runs_index=None) 
 
 def occam_objective(est: Estimate, config: EstimatorConfig) -> float:
     """The Occam part of :func:`weighted_objective` (0 where ``weights.occam`` is 0)."""
-    w = float(config.weights.occam)
-    return w * sum(float(np.sum(r.residuals["occam"])) for r in est.runs if "occam" in r.residuals) if w else 0.0
+    from tacest.estimation.problem import PENALTY_TERMS
+
+    return weighted_objective(est, config, terms=PENALTY_TERMS)
 
 
 @dataclass

@@ -293,6 +293,8 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False):
     following the data, :func:`_schur`), in the units above.  At the fit the data's and
     the penalty's gradients cancel: a shift of several std says the penalty, not the
     data, put the parameter where it is (see the estimator's identifiability check).
+    A problem without penalty terms (no pose-observed run) has every shift 0, and its
+    gradient is not computed.
     """
     pr = est.problem
     rj = residual_jacobian_function(pr)
@@ -313,7 +315,7 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False):
     is_keep[pr.phys_offset: pr.phys_offset + pr.n_phys] = True  # folded into theta, not nuisance
     nuis = np.nonzero(~is_keep & ~fixed)[0]
     g_a = g_b = None
-    if penalty_shift:
+    if penalty_shift and pr.with_occam:
         gp = np.asarray(penalty_gradient_function(pr)(z, est.p_final), float).reshape(1, -1)
         gp = np.asarray(fold_lifted_parameters(pr, sp.csc_matrix(gp), z, est.p_final).todense()).ravel()
         g_a, g_b = gp[keep], gp[nuis]
@@ -347,6 +349,8 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False):
         cov = None
     if not penalty_shift:
         return I_phys, names, std
+    if not pr.with_occam:  # no penalty: the data alone put every parameter where it is
+        return I_phys, names, std, {name: 0.0 for name in names}
     shift = {name: float("nan") for name in names}
     if cov is not None and g_r is not None:
         # in physical units: I_phys = D I_s D, the gradient g_phys = D g_r
