@@ -3,7 +3,8 @@
     nice -n 10 .venv/bin/python benchmarks/bench_diagnose.py [--seeds 2] [--first-seed 0] [--effects none,latency,...]
                                                               [--design effects|random] [--pokes 3] [--tip-pokes 0]
                                                               [--cache DIR] [--timeout 1800]
-                                                              [--fit-iterations 150] [--quiet] [--json OUT.json]
+                                                              [--fit-iterations 150] [--known-mass REL]
+                                                              [--quiet] [--json OUT.json]
 
 For every effect named in SPEC (and ``none``) and seeds FIRST..FIRST+N-1 (``--first-seed``, default 0) it records a 2-D box with
 tacest's simulator and the effect at a random strength, writes it twice (with /truth
@@ -35,6 +36,13 @@ Designs (what the recordings contain):
     them pushing high on the object (30-45 % of its height above the centroid).  Random
     pokes slide the box slowly and rarely tip it, which hides restitution, com_offset,
     angular damping, face friction and drag (docs/diagnosis.md, "Measured").
+
+``--known-mass REL``: the object was weighed.  Every recording (clean ones too) is
+diagnosed with a configuration whose mass prior is the weighed mass, the truth's mass
+times exp(REL · N(0, 1)) (a weighing error of REL; seeded per recording), with
+``prior.mass_log_sigma`` = REL.  Only then can a force-sensor gain be told from the mass
+(``diagnose.KNOWN_MASS_LOG_SIGMA``); results are cached apart (``_km<REL>`` in their
+names).
 
 Every diagnosis runs in its own subprocess (this script with ``--worker``) under a time
 limit; its result is cached as JSON per recording in the cache folder (default
@@ -76,6 +84,8 @@ SPEC_EFFECTS = ("none", "restitution", "angular_damping", "linear_drag", "soft_c
 #: effects no diagnosis can tell from "none" on these recordings: a force-sensor gain g
 #: is the same data as a mass g × the true one (docs/diagnosis.md, "Identifiability")
 NOT_IDENTIFIABLE = ("force_scale",)
+#: random stream of the weighing error of --known-mass
+WEIGHING_STREAM = 5150
 #: random stream of the tipping pokes (apart from the simulator's own streams)
 TIP_STREAM = 7071
 TARGET_ACCURACY = 0.90
@@ -91,17 +101,24 @@ def _echo(quiet):
 # worker: one diagnosis in its own process
 
 
-def worker(run_path: str, fit_iterations: int) -> dict:
-    """Diagnose one run file (without truth); never raises."""
-    from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose
+def worker(run_path: str, fit_iterations: int, known_mass: str = "") -> dict:
+    """Diagnose one run file (without truth); never raises.  ``known_mass``:
+    "MASS,LOG_SIGMA" (kg, -) of a weighed object's mass prior, or empty."""
+    from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
+    from tacest.estimation.config import EstimatorConfig
     from tacest.io.run import read_run
+
+    config = EstimatorConfig()
+    if known_mass:
+        mass, log_sigma = (float(x) for x in known_mass.split(","))
+        config.prior.mass, config.prior.mass_log_sigma = mass, log_sigma
 
     run = read_run(run_path)
     assert run.truth is None, "the diagnosed copy must not carry /truth"
     t0 = time.perf_counter()
     try:
-        d = diagnose([run], "box", options=DiagnoseOptions(fit_iterations=fit_iterations))
+        d = diagnose([run], "box", config=config, options=DiagnoseOptions(fit_iterations=fit_iterations))
     except TacestError as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "wall": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a crash is a result to report
@@ -109,11 +126,12 @@ def worker(run_path: str, fit_iterations: int) -> dict:
     obj = d.to_json()
     return {"ok": True, "verdict": obj["verdict"], "reason": obj["reason"], "effects": obj["effects"],
             "where": obj["where"][:10], "heldout": obj["heldout"], "backend": obj["backend"],
-            "wall": time.perf_counter() - t0, "samples": run.n_samples}
+            "wall": time.perf_counter() - t0, "samples": run.n_samples,
+            "mass_known": mass_is_known(config)}
 
 
-def run_job(run_path: Path, fit_iterations: int, timeout: float) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), str(fit_iterations)]
+def run_job(run_path: Path, fit_iterations: int, timeout: float, known_mass: str = "") -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), str(fit_iterations), known_mass]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -311,6 +329,18 @@ def record_design(effect: str, seed: int, pokes: int, folder: Path) -> tuple:
     return bare, injected, json.loads(meta.read_text())
 
 
+def weighed_mass(folder: Path, effect: str, seed: int, tag: str, rel: float) -> str:
+    """"MASS,LOG_SIGMA" of --known-mass: the truth's mass times exp(rel · N(0, 1)), a
+    weighing error drawn per recording (seeded by effect and seed), and rel."""
+    from tacest.io.run import read_run
+
+    if not rel > 0:
+        raise SystemExit("--known-mass must be > 0")
+    m = float(read_run(folder / f"{effect}_{seed}{tag}_truth.h5").truth.mass)
+    rng = np.random.default_rng([seed, SPEC_EFFECTS.index(effect), WEIGHING_STREAM])
+    return f"{m * math.exp(rel * rng.normal()):.6g},{rel:g}"
+
+
 def truth_motion(folder: Path, effect: str, seed: int, tag: str = "") -> dict:
     """What the object did in the recording (from its /truth, never shown to the
     diagnosis): the largest tilt from its start angle (deg) and the fastest approach of a
@@ -381,7 +411,8 @@ def rederive_verdict(r: dict) -> str:
         # folds, which is theirs when they were compared on every fold
         floor = e.get("floor", held.get("floor") if e.get("folds_compared") == held.get("folds_valid") else None)
         if counts(e.get("score"), e.get("folds_improved"), e.get("folds_compared"), e.get("gap_before"),
-                  e.get("improvement"), floor, e.get("at_bound") or (), e.get("name")) and e["score"] > best_score:
+                  e.get("improvement"), floor, e.get("at_bound") or (), e.get("name"),
+                  mass_known=bool(r.get("mass_known"))) and e["score"] > best_score:
             best, best_score = e["name"], e["score"]
     return best
 
@@ -465,7 +496,7 @@ def print_summary(s: dict):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
@@ -480,11 +511,13 @@ def main(argv=None):
     ap.add_argument("--cache", default=None, help="folder of recordings and cached results")
     ap.add_argument("--timeout", type=float, default=1800.0, help="s per diagnosis (default 1800)")
     ap.add_argument("--fit-iterations", type=int, default=150, help="IPOPT iterations per stage (default 150)")
+    ap.add_argument("--known-mass", type=float, default=None, metavar="REL",
+                    help="diagnose with the weighed mass (truth x exp(REL N(0,1))) as a prior of log sigma REL")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker[0], int(args.worker[1]))))
+        print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.worker[2])))
         return 0
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in effects if e not in SPEC_EFFECTS]
@@ -513,12 +546,15 @@ def main(argv=None):
             else:
                 path, injected = record(effect, seed, args.pokes, cache, args.tip_pokes)
                 tag = f"_tip{args.tip_pokes}" if args.tip_pokes else ""
-            out = cache / f"{effect}_{seed}{tag}.json"
+            known = ""
+            if args.known_mass is not None:
+                known = weighed_mass(cache, effect, seed, tag, args.known_mass)
+            out = cache / f"{effect}_{seed}{tag}{'' if not known else f'_km{args.known_mass:g}'}.json"
             if out.exists():
                 res = json.loads(out.read_text())
             else:
-                echo(f"diagnosing {path.name} ...")
-                res = run_job(path, args.fit_iterations, args.timeout)
+                echo(f"diagnosing {path.name} ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
+                res = run_job(path, args.fit_iterations, args.timeout, known)
                 res.update(effect=effect, seed=seed, injected=injected)
                 out.write_text(json.dumps(res))
             results.append(res)

@@ -15,6 +15,7 @@ import pytest
 from tacest.diagnosis import diagnose as diag_mod
 from tacest.diagnosis.fitting import FitResult, local_supports_effects
 from tacest.diagnosis.floor import TERMS, residual_dof
+from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.sim.record import SimOptions, record_sim
 
@@ -49,6 +50,8 @@ def test_counts_guards():
     assert not diag_mod.counts(**ok, at_bound=["linear_drag.b"], name="linear_drag")
     for name in diag_mod.EQUIVALENT_TO_PLAIN:
         assert not diag_mod.counts(**ok, name=name)
+        # ... unless the mass is known: then a gain is no longer a mass
+        assert diag_mod.counts(**ok, name=name, mass_known=True)
     # a sliver of a large misfit: 27 < 0.2 x (100 + 40) = 28
     assert not diag_mod.counts(**{**ok, "improvement": 27.0, "score": 24.0}, name="linear_drag")
     assert diag_mod.counts(**{**ok, "improvement": 29.0, "score": 26.0}, name="linear_drag")
@@ -265,3 +268,12 @@ def test_typical_start_holds_the_parameters_first_then_frees_them():
                      effects=("restitution",), accept_budget=True)
     # 1.0: a third of one parameter's penalty (0.5 ln N = 2.3 at N = 100)
     assert weighted_objective(f.estimate, cfg) <= weighted_objective(warm.estimate, cfg) + 1.0
+
+
+def test_a_mass_counts_as_known_only_with_a_tight_prior():
+    cfg = EstimatorConfig()
+    assert not diag_mod.mass_is_known(cfg)  # the default prior: log sigma 1.5
+    cfg.prior.mass_log_sigma = diag_mod.KNOWN_MASS_LOG_SIGMA
+    assert diag_mod.mass_is_known(cfg)
+    cfg.prior.mass_log_sigma = 2 * diag_mod.KNOWN_MASS_LOG_SIGMA
+    assert not diag_mod.mass_is_known(cfg)

@@ -12,7 +12,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import choose_scales, parameter_vector
 from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
 from tacest.estimation.initial import initial_guess
-from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, Problem2D, RunStructure
+from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, TERMS, Problem2D, RunStructure
 from tacest.geometry.shapes import make_shape
 from tests.nlp_checks import assert_derivatives_match_finite_differences
 from tests.test_estimator import pushed_box_run
@@ -100,6 +100,42 @@ def test_an_effect_at_no_effect_reproduces_the_plain_objective(effect):
     # the same arithmetic up to the order of operations: rounding only
     assert f_a == pytest.approx(f_p, rel=1e-10)
     assert f_p > 1.0  # a generic point: the comparison is not between two zeros
+
+
+def test_force_scale_is_the_same_model_as_a_scaled_mass():
+    """A sensor gain g is the same data as a mass g times as large: with force_scale, the
+    point (mass/c, impulses/c, gain·c) has every loss term of (mass, impulses, gain), the
+    physics residuals included (they see forces in the sensor's units), so only a mass
+    prior can split gain and mass; without that factor a gain above 1 shrank every
+    physics residual."""
+    est, pr, z, p = _point("box", ("force_scale",))
+    L, m0 = est.scales.L, est.scales.m0
+    c = 1.7
+    a = pr.n_shape
+    z2 = z.copy()
+    z2[a + PHYS_NAMES.index("log_mass")] -= np.log(c)
+    z2[a + len(PHYS_NAMES) + pr.eff_index["force_scale.log_gain"]] += np.log(c)
+    z2[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z2[: pr.n_theta], L, m0)).reshape(-1)
+    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z[: pr.n_theta], L, m0)).reshape(-1)
+    _, _, LG, LF = pr.run_blocks(z2, 0)
+    z2 = pr.set_run_blocks(z2, 0, LG=LG / c, LF=LF / c)
+    t1 = np.asarray(pr.term_fun(z, p)[0]).ravel()
+    t2 = np.asarray(pr.term_fun(z2, p)[0]).ravel()
+    # the same arithmetic up to the order of operations (c and 1/c): rounding only
+    np.testing.assert_allclose(t2, t1, rtol=1e-9)
+    # compared away from zero: the force term and the physics terms are not 0 here
+    # (this run has no pose observations, so no pose or Occam term)
+    for term in ("force", "dynamics", "complementarity", "cone", "dissipation"):
+        assert t1[TERMS.index(term)] > 1.0, term
+    # the plain model has no such symmetry: its physics residuals change with the mass
+    est0, pr0, zp, pp = _point("box", ())
+    zq = zp.copy()
+    zq[a + PHYS_NAMES.index("log_mass")] -= np.log(c)
+    zq[pr0.phys_offset: pr0.phys_offset + pr0.n_phys] = np.asarray(pr0.phys_sx(zq[: pr0.n_theta], L, m0)).reshape(-1)
+    _, _, LG0, LF0 = pr0.run_blocks(zq, 0)
+    zq = pr0.set_run_blocks(zq, 0, LG=LG0 / c, LF=LF0 / c)
+    assert not np.allclose(np.asarray(pr0.term_fun(zq, pp)[0]).ravel(), np.asarray(pr0.term_fun(zp, pp)[0]).ravel(),
+                           rtol=1e-3)
 
 
 def test_unknown_or_transform_effect_is_one_clear_error():

@@ -72,12 +72,18 @@ FLOOR_SIGMAS = 2.0
 #: pushed it as far as the augmentation allows, so what it explains is not the effect
 #: within its physical range (1 %: far below any parameter's resolution in the tests)
 BOUND_TOLERANCE = 0.01
+#: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
+#: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
+#: 1 ± 0.15–0.35 (docs/effects.md), which a mass known to 10 % separates from the mass
+#: (a gain of 1.15 is 1.4 sigma of log mass away) and the default prior (1.5) cannot
+KNOWN_MASS_LOG_SIGMA = 0.1
 #: appended to a "none" verdict when force_scale was a candidate: a sensor gain is not
 #: identifiable from force-sensing pokes unless the mass is known (every force of the
 #: model scales with the mass, every measured force with the gain: the plain model fits
 #: a gain g exactly with the mass g·m, so it leaves no held-out gap to close)
 FORCE_SCALE_CAVEAT = ("force_scale cannot be excluded: a force-sensor gain g is the same data as a mass g times "
-                      "the true one (only gain x mass is identifiable; check the fitted mass against a known one)")
+                      "the true one (only gain x mass is identifiable; give a weighed mass: prior.mass and "
+                      f"prior.mass_log_sigma <= {KNOWN_MASS_LOG_SIGMA:g} in --config)")
 #: IPOPT iterations per stage of every diagnosis fit (the fit budget; the plain model's
 #: fit to all data uses the configuration's own budget)
 FIT_ITERATIONS = 150
@@ -572,7 +578,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
         reason += f"; not compared: {', '.join(missing)} (see their status)"
-    if verdict == "none" and any(c.name == "force_scale" for c in cres):
+    if verdict == "none" and any(c.name == "force_scale" for c in cres) and not mass_is_known(config):
         reason += f"; {FORCE_SCALE_CAVEAT}"
     return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
                      base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
@@ -683,7 +689,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
     c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
-                           c.at_bound, c.name)
+                           c.at_bound, c.name, mass_known=mass_is_known(ctx.config))
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):
@@ -724,27 +730,34 @@ def params_at_bound(theta, effects, K: int) -> list:
 
 
 #: candidates whose augmentation is observationally equivalent to the plain model with
-#: other parameter values: a force-sensor gain g is a mass g times the true one (every
-#: force of the model scales with the mass, every measured force with the gain; only
-#: gain x mass is identifiable, docs/diagnosis.md "Identifiability").  Whatever such a
-#: candidate improves comes from the units of the model's own residuals (its physics
-#: residuals are in force units, which a gain above 1 shrinks: on a clean recording the
-#: fitted gain went to 5.9 and the held-out objective to 14 % of the noise floor), not
-#: from the data, so it is fitted and reported but never blamed.
+#: other parameter values unless the mass is known: a force-sensor gain g is a mass g
+#: times the true one (every force of the model scales with the mass, every measured
+#: force with the gain; only gain x mass is identifiable, docs/diagnosis.md
+#: "Identifiability").  Without a known mass whatever such a candidate improves is the
+#: priors' split of gain and mass and the optimizer's luck, not the data, so it is
+#: fitted and reported but never blamed (see KNOWN_MASS_LOG_SIGMA).
 EQUIVALENT_TO_PLAIN = ("force_scale",)
 
 
-def counts(score, folds_improved, folds_compared, gap_before, improvement, floor, at_bound=(), name=None) -> bool:
+def mass_is_known(config: EstimatorConfig) -> bool:
+    """Whether the configuration's mass prior is tight enough to split a force-sensor
+    gain from the mass (``prior.mass_log_sigma`` <= KNOWN_MASS_LOG_SIGMA)."""
+    return float(config.prior.mass_log_sigma) <= KNOWN_MASS_LOG_SIGMA
+
+
+def counts(score, folds_improved, folds_compared, gap_before, improvement, floor, at_bound=(), name=None,
+           mass_known: bool = False) -> bool:
     """The verdict rule for one candidate (module doc): score > 0, better than the plain
     model by its share of the penalty in at least half of the folds, at least
     MIN_REDUCTION of the plain model's plausible gap closed (its held-out gap plus
     FLOOR_SIGMAS sqrt(floor), which must be positive: a candidate must close a real part
     of the gap, not a sliver of a large misfit), and no effect parameter at a hard bound
-    of its augmentation (params_at_bound)."""
+    of its augmentation (params_at_bound); a candidate of EQUIVALENT_TO_PLAIN counts only
+    with a known mass (``mass_known``, see mass_is_known)."""
     vals = [score, folds_improved, folds_compared, gap_before, improvement, floor]
     if any(v is None or not np.isfinite(float(v)) for v in vals):
         return False
-    if at_bound or name in EQUIVALENT_TO_PLAIN:
+    if at_bound or (name in EQUIVALENT_TO_PLAIN and not mass_known):
         return False
     plausible_gap = gap_before + FLOOR_SIGMAS * math.sqrt(max(float(floor), 0.0))
     return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and plausible_gap > 0

@@ -831,6 +831,14 @@ class Problem2D:
         cone, diss = [], []
         eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
         ev = self._effect_values(phys)
+        # force_scale: the physics residuals (dynamics, complementarity, cone,
+        # dissipation, Occam) see the model's forces and mass in the sensor's units
+        # (× gain), as the force residual does.  Then (mass, impulses, gain) and
+        # (mass/c, impulses/c, gain·c) are the same model, as they are the same data:
+        # without the factor a gain above 1 let the fit shrink every force and the mass,
+        # and with them every physics residual, for free (a clean recording's gain went
+        # to 5.9).  Only a mass known from elsewhere (a mass prior) splits gain and mass.
+        gain = ca.exp(ev["force_scale.log_gain"]) if "force_scale" in self.effects else 1.0
         # gaps (m) seen by the ground contact laws (penetration, complementarity): the
         # geometric ones unless an effect relaxes them
         phi_c = list(phi)
@@ -869,9 +877,9 @@ class Problem2D:
             # relative to the object's own weight instead, a heavy object would make
             # every friction violation cheap (and a heavy, slippery fit win).  A sticking
             # vertex (slip 0) may carry any friction inside the cone.
-            cone += [one_sided(mu_g * ln - lt, CONE_TOLERANCE) * CONE_TOLERANCE,
-                     one_sided(mu_g * ln + lt, CONE_TOLERANCE) * CONE_TOLERANCE]
-            diss.append(dissipation_shortfall(mu_g, ln, lt, slip[k] / L, eps_slip / L)
+            cone += [one_sided(gain * (mu_g * ln - lt), CONE_TOLERANCE) * CONE_TOLERANCE,
+                     one_sided(gain * (mu_g * ln + lt), CONE_TOLERANCE) * CONE_TOLERANCE]
+            diss.append(gain * dissipation_shortfall(mu_g, ln, lt, slip[k] / L, eps_slip / L)
                         * g[G["sig_diss"]] / g[G["sig_diss_g"]])
             # smoothed gap in units of sig_gap, shifted by one: within about one sig_gap of
             # the ground a vertex counts as touching (see ground_gap_indicator)
@@ -885,7 +893,7 @@ class Problem2D:
             sep = ground_gap_indicator(vn_c[k], sig_v, eps)
             # saturating (bounded curvature far from the ground); in units of the
             # reference weight m0·g·dt, like every impulse (see the cone above)
-            comp.append(ln * (gap + sep) / (1 + gap + sep))
+            comp.append(gain * ln * (gap + sep) / (1 + gap + sep))
             pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
@@ -910,10 +918,10 @@ class Problem2D:
             ln = -ca.dot(imp_s, n_w)
             lt = ca.dot(imp_s, t_w)
             slip_f = ca.dot(t_w, point_velocity(v, lever) - v_f[:, f]) / L  # object lengths per second
-            diss.append(dissipation_shortfall(mu_f, ln, lt, slip_f, eps_slip / L))
+            diss.append(gain * dissipation_shortfall(mu_f, ln, lt, slip_f, eps_slip / L))
             # friction cone |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty
-            cone += [one_sided(mu_f * ln - lt, CONE_TOLERANCE) * CONE_TOLERANCE,
-                     one_sided(mu_f * ln + lt, CONE_TOLERANCE) * CONE_TOLERANCE]
+            cone += [one_sided(gain * (mu_f * ln - lt), CONE_TOLERANCE) * CONE_TOLERANCE,
+                     one_sided(gain * (mu_f * ln + lt), CONE_TOLERANCE) * CONE_TOLERANCE]
             imp_finger.append(imp)
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (self._measured_force(imp / dt, ev, g[G["m0"]]) - F_meas[:, f])
@@ -932,7 +940,7 @@ class Problem2D:
         M = mass_matrix_diag(mass, inertia)
         M_ref = ca.vertcat(g[G["m_ref"]], g[G["m_ref"]], g[G["I_ref"]])
         grav = ca.vertcat(-9.81 * n_g * dt, 0)
-        r_dyn_raw = (M * ((v - v_prev) - grav) - gen) / M_ref
+        r_dyn_raw = gain * (M * ((v - v_prev) - grav) - gen) / M_ref
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         if r_rest:
             r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
@@ -942,7 +950,7 @@ class Problem2D:
             # translations and the rotation, from the process sd of each velocity change
             # (M floored far below any real mass: a trial step of the solver through a
             # degenerate shape may make the inertia <= 0, and the log NaN)
-            M_pos = ca.fmax(M, 1e-9 * M_ref)
+            M_pos = ca.fmax(gain * M, 1e-9 * M_ref)
             log_s = ca.log(sig_v * M_ref / M_pos / ca.vertcat(1, 1, L / 2)) - 0.5 * ca.log(g[G["dyn_mult"]])
             log_lam = log_s + ca.log(dt / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]]))
             # priced only in the directions no contact holds (occam_free_weights: the
