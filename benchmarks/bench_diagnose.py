@@ -101,9 +101,10 @@ def _echo(quiet):
 # worker: one diagnosis in its own process
 
 
-def worker(run_path: str, fit_iterations: int, known_mass: str = "") -> dict:
+def worker(run_path: str, fit_iterations: int, known_mass: str = "", effects: str = "") -> dict:
     """Diagnose one run file (without truth); never raises.  ``known_mass``:
-    "MASS,LOG_SIGMA" (kg, -) of a weighed object's mass prior, or empty."""
+    "MASS,LOG_SIGMA" (kg, -) of a weighed object's mass prior, or empty; ``effects``:
+    the candidates, comma-separated (empty: every SPEC effect)."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
     from tacest.estimation.config import EstimatorConfig
@@ -118,7 +119,10 @@ def worker(run_path: str, fit_iterations: int, known_mass: str = "") -> dict:
     assert run.truth is None, "the diagnosed copy must not carry /truth"
     t0 = time.perf_counter()
     try:
-        d = diagnose([run], "box", config=config, options=DiagnoseOptions(fit_iterations=fit_iterations))
+        opts = DiagnoseOptions(fit_iterations=fit_iterations)
+        if effects:
+            opts.effects = tuple(effects.split(","))
+        d = diagnose([run], "box", config=config, options=opts)
     except TacestError as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "wall": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a crash is a result to report
@@ -130,8 +134,9 @@ def worker(run_path: str, fit_iterations: int, known_mass: str = "") -> dict:
             "mass_known": mass_is_known(config)}
 
 
-def run_job(run_path: Path, fit_iterations: int, timeout: float, known_mass: str = "") -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), str(fit_iterations), known_mass]
+def run_job(run_path: Path, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "") -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), str(fit_iterations), known_mass,
+           effects]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -329,6 +334,30 @@ def record_design(effect: str, seed: int, pokes: int, folder: Path) -> tuple:
     return bare, injected, json.loads(meta.read_text())
 
 
+def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
+    """A cached result with the candidates of ``args.refit`` refitted (a diagnosis with
+    only them: the same plain fit, folds and plain held-out objectives, which do not
+    depend on the candidates) and their entries replaced; the verdict is re-derived in
+    the summary.  A failed refit leaves the result as it was, with a note."""
+    names = [n.strip() for n in args.refit.split(",") if n.strip()]
+    if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == args.refit for e in res["effects"])
+                                for n in names):
+        return res
+    new = run_job(path, args.fit_iterations, args.timeout, known, ",".join(names))
+    if not new.get("ok"):
+        res.setdefault("notes", []).append(f"refit of {args.refit} failed: {new.get('error')}")
+        return res
+    fresh = {e["name"]: dict(e, refit=args.refit) for e in new["effects"]}
+    plain_then, plain_now = res["heldout"].get("objective_plain"), new["heldout"].get("objective_plain")
+    if plain_then is None or plain_now is None or abs(plain_then - plain_now) > 1e-6 * max(1.0, abs(plain_then)):
+        res.setdefault("notes", []).append(f"refit of {args.refit}: the plain model's held-out objective changed "
+                                           f"({plain_then} -> {plain_now}); entries not replaced")
+        return res
+    res["effects"] = [fresh.get(e["name"], e) for e in res["effects"]]
+    res["effects"].sort(key=lambda e: -(e["score"] if e.get("score") is not None else -math.inf))
+    return res
+
+
 def weighed_mass(folder: Path, effect: str, seed: int, tag: str, rel: float) -> str:
     """"MASS,LOG_SIGMA" of --known-mass: the truth's mass times exp(rel · N(0, 1)), a
     weighing error drawn per recording (seeded by effect and seed), and rel."""
@@ -496,7 +525,7 @@ def print_summary(s: dict):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
@@ -513,11 +542,14 @@ def main(argv=None):
     ap.add_argument("--fit-iterations", type=int, default=150, help="IPOPT iterations per stage (default 150)")
     ap.add_argument("--known-mass", type=float, default=None, metavar="REL",
                     help="diagnose with the weighed mass (truth x exp(REL N(0,1))) as a prior of log sigma REL")
+    ap.add_argument("--refit", default=None, metavar="NAMES",
+                    help="for recordings with a cached result: refit only these candidates (comma-separated) and "
+                         "replace their entries (after a change to their augmentation)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker[0], int(args.worker[1]), args.worker[2])))
+        print(json.dumps(worker(*args.worker[:1], int(args.worker[1]), *args.worker[2:])))
         return 0
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in effects if e not in SPEC_EFFECTS]
@@ -550,7 +582,10 @@ def main(argv=None):
             if args.known_mass is not None:
                 known = weighed_mass(cache, effect, seed, tag, args.known_mass)
             out = cache / f"{effect}_{seed}{tag}{'' if not known else f'_km{args.known_mass:g}'}.json"
-            if out.exists():
+            if out.exists() and args.refit:
+                res = refit_candidates(json.loads(out.read_text()), path, args, known)
+                out.write_text(json.dumps(res))
+            elif out.exists():
                 res = json.loads(out.read_text())
             else:
                 echo(f"diagnosing {path.name} ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
