@@ -485,6 +485,7 @@ def summarize(results: list) -> dict:
         "none_recordings": len(nones), "none_blamed": blamed, "none_blamed_rate": blamed / len(nones) if nones else math.nan,
         "median_reduction_right_effect": _median(reductions), "reductions_right_effect": reductions,
         "unavailable_candidates": unavailable,
+        "mass_known": bool(ok) and all(r.get("mass_known") for r in ok),
         "wall_median": _median([r.get("wall") for r in results]), "wall_max": max([r.get("wall", 0) for r in results] or [0]),
     }
 
@@ -504,8 +505,8 @@ def print_summary(s: dict):
             continue
         print(f"{t:>16}" + "".join(f"{row[c]:>8}" for c in cols))
     print(f"\nrecordings {s['recordings']}, failed diagnoses {s['failures']}")
-    print(f"top-1 accuracy without {', '.join(NOT_IDENTIFIABLE)} (not identifiable without a known mass): "
-          f"{s['accuracy_identifiable']:.0%}")
+    print(f"top-1 accuracy without {', '.join(NOT_IDENTIFIABLE)} (not identifiable without a known mass"
+          + ("; here the mass was known" if s.get("mass_known") else "") + f"): {s['accuracy_identifiable']:.0%}")
     print("top-1 accuracy per effect: " + ", ".join(f"{k} {v:.0%}" for k, v in s["accuracy_per_effect"].items()))
     print(f"candidates the estimator could not model: {', '.join(s['unavailable_candidates']) or 'none'}")
     red = s["reductions_right_effect"]
