@@ -340,14 +340,16 @@ def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
     depend on the candidates) and their entries replaced; the verdict is re-derived in
     the summary.  A failed refit leaves the result as it was, with a note."""
     names = [n.strip() for n in args.refit.split(",") if n.strip()]
-    if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == args.refit for e in res["effects"])
+    # an entry refitted by this estimator version already is kept
+    tag = f"{args.refit} with {estimator_fingerprint().split()[-1]}"
+    if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == tag for e in res["effects"])
                                 for n in names):
         return res
     new = run_job(path, args.fit_iterations, args.timeout, known, ",".join(names))
     if not new.get("ok"):
         res.setdefault("notes", []).append(f"refit of {args.refit} failed: {new.get('error')}")
         return res
-    fresh = {e["name"]: dict(e, refit=args.refit) for e in new["effects"]}
+    fresh = {e["name"]: dict(e, refit=tag) for e in new["effects"]}
     plain_then, plain_now = res["heldout"].get("objective_plain"), new["heldout"].get("objective_plain")
     if plain_then is None or plain_now is None or abs(plain_then - plain_now) > 1e-6 * max(1.0, abs(plain_then)):
         res.setdefault("notes", []).append(f"refit of {args.refit}: the plain model's held-out objective changed "

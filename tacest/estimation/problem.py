@@ -848,15 +848,9 @@ class Problem2D:
         sig_v = g[G["sig_proc"]] * 9.81 * dt  # m/s: process noise of a velocity change
         r_rest = []
         if "soft_contact" in self.effects:
-            # a compliant ground (a plate on a spring): it sinks by compliance × the load
-            # on it, so a vertex may penetrate that far.  The load is the quasi-static one,
-            # the weight plus the fingers' push into the ground (in units of m0·g), not the
-            # sample's ground impulses: a damped ground does not give way to an impact's
-            # impulse within one sample (with the impulses, a 0.5 m/s landing "sank" a
-            # 1675 N/m ground by 24 mm where the simulated plate went 6 mm, and the fits
-            # came out four times too stiff)
-            load = mass / g[G["m0"]] - sum(ca.dot(ca.vertcat(lf[2 * f], lf[2 * f + 1]), n_g) for f in range(F))
-            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load
+            # a compliant ground (a plate on a spring): it sinks by compliance × the total
+            # normal ground impulse of the sample, so a vertex may penetrate that far
+            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * ca.sum1(lg[:K])
             phi_c = [p + sink for p in phi_c]
         if "face_friction" in self.effects:
             mu_g = mu_g + self._face_friction_offset(q, V, n_g, ev)
