@@ -606,7 +606,8 @@ NLP_EFFECTS = {  # effect: (record spec, parameter(s), relative tolerance)
 #: expected failures so that a fix shows up as XPASS
 NLP_NOT_RECOVERED = {
     "force_scale": "not identifiable in principle: every model force scales with the mass, every measured "
-                   "force with the gain, so only gain x mass is determined (the split is the priors')",
+                   "force with the gain, so only gain x mass is determined (the split is the priors'); with a "
+                   "weighed mass it is (test_force_scale_gain_is_recovered_with_a_weighed_mass)",
     "restitution": "the bounces are not in the data: the box tips 5-7 deg and lands at up to 0.49 m/s, but "
                    "after the finger has left (tactile data only); the plain fit's objective (56.9) equals "
                    "the clean recording's (57.0) and the augmented fit ends at e = 0.15 (truth 0.6) in a "
