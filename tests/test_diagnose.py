@@ -321,6 +321,9 @@ def test_pipeline_on_a_clean_recording_says_none(recordings, stand_in):
     assert all(not c.significant for c in d.effects)
     # force_scale was not a candidate here: no caveat about it
     assert "force_scale" not in d.reason
+    # the mass prior every fit used is reported: the configuration's weak default
+    assert d.to_json()["mass_prior"] == {"mass": EstimatorConfig().prior.mass,
+                                         "log_sigma": EstimatorConfig().prior.mass_log_sigma, "known": False}
 
 
 def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, monkeypatch):
@@ -333,6 +336,14 @@ def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, 
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
     assert d.verdict == "none", d.reason
     assert diag_mod.FORCE_SCALE_CAVEAT in d.reason
+    # ... unless the object was weighed: then force_scale could have been blamed
+    cfg = EstimatorConfig()
+    cfg.prior.mass, cfg.prior.mass_log_sigma = 0.3, 0.02
+    d = diag_mod.diagnose([run], "box", config=cfg,
+                          options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
+    assert d.verdict == "none", d.reason
+    assert diag_mod.FORCE_SCALE_CAVEAT not in d.reason
+    assert d.to_json()["mass_prior"] == {"mass": 0.3, "log_sigma": 0.02, "known": True}
 
 
 def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkeypatch):

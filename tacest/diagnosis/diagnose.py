@@ -227,6 +227,9 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     wall_time: float = 0.0
     options: DiagnoseOptions = field(default_factory=DiagnoseOptions)
+    #: the mass prior every fit used: ``mass`` (kg, its median), ``log_sigma`` and
+    #: ``known`` (tight enough to tell a force-sensor gain from the mass, mass_is_known)
+    mass_prior: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The ``--json`` object (SPEC: verdict, effects best first, where)."""
@@ -247,6 +250,7 @@ class Diagnosis:
             "base": {"solver_status": self.base.solver_status, "objective": _num(self.base.objective),
                      "params": {k: _num(v) for k, v in self.base.params.items() if np.ndim(v) == 0}},
             "shape": self.shape, "backend": self.backend, "notes": list(self.notes),
+            "mass_prior": {k: (_num(v) if isinstance(v, float) else v) for k, v in self.mass_prior.items()},
             "wall_time": _num(self.wall_time),
             "options": {"window": self.options.window, "alpha": self.options.alpha,
                         "max_folds": self.options.max_folds, "fit_iterations": self.options.fit_iterations,
@@ -406,6 +410,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     Raises TacestError for bad input and SolveFailedError when the plain model's fit
     to all data fails.
     """
+    from tacest.estimation.data import choose_scales
     from tacest.estimation.estimator import check_runs
     from tacest.geometry.shapes import make_shape
 
@@ -430,6 +435,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     else:
         backend = "local"
     ctx = _Context(runs, shape, config, options, echo, backend)
+    mass_prior = {"mass": float(choose_scales(runs, config).m0), "log_sigma": float(config.prior.mass_log_sigma),
+                  "known": mass_is_known(config)}
 
     # 1. the plain model on all data -------------------------------------------------
     if estimate is not None:
@@ -485,7 +492,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             c.status, c.message = "failed", "no held-out data"
         return Diagnosis(verdict="none", reason=note, effects=cres, where=where, stats=stats, table=table,
                          floor=floor, base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info,
-                         notes=ctx.notes, wall_time=time.perf_counter() - t_start, options=options)
+                         notes=ctx.notes, wall_time=time.perf_counter() - t_start, options=options,
+                         mass_prior=mass_prior)
 
     # which candidates are refitted (screening only when their number is limited)
     order = sorted(range(len(cres)), key=lambda i: -cres[i].screening)
@@ -582,7 +590,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         reason += f"; {FORCE_SCALE_CAVEAT}"
     return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
                      base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
-                     wall_time=time.perf_counter() - t_start, options=options)
+                     wall_time=time.perf_counter() - t_start, options=options, mass_prior=mass_prior)
 
 
 def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, base_full_obj, folds, base_fold,

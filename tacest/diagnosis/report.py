@@ -104,6 +104,13 @@ def markdown(diag, figures: list) -> str:
     files = ", ".join(f"`{r.filename or f'run {i}'}`" for i, r in enumerate(diag.runs))
     L.append(f"Runs: {files}; shape `{diag.shape}`; back end `{diag.backend}`; "
              f"{diag.wall_time:.0f} s.")
+    mp = getattr(diag, "mass_prior", None) or {}
+    if mp:
+        L.append("")
+        L.append(f"Mass prior: {_f(mp.get('mass'))} kg, log sigma {_f(mp.get('log_sigma'))}: "
+                 + ("a weighed mass, so a force-sensor gain can be told from the mass." if mp.get("known") else
+                    "weak, so a force-sensor gain cannot be told from the mass (give a weighed mass with "
+                    "--config to test force_scale)."))
     L.append("")
     L.append(f"## Verdict: **{diag.verdict}**")
     L.append("")
