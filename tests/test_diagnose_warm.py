@@ -277,3 +277,29 @@ def test_a_mass_counts_as_known_only_with_a_tight_prior():
     assert diag_mod.mass_is_known(cfg)
     cfg.prior.mass_log_sigma = 2 * diag_mod.KNOWN_MASS_LOG_SIGMA
     assert not diag_mod.mass_is_known(cfg)
+
+
+def test_the_reason_names_the_other_candidates_that_count(clean_run, monkeypatch):
+    """Two candidates that both count (the data tell them apart only weakly, e.g. drag
+    and damping while the box pivots): the verdict is the better score, and the reason
+    names the other one with its score."""
+    s = _BasinStandIn(lucky="none")
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
+    improvement = {"linear_drag": 30.0, "angular_damping": 40.0, "force_bias": 1.0}
+
+    def preset(ctx, c, spec, *args, **kwargs):
+        c.improvement, c.penalty = improvement[c.name], 3.0
+        c.score = c.improvement - c.penalty
+        c.gap_before, c.gap_after = 50.0, 50.0 - c.improvement
+        c.reduction = c.improvement / c.gap_before
+        c.folds_improved = c.folds_compared = 3
+        c.significant = c.score > 0 and c.name != "force_bias"
+
+    monkeypatch.setattr(diag_mod, "_fit_candidate", preset)
+    opts = diag_mod.DiagnoseOptions(effects=("linear_drag", "angular_damping", "force_bias"))
+    d = diag_mod.diagnose([clean_run], "box", options=opts)
+    assert d.verdict == "angular_damping", d.reason
+    assert "also counting: linear_drag (score 27)" in d.reason
+    assert "force_bias" not in d.reason.split("also counting:")[1]

@@ -576,6 +576,12 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         reason = (f"{w.name} {closes} ({w.gap_before:.4g} -> {w.gap_after:.4g}), "
                   f"improvement {w.improvement:.4g} > penalty {w.penalty:.3g} for {w.n_params} parameter(s), "
                   f"better in {w.folds_improved} of {w.folds_compared} folds")
+        # other candidates that count too: the data may tell them from the verdict only
+        # weakly (e.g. linear drag and angular damping while the object pivots about a
+        # vertex, where a drag b·v on the COM is a torque b·r²·ω)
+        others = winners[1:]
+        if others:
+            reason += "; also counting: " + ", ".join(f"{c.name} (score {c.score:.3g})" for c in others)
     else:
         verdict = "none"
         best = ranked[0] if ok else None
