@@ -50,6 +50,19 @@ def test_a_press_from_above_leaves_the_width_uncertain_and_measures_the_height()
     # determined (sigma above half their values, the estimator's identifiability rule)
     V, mass, _, mu_g, _ = est.physical(out.z)
     assert std["mass"] > 0.5 * mass and std["friction_ground"] > 0.5 * mu_g
+    # the posterior (data and priors), which the estimate reports: the width, which the
+    # data leave free, is held by the shape prior (sigma shape_sigma · L) and no looser;
+    # the height stays measured
+    _, _, std_data, std_post = observed_information(est, out.z, posterior=True)
+    assert std_data == std
+    shape_sigma = est.config.prior.shape_sigma * est.scales.L
+    assert std_post["width"] <= shape_sigma * (1 + 1e-9)
+    assert std_post["height"] <= 3e-3
+    # a box at rest under a press never turns: nothing measures its inertia, and the
+    # posterior says so with the prior's sigma (10 %: the data add next to nothing),
+    # where the data's pseudo-inverse, which drops the flat direction, said 0.016
+    lI = est.config.prior.inertia_log_sigma
+    assert 0.9 * lI <= std_post["inertia_log_ratio"] <= lI * (1 + 1e-9), std_post
 
 
 def _face_sigmas(run):

@@ -355,7 +355,8 @@ def _estimate_of(est, out, runs: list, model: list, information: bool) -> Estima
     if information:
         from tacest.information.observed import observed_information
 
-        info, names, std = observed_information(est, out.z)
+        # the posterior's std (data and priors), as the estimator reports
+        info, names, _, std = observed_information(est, out.z, posterior=True)
     return Estimate(dim=2, shape=est.shape.name, vertices=V, params=params,
                     runs=run_ests, model=list(model), solver_status=out.status, success=out.success,
                     iterations=out.iterations, wall_time=out.wall_time, objective=out.objective, information=info,

@@ -452,8 +452,10 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
         run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res,
                                     source_file=src, source_sha256=sha))
     # held fixed: no parameter is estimated, so there is no information to report
-    info, names, std, shift = (observed_information(est, out.z, penalty_shift=True) if fixed is None
-                               else (None, [], {}, {}))
+    # std: the data's own (whether the data determine a parameter, below); std_post: the
+    # posterior's (data and priors), the uncertainty the estimate reports
+    info, names, std, shift, std_post = (observed_information(est, out.z, penalty_shift=True, posterior=True)
+                                         if fixed is None else (None, [], {}, {}, {}))
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
     if effects:
         from tacest.estimation.augment import effect_params
@@ -504,7 +506,7 @@ def estimate_runs(runs: list[Run], shape_spec: str = "box", config: EstimatorCon
     return Estimate(
         dim=2, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=list(effects),
         solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
-        objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
+        objective=out.objective, information=info, info_names=names, std=std_post, identifiable=identifiable,
         config=est.config.to_dict(), method="implicit",
         extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
                                           for s in out.stages),
