@@ -552,7 +552,7 @@ def main(argv=None):
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(*args.worker[:1], int(args.worker[1]), *args.worker[2:])))
+        print(json.dumps(worker(args.worker[0], int(args.worker[1]), *args.worker[2:])))
         return 0
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in effects if e not in SPEC_EFFECTS]

@@ -108,19 +108,29 @@ def test_force_scale_is_the_same_model_as_a_scaled_mass():
     physics residuals included (they see forces in the sensor's units), so only a mass
     prior can split gain and mass; without that factor a gain above 1 shrank every
     physics residual."""
-    est, pr, z, p = _point("box", ("force_scale",))
-    L, m0 = est.scales.L, est.scales.m0
     c = 1.7
-    a = pr.n_shape
-    z2 = z.copy()
-    z2[a + PHYS_NAMES.index("log_mass")] -= np.log(c)
-    z2[a + len(PHYS_NAMES) + pr.eff_index["force_scale.log_gain"]] += np.log(c)
-    z2[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z2[: pr.n_theta], L, m0)).reshape(-1)
-    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z[: pr.n_theta], L, m0)).reshape(-1)
-    _, _, LG, LF = pr.run_blocks(z2, 0)
-    z2 = pr.set_run_blocks(z2, 0, LG=LG / c, LF=LF / c)
-    t1 = np.asarray(pr.term_fun(z, p)[0]).ravel()
-    t2 = np.asarray(pr.term_fun(z2, p)[0]).ravel()
+
+    def lifted(est, pr, z):  # z with its phys block recomputed from its theta
+        z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(
+            pr.phys_sx(z[: pr.n_theta], est.scales.L, est.scales.m0)).reshape(-1)
+        return z
+
+    def scaled(est, pr, z, gain_too):  # mass and impulses / c (and the gain × c)
+        z2 = z.copy()
+        a = pr.n_shape
+        z2[a + PHYS_NAMES.index("log_mass")] -= np.log(c)
+        if gain_too:
+            z2[a + len(PHYS_NAMES) + pr.eff_index["force_scale.log_gain"]] += np.log(c)
+        z2 = lifted(est, pr, z2)
+        _, _, LG, LF = pr.run_blocks(z2, 0)
+        return pr.set_run_blocks(z2, 0, LG=LG / c, LF=LF / c)
+
+    def terms(pr, z, p):
+        return np.asarray(pr.term_fun(z, p)[0]).ravel()
+
+    est, pr, z, p = _point("box", ("force_scale",))
+    z = lifted(est, pr, z)
+    t1, t2 = terms(pr, z, p), terms(pr, scaled(est, pr, z, True), p)
     # the same arithmetic up to the order of operations (c and 1/c): rounding only
     np.testing.assert_allclose(t2, t1, rtol=1e-9)
     # compared away from zero: the force term and the physics terms are not 0 here
@@ -129,13 +139,7 @@ def test_force_scale_is_the_same_model_as_a_scaled_mass():
         assert t1[TERMS.index(term)] > 1.0, term
     # the plain model has no such symmetry: its physics residuals change with the mass
     est0, pr0, zp, pp = _point("box", ())
-    zq = zp.copy()
-    zq[a + PHYS_NAMES.index("log_mass")] -= np.log(c)
-    zq[pr0.phys_offset: pr0.phys_offset + pr0.n_phys] = np.asarray(pr0.phys_sx(zq[: pr0.n_theta], L, m0)).reshape(-1)
-    _, _, LG0, LF0 = pr0.run_blocks(zq, 0)
-    zq = pr0.set_run_blocks(zq, 0, LG=LG0 / c, LF=LF0 / c)
-    assert not np.allclose(np.asarray(pr0.term_fun(zq, pp)[0]).ravel(), np.asarray(pr0.term_fun(zp, pp)[0]).ravel(),
-                           rtol=1e-3)
+    assert not np.allclose(terms(pr0, scaled(est0, pr0, zp, False), pp), terms(pr0, zp, pp), rtol=1e-3)
 
 
 def test_unknown_or_transform_effect_is_one_clear_error():

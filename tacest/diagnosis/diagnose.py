@@ -316,6 +316,7 @@ class _Context:
         self.budget_config.solver.max_iter = min(int(config.solver.max_iter), int(options.fit_iterations))
         self.budget_config.solver.stage_max_iter = min(int(config.solver.stage_max_iter),
                                                        int(options.fit_iterations))
+        self.mass_known = mass_is_known(config)
         self.notes = []
 
     def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
@@ -436,7 +437,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         backend = "local"
     ctx = _Context(runs, shape, config, options, echo, backend)
     mass_prior = {"mass": float(choose_scales(runs, config).m0), "log_sigma": float(config.prior.mass_log_sigma),
-                  "known": mass_is_known(config)}
+                  "known": ctx.mass_known}
 
     # 1. the plain model on all data -------------------------------------------------
     if estimate is not None:
@@ -592,7 +593,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
         reason += f"; not compared: {', '.join(missing)} (see their status)"
-    if verdict == "none" and any(c.name == "force_scale" for c in cres) and not mass_is_known(config):
+    if verdict == "none" and any(c.name == "force_scale" for c in cres) and not ctx.mass_known:
         reason += f"; {FORCE_SCALE_CAVEAT}"
     return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
                      base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
@@ -703,7 +704,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
     c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
-                           c.at_bound, c.name, mass_known=mass_is_known(ctx.config))
+                           c.at_bound, c.name, mass_known=ctx.mass_known)
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):

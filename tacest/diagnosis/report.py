@@ -104,7 +104,7 @@ def markdown(diag, figures: list) -> str:
     files = ", ".join(f"`{r.filename or f'run {i}'}`" for i, r in enumerate(diag.runs))
     L.append(f"Runs: {files}; shape `{diag.shape}`; back end `{diag.backend}`; "
              f"{diag.wall_time:.0f} s.")
-    mp = getattr(diag, "mass_prior", None) or {}
+    mp = diag.mass_prior
     if mp:
         L.append("")
         L.append(f"Mass prior: {_f(mp.get('mass'))} kg, log sigma {_f(mp.get('log_sigma'))}: "

@@ -395,11 +395,9 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False, poster
     if posterior:
         pv = prior_values(pr, est.p_final)
         H = pv[5] * np.asarray(prior_hessian_function(pr)(np.asarray(z, float)[:n_theta], pv), float)
-        P = np.zeros_like(I_phys)
-        P[:n_theta, :n_theta] = H
-        P_phys = P * np.outer(d, d)
-        P_phys[kept_fixed, :] = 0.0
-        P_phys[:, kept_fixed] = 0.0
+        # the priors act on theta only; held rows are left out by _std_of's free block
+        P_phys = np.zeros_like(I_phys)
+        P_phys[:n_theta, :n_theta] = H * np.outer(d[:n_theta], d[:n_theta])
         try:
             std_post, _ = _std_of(I_phys + P_phys, free, names)
         except np.linalg.LinAlgError:
