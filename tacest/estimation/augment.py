@@ -11,6 +11,8 @@ estimate ``/params`` name   physical value                             informati
 ``linear_drag.b``           b = u · m0 (N·s/m)                         ``linear_drag.b``
 ``soft_contact.compliance`` C = u · COMPLIANCE_UNIT · L / (m0 g) (m/N)  ``soft_contact.compliance``
 ``soft_contact.stiffness``  1 / C (N/m; inf without compliance)        (none: 1/C is not linear)
+``soft_contact.tau``        tau = u · TAU_UNIT (s; damping / stiffness)  ``soft_contact.tau``
+``soft_contact.damping``    tau / C (N·s/m; inf without compliance)     (none: not linear)
 ``force_bias.fx``, ``fy``   u · m0 · g (N)                             ``force_bias.fx``, ``.fy``
 ``force_scale.gain``        exp(u)                                     ``force_scale.gain`` (1)
 ``face_friction.values``    friction_ground + d_i, one per face        ``face_friction.d<i>`` (1)
@@ -26,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.estimation.problem import COMPLIANCE_UNIT, PHYS_NAMES, effect_parameters
+from tacest.estimation.problem import COMPLIANCE_UNIT, PHYS_NAMES, TAU_UNIT, effect_parameters
 
 GRAVITY = 9.81
 
@@ -37,7 +39,7 @@ def _unit(key: str, L: float, m0: float) -> float:
     return {
         "fx": m0 * GRAVITY, "fy": m0 * GRAVITY,
         "b": m0, "c": m0 * L * L,
-        "compliance": COMPLIANCE_UNIT * L / (m0 * GRAVITY),
+        "compliance": COMPLIANCE_UNIT * L / (m0 * GRAVITY), "tau": TAU_UNIT,
         "dx": L, "dy": L,
     }.get(name, 1.0)
 
@@ -75,6 +77,11 @@ def effect_params(problem, theta, L: float, m0: float) -> dict:
             c = val * _unit(k, L, m0)
             out[k] = c
             out["soft_contact.stiffness"] = 1.0 / c if c > 0 else float("inf")
+        elif k == "soft_contact.tau":
+            tau = val * _unit(k, L, m0)
+            c = u["soft_contact.compliance"] * _unit("soft_contact.compliance", L, m0)
+            out[k] = tau
+            out["soft_contact.damping"] = tau / c if c > 0 else float("inf")
         else:
             out[k] = val * _unit(k, L, m0)
     if "face_friction" in problem.effects:

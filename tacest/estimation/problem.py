@@ -102,8 +102,10 @@ PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_fing
 #: - force_scale log_gain: measured force = exp(log_gain) × model force;
 #: - linear_drag b: force -b·v on the COM, units of m0 per second (N·s/m);
 #: - angular_damping c: torque -c·ω, units of m0·L² per second (N·m·s);
-#: - soft_contact compliance: the ground sinks by compliance × (total normal ground
-#:   impulse in units of m0·g·dt), compliance in units of COMPLIANCE_UNIT·L;
+#: - soft_contact compliance, tau: the ground is a plate on a spring and damper
+#:   (Kelvin–Voigt): it sinks by compliance × (total normal ground impulse in units of
+#:   m0·g·dt) + tau × (its normal velocity), compliance in units of COMPLIANCE_UNIT·L,
+#:   tau (= damping / stiffness) in units of TAU_UNIT;
 #: - restitution e: after an impact a vertex leaves with -e × its approach velocity;
 #: - face_friction d0..d{K-1}: ground friction of face i is friction_ground + d_i;
 #: - com_offset dx, dy: the COM in the centroid frame (body axes), units of L.
@@ -114,7 +116,7 @@ NLP_EFFECTS = {
     "restitution": (("e", 0.0, 0.5, 0.0, 0.95),),
     "angular_damping": (("c", 0.0, 5.0, 0.0, 200.0),),
     "linear_drag": (("b", 0.0, 5.0, 0.0, 200.0),),
-    "soft_contact": (("compliance", 0.0, 5.0, 0.0, 100.0),),
+    "soft_contact": (("compliance", 0.0, 5.0, 0.0, 100.0), ("tau", 0.0, 5.0, 0.0, 20.0)),
     "force_bias": (("fx", 0.0, 1.0, -10.0, 10.0), ("fy", 0.0, 1.0, -10.0, 10.0)),
     "force_scale": (("log_gain", 0.0, 0.5, float(np.log(0.1)), float(np.log(10.0))),),
     "face_friction": (),  # one parameter per face, see effect_parameters
@@ -125,6 +127,12 @@ FACE_FRICTION_PRIOR = (0.0, 0.5, -1.5, 1.5)
 #: soft_contact: the compliance parameter's unit, as a fraction of the length scale L
 #: (a 1 kg box on a 3000 N/m ground with L = 0.1 m sinks 3.3 mm: compliance ≈ 3)
 COMPLIANCE_UNIT = 0.01
+#: s: soft_contact's tau unit (the ground's time constant damping / stiffness; a plate
+#: damped at 0.5-1 × critical under a 0.2-1 kg object on 1500-6000 N/m has 6-50 ms)
+TAU_UNIT = 0.01
+#: soft_contact: impulse (units of m0·g·dt) below which the ground is unloaded, in the
+#: impulse-weighted mean of the vertices' normal velocities (the plate's velocity)
+SINK_LOAD_EPS = 1e-3
 #: m/s: restitution's impact gate a² / (a² + BOUNCE_SPEED²) on the approach speed a of
 #: a vertex (0.5 at BOUNCE_SPEED, 0.9 at 3 × it): the share of Newton's rebound e·a a
 #: vertex gets, and the weight of its impact law.  Slower approaches land plastically,
@@ -848,9 +856,18 @@ class Problem2D:
         sig_v = g[G["sig_proc"]] * 9.81 * dt  # m/s: process noise of a velocity change
         r_rest = []
         if "soft_contact" in self.effects:
-            # a compliant ground (a plate on a spring): it sinks by compliance × the total
-            # normal ground impulse of the sample, so a vertex may penetrate that far
-            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * ca.sum1(lg[:K])
+            # a compliant ground, a plate on a spring k and damper c (Kelvin–Voigt): the
+            # sample's load W = k·s + c·ds/dt, so it sinks by s = W/k - tau·ds/dt with
+            # tau = c/k, and a vertex may penetrate that far.  The plate moves with the
+            # vertices that load it: ds/dt = -(their normal velocity at the sample's end,
+            # weighted by their normal impulses).  At rest s = W/k; at a landing or a
+            # strike the damper takes part of the load and the plate sinks less (a
+            # 0.5 m/s landing on 1675 N/m: 24 mm quasi-static, 6 mm with the simulator's
+            # damper, docs/diagnosis.md "soft_contact")
+            load = ca.sum1(lg[:K])
+            vn_plate = sum(lg[k] * vn_c[k] for k in range(K)) / (load + SINK_LOAD_EPS)  # m/s
+            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load \
+                + ev["soft_contact.tau"] * TAU_UNIT * vn_plate
             phi_c = [p + sink for p in phi_c]
         if "face_friction" in self.effects:
             mu_g = mu_g + self._face_friction_offset(q, V, n_g, ev)
