@@ -240,6 +240,33 @@ def test_soft_contact_sinks_with_load():
     assert _lowest_y(rigid).min() > -SLOP
 
 
+def test_soft_ground_settles_as_a_spring_and_damper_under_the_weight():
+    # a box set down on an unloaded soft ground (plate at y = 0 at rest) sinks as the
+    # massless ground of the effect says, M s'' + c s' + k s = m g with M = m + the
+    # plate's mass, which is kept a few percent of the object's (SOFT_PLATE_MASS): an
+    # underdamped k, c (zeta 0.3) so that the overshoot and the period are both checked
+    from tacest.sim.world import World
+
+    k_s, c_s, m = 5000.0, 30.0, 0.5
+    obj = _box(mass=m)
+    state = _state(obj, [f"soft_contact:stiffness={k_s},damping={c_s}"], finger=(0.0, 0.2))
+    run = simulate_pokes(state, [[0, math.pi / 2, 0.0, 0.03, 0.015, 0.03]], SimOptions(**CLEAN))
+    free = int(np.argmax(run.contact[:, 0] == 1))  # samples before the finger arrives
+    assert free > 30  # the transient (1/(zeta wn) = 0.07 s) is over by then
+    plate = World(obj, state.pose, state.velocity, np.array([[0.0, 0.2]]), np.array([0.01]),
+                  effects=state.effects).plate_mass
+    assert plate <= 0.05 * m
+    M = m + plate
+    wn, zeta = math.sqrt(k_s / M), c_s / (2.0 * math.sqrt(k_s * M))
+    wd = wn * math.sqrt(1.0 - zeta ** 2)
+    t = run.time[:free] - run.time[0]
+    sink = m * G / k_s * (1.0 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / math.sqrt(1 - zeta ** 2)
+                                                            * np.sin(wd * t)))
+    assert sink.max() > 1.3 * m * G / k_s  # the premise: an overshoot of 35 %
+    # tolerance: the contact slop (measured 0.034 mm; the sink is 0.98 mm, 1.33 at its peak)
+    assert np.allclose(-_lowest_y(run)[:free], sink, rtol=0, atol=SLOP)
+
+
 def test_face_friction_sets_the_sliding_friction_of_the_face_on_the_ground():
     obj = _box(mass=0.5, mu_g=0.3)
     push = [[0, math.pi, 0.0, 0.03, 0.03, 0.03]]  # from the left, sliding the box on face 0

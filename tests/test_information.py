@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from tacest.estimation.estimator import ImplicitEstimator
-from tacest.information.observed import observed_information
+from tacest.information.observed import FLAT_LOADING, FLAT_RCOND, _std_of, observed_information
 from tacest.sim.record import SimOptions, record_sim
 
 
@@ -63,6 +63,9 @@ def test_a_press_from_above_leaves_the_width_uncertain_and_measures_the_height()
     # where the data's pseudo-inverse, which drops the flat direction, said 0.016
     lI = est.config.prior.inertia_log_sigma
     assert 0.9 * lI <= std_post["inertia_log_ratio"] <= lI * (1 + 1e-9), std_post
+    # and the data's own std says the data leave it undetermined (the flat direction is
+    # reported as such; a plain pseudo-inverse dropped it and said 0.016)
+    assert std["inertia_log_ratio"] > lI, std["inertia_log_ratio"]
 
 
 def _face_sigmas(run):
@@ -96,3 +99,41 @@ def test_a_pushed_box_at_rest_keeps_its_touched_face_where_it_was_felt():
         sig = _face_sigmas(run)
         assert sig[touched] <= 1.5e-3, (seed, sig)
         assert sig[1 - touched] >= 5 * sig[touched], (seed, sig)
+
+
+def test_std_is_infinite_along_flat_directions_and_exact_elsewhere():
+    # J: parameters a and b enter only as their sum (as a gain and a mass do), d is
+    # measured with that sum and with c, and "held" is held.  Only a + b is determined:
+    # a and b get inf, c and d their exact marginal std
+    J = np.array([[1.0, 1.0, 0.0, 0.0, 0.0],
+                  [2.0, 2.0, 0.0, 1.0, 0.0],
+                  [0.0, 0.0, 3.0, 1.0, 0.0],
+                  [0.0, 0.0, 0.0, 2.0, 0.0]])
+    names = ["a", "b", "c", "d", "held"]
+    free = np.array([True, True, True, True, False])
+    std, cov = _std_of(J.T @ J, free, names)
+    assert std["a"] == np.inf and std["b"] == np.inf and std["held"] == np.inf
+    # c and d: the flat direction (1, -1, 0, 0)/sqrt 2 does not involve them, so their
+    # covariance is that of the problem with a + b as one parameter (rounding only)
+    Jr = np.column_stack([J[:, 0], J[:, 2], J[:, 3]])
+    Cr = np.linalg.inv(Jr.T @ Jr)
+    assert np.isclose(std["c"], np.sqrt(Cr[1, 1]), rtol=1e-9)
+    assert np.isclose(std["d"], np.sqrt(Cr[2, 2]), rtol=1e-9)
+    # invariance under a change of units (the information's row and column of c × 1e-6,
+    # of d × 1e3): the stds scale by the inverse factors and the flat direction stays
+    # flat (the test is made on the information scaled to a unit diagonal)
+    D = np.diag([1.0, 1.0, 1e-6, 1e3, 1.0])
+    std_u, _ = _std_of(D @ (J.T @ J) @ D, free, names)
+    assert std_u["a"] == np.inf and std_u["b"] == np.inf
+    assert np.isclose(std_u["c"], 1e6 * std["c"], rtol=1e-9)
+    assert np.isclose(std_u["d"], 1e-3 * std["d"], rtol=1e-9)
+    # a nearly flat direction (condition above 1 / FLAT_RCOND) counts as flat; one just
+    # inside it keeps a finite std equal to the true inverse's
+    for eps, flat in ((1e-7, True), (1e-3, False)):
+        Jn = np.array([[1.0, 1.0], [1.0, 1.0 + eps]])
+        s, _ = _std_of(Jn.T @ Jn, np.array([True, True]), ["x", "y"])
+        if flat:
+            assert s["x"] == np.inf and s["y"] == np.inf
+        else:
+            assert np.isclose(s["x"], np.sqrt(np.linalg.inv(Jn.T @ Jn)[0, 0]), rtol=1e-6)
+    assert FLAT_LOADING ** 2 / FLAT_RCOND >= 1e4  # the docstring's 100x

@@ -299,14 +299,49 @@ def prior_values(problem, p) -> np.ndarray:
     return np.asarray(p, float).reshape(-1)[a: a + problem.prior_fun.size1_in(1)]
 
 
+#: relative eigenvalue of the information scaled to a unit diagonal (D^-1/2 I D^-1/2,
+#: unit-free) at or below which a direction counts as flat, undetermined by the data: a
+#: condition number of 1e10, far beyond what a fit's data resolve (finite differences
+#: and IPOPT's tolerances give 1e-6..1e-8)
+FLAT_RCOND = 1e-10
+#: loading (of the unit-norm eigenvector, scaled units) of a parameter on flat
+#: directions above which its std is infinite: along a flat direction it would have at
+#: least FLAT_LOADING / sqrt(FLAT_RCOND) = 100 times the std it has with the others
+#: held, i.e. the data do not determine it.  A parameter outside the flat directions
+#: loads on them by rounding only (1e-8 and below)
+FLAT_LOADING = 1e-3
+
+
 def _std_of(I_phys, free, names):
-    """{name: one-sigma} from an information matrix (pseudo-inverse over the free rows;
-    inf for a row without information or held)."""
-    std = {}
+    """({name: one-sigma}, cov (n, n)) from an information matrix.
+
+    Over the free rows, the information is scaled to a unit diagonal and split into its
+    eigen-directions: cov is the pseudo-inverse that drops the flat ones (eigenvalue at
+    or below FLAT_RCOND of the largest; NaN outside the free block), and a parameter
+    that loads on a flat direction (by more than FLAT_LOADING) gets an infinite std, as
+    one without information or held does.  (A plain pseudo-inverse drops the flat
+    directions silently and reports such a parameter with the small std it has with the
+    others held, e.g. force_scale's gain against the mass.)"""
+    n = len(names)
     cov = np.full_like(I_phys, np.nan)
-    cov[np.ix_(free, free)] = np.linalg.pinv(I_phys[np.ix_(free, free)], rcond=1e-12, hermitian=True)
-    for k, name in enumerate(names):
-        std[name] = float(np.sqrt(cov[k, k])) if free[k] and cov[k, k] > 0 else float("inf")
+    var = np.full(n, np.inf)
+    idx = np.nonzero(free)[0]
+    A = I_phys[np.ix_(idx, idx)]
+    diag = np.diag(A).copy()
+    has = diag > 0
+    scale = np.sqrt(np.where(has, diag, 1.0))
+    S = A / np.outer(scale, scale)
+    S[~has, :] = 0.0
+    S[:, ~has] = 0.0
+    w, U = np.linalg.eigh(0.5 * (S + S.T))
+    flat = w <= FLAT_RCOND * max(float(w.max()) if w.size else 0.0, 0.0)
+    cov_s = (U[:, ~flat] / w[~flat]) @ U[:, ~flat].T
+    cov_f = cov_s / np.outer(scale, scale)
+    cov[np.ix_(idx, idx)] = cov_f
+    loading = np.sqrt(np.sum(U[:, flat] ** 2, axis=1))
+    determined = has & (loading <= FLAT_LOADING) & (np.diag(cov_f) > 0)
+    var[idx[determined]] = np.diag(cov_f)[determined]
+    std = {name: float(np.sqrt(var[k])) for k, name in enumerate(names)}
     return std, cov
 
 

@@ -55,10 +55,21 @@ COLLISION_ERROR_TIME = 0.02
 ITERATIONS = 30
 #: m, half width of the ground (far larger than any object's travel)
 GROUND_HALF_WIDTH = 10.0
-#: kg, mass of the ground plate of the soft_contact effect; with stiffness k and
-#: damping c the explicit spring force is stable for c·h/m < 2 and sqrt(k/m)·h < 2:
-#: 0.2 kg is safe for k <= 1e5 N/m, c <= 400 N·s/m at h = 0.5 ms
-SOFT_PLATE_MASS = 0.2
+#: kg, least mass of the ground plate of the soft_contact effect.  The effect is a
+#: massless spring k and damper c under the table top (docs/effects.md); the plate is a
+#: numerical device and is kept as light as the explicit spring-damper force allows,
+#: or every impact would have to set its mass moving, an inertia the effect does not
+#: describe (with a 0.2 kg plate the estimator's massless ground fitted a time constant
+#: c/k 1.5-4 times the true one).  The force is stable on the unloaded plate for
+#: c·h/m < 2 and sqrt(k/m)·h < 2; the plate's mass is m = max(SOFT_PLATE_MASS, c·h,
+#: k·h²/2) with h = SOFT_PLATE_MAX_SUBSTEP (c·h/m <= 1: an unloaded plate's velocity
+#: is damped out in one substep, never reversed).  Loaded, the contact passes the
+#: force's impulse on to the object, so the pair moves as the massless model says
+#: whatever the plate's share of the mass.  For the drawn effects (c 20-155 N·s/m) the
+#: plate is 0.02-0.08 kg.
+SOFT_PLATE_MASS = 0.02
+#: s, the longest physics substep the plate's mass is sized for (record.MAX_SUBSTEP)
+SOFT_PLATE_MAX_SUBSTEP = 5e-4
 
 
 @dataclass
@@ -89,6 +100,9 @@ class World:
     effects : list of tacest.sim.effects.Effect (physical ones act here, others are ignored)
     ground_state : (2,) [y m, vy m/s] of the soft_contact ground plate (ignored otherwise)
     max_finger_force : N, drive force limit
+
+    ``plate_mass`` (kg) is the soft_contact plate's mass (SOFT_PLATE_MASS), None on a
+    rigid ground.
     """
 
     def __init__(self, obj: SimObject, pose, velocity, p_finger__world, finger_radius, effects=(),
@@ -122,13 +136,17 @@ class World:
         ground_poly = [(-L, -1.0), (L, -1.0), (L, 0.0), (-L, 0.0)]
         if soft is None:
             self.plate = None
+            self.plate_mass = None
             self.ground = pymunk.Poly(space.static_body, ground_poly)
             space.add(self.ground)
         else:
-            # a plate on a damped spring (applied in step()), kept vertical by a groove
+            # a light plate on a spring and damper (applied in step()), kept on the
+            # vertical axis by a groove
             self._k_soft = float(soft["stiffness"])
             self._c_soft = float(soft["damping"])
-            self.plate = pymunk.Body(SOFT_PLATE_MASS, float("inf"))
+            h = SOFT_PLATE_MAX_SUBSTEP
+            self.plate_mass = max(SOFT_PLATE_MASS, self._c_soft * h, 0.5 * self._k_soft * h * h)
+            self.plate = pymunk.Body(self.plate_mass, float("inf"))
             self.plate.position = (0.0, float(ground_state[0]))
             self.plate.velocity = (0.0, float(ground_state[1]))
             self.ground = pymunk.Poly(self.plate, ground_poly)
@@ -258,9 +276,9 @@ class World:
             body.force = (-self._b_lin * v.x, -self._b_lin * v.y)
         if self._c_ang:
             body.torque = -self._c_ang * body.angular_velocity
-        if self.plate is not None:
+        if self.plate is not None:  # spring, damper, and the plate's own weight held up
             y, vy = self.plate.position.y, self.plate.velocity.y
-            self.plate.force = (0.0, SOFT_PLATE_MASS * GRAVITY - self._k_soft * y - self._c_soft * vy)
+            self.plate.force = (0.0, self.plate_mass * GRAVITY - self._k_soft * y - self._c_soft * vy)
         if self._face_mu is not None:
             self._set_friction(self._ground_mu())
         self.space.step(h)

@@ -44,7 +44,7 @@ from tacest.errors import TacestError
 from tacest.geometry.polytope import PolytopeSurface
 from tacest.geometry.transforms import quat_normalize, quat_to_matrix
 from tacest.sim.effects import find
-from tacest.sim.world import FINGER_MASS, GRAVITY, MAX_FINGER_FORCE, SOFT_PLATE_MASS, SampleMeasurement
+from tacest.sim.world import FINGER_MASS, GRAVITY, MAX_FINGER_FORCE, SampleMeasurement
 from tacest.sim3d.objects import SimObject3
 
 __all__ = ["World3", "SampleMeasurement", "GRAVITY", "MAX_FINGER_FORCE", "FINGER_MASS"]
@@ -69,6 +69,9 @@ FINGER_GROUND_FRICTION = 0.5
 RESTITUTION_TIMECONST = 0.01
 #: m, half extents of the soft_contact plate (a box: MuJoCo planes cannot move)
 PLATE_HALF_SIZE = (2.0, 2.0, 0.05)
+#: kg, mass of the soft_contact ground plate (the 3-D estimator does not model the
+#: effect, NOT_MODELLED_3D; the 2-D simulator's plate is lighter, tacest.sim.world)
+SOFT_PLATE_MASS = 0.2
 #: MuJoCo solver settings: Newton solver, enough iterations to converge stacked contacts
 #: (it typically needs 1-3)
 SOLVER_ITERATIONS = 100
