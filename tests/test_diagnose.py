@@ -707,26 +707,28 @@ def test_force_scale_gain_is_recovered_with_a_weighed_mass():
 @pytest.mark.slow
 @pytest.mark.skipif(not estimator_supports_effects(),
                     reason="estimate_runs has no effects= (NLP augmentations) in this version")
-def test_soft_contact_stiffness_is_recovered_from_tipping_pokes():
+def test_soft_contact_stiffness_and_damping_are_recovered_from_tipping_pokes():
     """soft_contact on pokes that tip the box (pose observed at 0.5 mm), mass unknown:
-    the ground's stiffness comes back, and the object's mass with it (the truth's
-    0.82 kg; the plain model, which cannot sink, fits 0.62 kg here).  Truth 2000 N/m and
-    60 N·s/m (time constant c/k 30 ms, 0.7 × critical for this box).  The time constant
-    is not checked: the model's ground has no memory from sample to sample (a box that
-    rocks from one corner onto the other within a sample lands on a plate still sunk by
-    the first), and the fits put it at 6-9 ms for 20-30 ms (docs/diagnosis.md, NLP
-    augmentations); the stiffness and mass are fitted better with it than without
-    (objective 949 against 1008 here)."""
+    the ground's stiffness and time constant c/k come back, and the object's mass with
+    them (the truth's 0.82 kg; the plain model, which cannot sink, fits 0.62 kg here).
+    Truth 2000 N/m and 60 N·s/m (c/k 30 ms, 0.7 × critical for this box).  The
+    sinks under the weight and the pushes give the stiffness; the strikes, landings and
+    the plate's rebound when a push ends give the time constant."""
     from tacest.estimation.estimator import estimate_runs
 
     k, c = 2000.0, 60.0
     run = _tipping_pokes(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4,
                                     effects=[f"soft_contact:stiffness={k},damping={c}"]))
     est = estimate_runs([run], "box", effects=("soft_contact",))
-    # 30 %: as the sliding recording's stiffness check above (NLP_EFFECTS; measured 5 %)
+    # 30 %: as the sliding recording's stiffness check above (NLP_EFFECTS; measured 6.5 %)
     assert abs(est.params["soft_contact.stiffness"] - k) <= 0.3 * k, est.params
     assert est.identifiable["soft_contact.compliance"]
-    # 10 %: a clean recording of these pokes gives its mass within 1 % (measured 1 %)
+    # 50 %, the tolerance of the other dissipative parameters (drag, damping): the model's
+    # ground has no memory from sample to sample (a box that rocks from one corner onto
+    # the other within a sample lands on a plate still sunk by the first); measured 26 %
+    # low here, 0.033 for 0.030 and 0.022 for 0.020 on faster pokes
+    assert abs(est.params["soft_contact.tau"] - c / k) <= 0.5 * c / k, est.params
+    # 10 %: a clean recording of these pokes gives its mass within 1 % (measured 5 %)
     assert abs(est.params["mass"] - run.truth.mass) <= 0.1 * run.truth.mass, est.params
 
 

@@ -865,9 +865,14 @@ class Problem2D:
             # 0.5 m/s landing on 1675 N/m: 24 mm quasi-static, 6 mm with the simulator's
             # damper, docs/diagnosis.md "soft_contact")
             load = ca.sum1(lg[:K])
-            vn_plate = sum(lg[k] * vn_c[k] for k in range(K)) / (load + SINK_LOAD_EPS)  # m/s
-            sink = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load \
-                + ev["soft_contact.tau"] * TAU_UNIT * vn_plate
+            sink_load = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load  # m, W/k
+            # the plate's upward velocity: the vertices' that load it, for a plate that
+            # is sunk; gated by its sink against the gap's sigma so that a rigid ground
+            # (compliance 0) does not move and the augmentation at no effect is the
+            # plain model (a plate sunk 5 mm moves with 0.9 of its corner's velocity)
+            gate = sink_load / (sink_load + g[G["sig_gap"]])
+            vn_plate = gate * sum(lg[k] * vn_c[k] for k in range(K)) / (load + SINK_LOAD_EPS)  # m/s
+            sink = sink_load + ev["soft_contact.tau"] * TAU_UNIT * vn_plate
             phi_c = [p + sink for p in phi_c]
             # the contact laws see the vertices' velocities relative to the plate: a
             # loaded vertex that rises with the unloading plate does not separate (with
