@@ -321,7 +321,8 @@ def _std_of(I_phys, free, names):
     that loads on a flat direction (by more than FLAT_LOADING) gets an infinite std, as
     one without information or held does.  (A plain pseudo-inverse drops the flat
     directions silently and reports such a parameter with the small std it has with the
-    others held, e.g. force_scale's gain against the mass.)"""
+    others held, e.g. force_scale's gain against the mass.)  Where the eigen-solver
+    fails: every std NaN and cov None."""
     n = len(names)
     cov = np.full_like(I_phys, np.nan)
     var = np.full(n, np.inf)
@@ -333,7 +334,10 @@ def _std_of(I_phys, free, names):
     S = A / np.outer(scale, scale)
     S[~has, :] = 0.0
     S[:, ~has] = 0.0
-    w, U = np.linalg.eigh(0.5 * (S + S.T))
+    try:
+        w, U = np.linalg.eigh(0.5 * (S + S.T))
+    except np.linalg.LinAlgError:
+        return {name: float("nan") for name in names}, None
     flat = w <= FLAT_RCOND * max(float(w.max()) if w.size else 0.0, 0.0)
     cov_s = (U[:, ~flat] / w[~flat]) @ U[:, ~flat].T
     cov_f = cov_s / np.outer(scale, scale)
@@ -413,11 +417,7 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False, poster
     I_phys[:, kept_fixed] = 0.0
     names = information_names(est)
     free = ~kept_fixed
-    try:
-        std, cov = _std_of(I_phys, free, names)
-    except np.linalg.LinAlgError:
-        std = {name: float("nan") for name in names}
-        cov = None
+    std, cov = _std_of(I_phys, free, names)
     extra = []
     if penalty_shift:
         shift = {name: (0.0 if not pr.with_occam else float("nan")) for name in names}
@@ -433,9 +433,5 @@ def observed_information(est, z, lbx=None, ubx=None, penalty_shift=False, poster
         # the priors act on theta only; held rows are left out by _std_of's free block
         P_phys = np.zeros_like(I_phys)
         P_phys[:n_theta, :n_theta] = H * np.outer(d[:n_theta], d[:n_theta])
-        try:
-            std_post, _ = _std_of(I_phys + P_phys, free, names)
-        except np.linalg.LinAlgError:
-            std_post = {name: float("nan") for name in names}
-        extra.append(std_post)
+        extra.append(_std_of(I_phys + P_phys, free, names)[0])
     return (I_phys, names, std, *extra)

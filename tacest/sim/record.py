@@ -45,10 +45,8 @@ from tacest.geometry.transforms import rot2
 from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, rest_angle, resting_pose,
                                 uniform_object)
 from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, poke_path, random_poke
-from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, World
+from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, MAX_SUBSTEP, World
 
-#: s, the longest physics substep (0.5 ms: 20 substeps at the default 100 Hz)
-MAX_SUBSTEP = 5e-4
 #: s, unrecorded settling of a new object on the ground before sample 0
 PRE_ROLL = 0.5
 #: s, the fingers hold still this long after the last poke (the object comes to rest)

@@ -55,6 +55,9 @@ COLLISION_ERROR_TIME = 0.02
 ITERATIONS = 30
 #: m, half width of the ground (far larger than any object's travel)
 GROUND_HALF_WIDTH = 10.0
+#: s, the longest physics substep (0.5 ms: 20 substeps at the default 100 Hz; the
+#: recorder's substep count, tacest.sim.record, and the soft plate's mass keep to it)
+MAX_SUBSTEP = 5e-4
 #: kg, least mass of the ground plate of the soft_contact effect.  The effect is a
 #: massless spring k and damper c under the table top (docs/effects.md); the plate is a
 #: numerical device and is kept as light as the explicit spring-damper force allows,
@@ -62,14 +65,12 @@ GROUND_HALF_WIDTH = 10.0
 #: describe (with a 0.2 kg plate the estimator's massless ground fitted a time constant
 #: c/k 1.5-4 times the true one).  The force is stable on the unloaded plate for
 #: c·h/m < 2 and sqrt(k/m)·h < 2; the plate's mass is m = max(SOFT_PLATE_MASS, c·h,
-#: k·h²/2) with h = SOFT_PLATE_MAX_SUBSTEP (c·h/m <= 1: an unloaded plate's velocity
+#: k·h²/2) with h = MAX_SUBSTEP (c·h/m <= 1: an unloaded plate's velocity
 #: is damped out in one substep, never reversed).  Loaded, the contact passes the
 #: force's impulse on to the object, so the pair moves as the massless model says
 #: whatever the plate's share of the mass.  For the drawn effects (c 20-155 N·s/m) the
 #: plate is 0.02-0.08 kg.
 SOFT_PLATE_MASS = 0.02
-#: s, the longest physics substep the plate's mass is sized for (record.MAX_SUBSTEP)
-SOFT_PLATE_MAX_SUBSTEP = 5e-4
 
 
 @dataclass
@@ -101,8 +102,8 @@ class World:
     ground_state : (2,) [y m, vy m/s] of the soft_contact ground plate (ignored otherwise)
     max_finger_force : N, drive force limit
 
-    ``plate_mass`` (kg) is the soft_contact plate's mass (SOFT_PLATE_MASS), None on a
-    rigid ground.
+    ``plate_mass`` (kg) is the soft_contact plate's mass (at least SOFT_PLATE_MASS, see
+    there), None on a rigid ground.
     """
 
     def __init__(self, obj: SimObject, pose, velocity, p_finger__world, finger_radius, effects=(),
@@ -144,7 +145,7 @@ class World:
             # vertical axis by a groove
             self._k_soft = float(soft["stiffness"])
             self._c_soft = float(soft["damping"])
-            h = SOFT_PLATE_MAX_SUBSTEP
+            h = MAX_SUBSTEP
             self.plate_mass = max(SOFT_PLATE_MASS, self._c_soft * h, 0.5 * self._k_soft * h * h)
             self.plate = pymunk.Body(self.plate_mass, float("inf"))
             self.plate.position = (0.0, float(ground_state[0]))
