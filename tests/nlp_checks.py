@@ -11,9 +11,10 @@ FD_STEP = 1e-6
 FD_RTOL = 1e-5
 
 
-def assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=0.0, n_random=40, seed=1):
+def assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=0.0, n_random=40, seed=1, extra=()):
     """The objective's gradient and the constraints' Jacobian of Problem2D pr at (z, p)
-    match central differences in every parameter coordinate and n_random other ones.
+    match central differences in every parameter coordinate, the coordinates ``extra``
+    and n_random other ones.
 
     f_rounding_margin: multiple of the objective's own rounding, eps·|f| / FD_STEP, added
     to the gradient tolerance (for points where |f| is large)."""
@@ -22,7 +23,7 @@ def assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=0.0,
     gfun = ca.Function("c", [pr.z_sym, pr.p_sym], [pr.g])
     jac = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(pr.g, pr.z_sym)])(z, p)))
     rng = np.random.default_rng(seed)
-    idx = list(range(pr.n_theta + pr.n_phys)) + rng.choice(pr.n_z, n_random, replace=False).tolist()
+    idx = list(range(pr.n_theta + pr.n_phys)) + list(extra) + rng.choice(pr.n_z, n_random, replace=False).tolist()
     h = FD_STEP
     f0 = abs(float(f(z, p)))
     for i in idx:

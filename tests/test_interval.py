@@ -41,7 +41,7 @@ def _stage(angle_start, angle_end, n_meas):
     g[G["Lam"]] = M0 * 9.81 * 0.01
     q_prev = np.array([centre[0] / L, centre[1] / L, angle_start])
     q = np.array([centre[0] / L, centre[1] / L, angle_end])
-    out = stage(q_prev, np.zeros(3), q, np.zeros(3), np.zeros(8), np.zeros(2), phys, d, g)
+    out = stage(q_prev, np.zeros(3), q, np.zeros(3), np.zeros(8), np.zeros(2), phys, d, g, np.zeros(0), np.zeros(0))
     return dict(zip(stage.name_out(), (np.asarray(o).ravel() for o in out)))
 
 

@@ -14,7 +14,7 @@ from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
 from tacest.estimation.initial import initial_guess
 from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, TERMS, Problem2D, RunStructure
 from tacest.geometry.shapes import make_shape
-from tests.nlp_checks import assert_derivatives_match_finite_differences
+from tests.nlp_checks import FD_RTOL, FD_STEP, assert_derivatives_match_finite_differences
 from tests.test_estimator import pushed_box_run
 
 ALL = tuple(NLP_EFFECTS)
@@ -42,8 +42,34 @@ def _point(shape, effects, seed=0):
 def test_gradient_and_jacobian_with_every_effect_match_finite_differences(shape):
     est, pr, z, p = _point(shape, ALL)
     # the objective is large here (the effects move the generic point far from the data):
-    # its own rounding, eps·|f| / h, with a factor 10 of margin joins the tolerance
-    assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=10.0)
+    # its own rounding, eps·|f| / h, with a factor 10 of margin joins the tolerance.
+    # Every coordinate of the soft ground's plate state (its sinks) is checked too
+    a, n = pr.offsets[0]["S"]
+    assert n == pr.structures[0].T
+    assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=10.0, extra=range(a, a + n))
+
+
+def test_information_jacobian_with_every_effect_matches_finite_differences():
+    """The residual Jacobian the information is built from (observed.py, assembled from
+    per-sample blocks) matches central differences of its own residuals in every
+    parameter, every plate sink and 40 other coordinates, with every effect in the NLP."""
+    from tacest.information.observed import residual_jacobian_function
+
+    est, pr, z, p = _point("box", ALL)
+    rj = residual_jacobian_function(pr)
+    r0, J = rj(z, p)
+    J = np.asarray(ca.DM(J))
+    a, n = pr.offsets[0]["S"]
+    idx = list(range(pr.n_theta + pr.n_phys)) + list(range(a, a + n)) \
+        + np.random.default_rng(4).choice(pr.n_z, 40, replace=False).tolist()
+    h = FD_STEP
+    for i in idx:
+        e = np.zeros(pr.n_z)
+        e[i] = h
+        fd = (np.asarray(rj(z + e, p)[0]).ravel() - np.asarray(rj(z - e, p)[0]).ravel()) / (2 * h)
+        # FD_RTOL as the objective's check (nlp_checks), relative to the column's size
+        np.testing.assert_allclose(fd, J[:, i], rtol=FD_RTOL, atol=FD_RTOL * max(1.0, np.abs(J[:, i]).max()),
+                                   err_msg=str(i))
 
 
 def test_exact_hessian_blocks_with_every_effect_match_casadi():
@@ -89,9 +115,10 @@ def test_an_effect_at_no_effect_reproduces_the_plain_objective(effect):
     z_p[pp.phys_offset: pp.phys_offset + pp.n_phys] = np.asarray(
         pp.phys_sx(z_p[: pp.n_theta], plain.scales.L, plain.scales.m0)).reshape(-1)
     n_eff = pa.n_eff
-    # the augmented z: theta + zeros, phys + zeros, the same run blocks
+    # the augmented z: theta + zeros, phys + zeros, the same run blocks (then, with
+    # soft_contact, the plate's sinks: 0, the rigid ground's; one run, so they come last)
     z_a = np.concatenate([z_p[: pp.n_theta], np.zeros(n_eff), z_p[pp.n_theta: pp.n_theta + pp.n_phys],
-                          np.zeros(n_eff), z_p[pp.n_theta + pp.n_phys:]])
+                          np.zeros(n_eff), z_p[pp.n_theta + pp.n_phys:], np.zeros(pa.n_plate * run.n_samples)])
     assert z_a.size == pa.n_z
     p_p = parameter_vector(pp, [run], plain.scales, cfg, 0.5, 2.0, plain.s0)
     p_a = parameter_vector(pa, [run], aug.scales, cfg, 0.5, 2.0, aug.s0)

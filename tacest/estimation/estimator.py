@@ -159,7 +159,7 @@ class ImplicitEstimator:
         pr = self.problem
         free = np.zeros(pr.n_z, bool)
         for off in pr.offsets:
-            for b in ("LG", "LF"):
+            for b in ("LG", "LF", "S"):  # the plate's sink follows its load
                 a, n = off[b]
                 free[a: a + n] = True
         return np.where(free, lbx, self.z), np.where(free, ubx, self.z)
@@ -266,10 +266,8 @@ class ImplicitEstimator:
         """All stage-function outputs of run i at z: {name: (n_out, T-1)}."""
         pr = self.problem
         st = self.structures[i]
-        Q, Vv, LG, LF = pr.run_blocks(z, i)
         g, D = self._run_data(i)
-        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
-        out = pr.stage_funs[i].map(st.T - 1)(Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, D[:, 1:], g)
+        out = pr.stage_funs[i].map(st.T - 1)(*pr.stage_arguments(z, i, D, g))
         return dict(zip(pr.stage_funs[i].name_out(), out))
 
     def _run_data(self, i):
@@ -282,12 +280,9 @@ class ImplicitEstimator:
         """{term: (T,)} value of each loss term per sample of run i (0.5 ||r||² for the
         squared terms, the penalty value for the others), weights not applied."""
         pr = self.problem
-        Q, Vv, LG, LF = pr.run_blocks(z, i)
         g, D = self._run_data(i)
-        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
         res = self._stage_outputs(z, i)
-        o0 = dict(zip(["rest", "penetration", "pose", "contact"],
-                      pr.start_funs[i](Q[:, 0], Vv[:, 0], phys, D[:, 0], g)))
+        o0 = dict(zip(pr.start_funs[i].name_out(), pr.start_funs[i](*pr.start_arguments(z, i, D, g))))
         result = {}
         for t in TERMS:
             arr = np.asarray(res[t])

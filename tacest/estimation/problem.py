@@ -130,9 +130,12 @@ COMPLIANCE_UNIT = 0.01
 #: s: soft_contact's tau unit (the ground's time constant damping / stiffness; a plate
 #: damped at 0.5-1 × critical under a 0.2-1 kg object on 1500-6000 N/m has 6-50 ms)
 TAU_UNIT = 0.01
-#: soft_contact: impulse (units of m0·g·dt) below which the ground is unloaded, in the
-#: impulse-weighted mean of the vertices' normal velocities (the plate's velocity)
-SINK_LOAD_EPS = 1e-3
+#: soft_contact: unit of the plate's sink state (the S block), a fraction of the length
+#: scale L (as COMPLIANCE_UNIT, so that the sink at rest is compliance × the load)
+PLATE_UNIT = COMPLIANCE_UNIT
+#: s: added to soft_contact's tau in the plate's decay exp(-dt / tau) over a sample, so
+#: that tau = 0 (no damper: the plate follows its load) has finite derivatives
+TAU_FLOOR = 1e-6
 #: m/s: restitution's impact gate a² / (a² + BOUNCE_SPEED²) on the approach speed a of
 #: a vertex (0.5 at BOUNCE_SPEED, 0.9 at 3 × it): the share of Newton's rebound e·a a
 #: vertex gets, and the weight of its impact law.  Slower approaches land plastically,
@@ -345,6 +348,20 @@ def dissipation_shortfall(mu, lam_n, lam_t, slip, eps):
     return mu * lam_n * slip * slip / smooth_abs(slip, eps) + lam_t * slip
 
 
+def stage_local_variables(ins):
+    """The local variables y (a column) of a stage function's inputs ``ins`` (its
+    sx_in()): [q_prev, v_prev, q, v, lam_ground, lam_finger, phys, s_prev, s] (the
+    plate's sinks are empty without soft_contact); data d and globals g are not."""
+    qp, vp, q, v, lg, lf, phys, _d, _g, sp, s = ins
+    return ca.vertcat(qp, vp, q, v, lg, lf, phys, sp, s)
+
+
+def start_local_variables(ins):
+    """The local variables [q, v, phys, s] of a start function's inputs (its sx_in())."""
+    q, v, phys, _d, _g, s = ins
+    return ca.vertcat(q, v, phys, s)
+
+
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
            "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g")
@@ -377,6 +394,8 @@ class Problem2D:
         #: phys after the 2K + 4 physical entries)
         self.eff_index = {f"{e}.{n}": j for j, (e, n, *_) in enumerate(self.effect_params)}
         self.n_theta = self.n_shape + len(PHYS_NAMES) + self.n_eff
+        #: soft_contact's plate: one state per sample, its sink (plate_block)
+        self.n_plate = 1 if "soft_contact" in self.effects else 0
         #: the Occam term (pose_occam) is part of the NLP only where it is weighted and
         #: some run's poses are observed (it prices pose-observed samples only; without
         #: it no sample's function and Hessian carries it)
@@ -402,6 +421,8 @@ class Problem2D:
             n += 2 * K * (T - 1)
             blk["LF"] = (n, 2 * F * (T - 1))
             n += 2 * F * (T - 1)
+            blk["S"] = (n, self.n_plate * T)
+            n += self.n_plate * T
             self.offsets.append(blk)
         self.n_z = n
 
@@ -477,7 +498,9 @@ class Problem2D:
             Vv = ca.reshape(z[off["V"][0]: off["V"][0] + off["V"][1]], 3, T)
             LG = ca.reshape(z[off["LG"][0]: off["LG"][0] + off["LG"][1]], 2 * K, T - 1)
             LF = ca.reshape(z[off["LF"][0]: off["LF"][0] + off["LF"][1]], 2 * F, T - 1)
-            stage_args = (Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, dsym[:, 1:], gsym)
+            S = ca.reshape(z[off["S"][0]: off["S"][0] + off["S"][1]], self.n_plate, T)
+            stage_args = (Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], LG, LF, phys, dsym[:, 1:], gsym,
+                          S[:, :-1], S[:, 1:])
             res = dict(zip(stage.name_out(), stage_k.map(T - 1, "serial")(*stage_args)))
             res_sx = dict(zip(stage.name_out(), stage.map(T - 1, "serial")(*stage_args)))
             for t in SQUARED_TERMS:
@@ -491,7 +514,7 @@ class Problem2D:
                 obj_terms[t] = obj_terms[t] + ca.sum2(res[t])
                 penalty_sx[t].append(ca.sum2(res_sx[t]))
             # sample 0: the object starts at rest and above the ground
-            start_args = (Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym)
+            start_args = (Q[:, 0], Vv[:, 0], phys, dsym[:, 0], gsym, S[:, 0])
             o0 = dict(zip(start.name_out(), start_k(*start_args)))
             o0_sx = dict(zip(start.name_out(), start(*start_args)))
             for t, name in START_TERM_OUTPUTS:
@@ -633,17 +656,15 @@ class Problem2D:
 
     def _stage_hessian_function(self, stage, mode):
         """SX Function: dense Hessian of one sample's Lagrangian contribution with respect
-        to its local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, theta]."""
+        to its local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, phys,
+        s_prev, s] (stage_local_variables; the order of _stage_indices)."""
         ins = stage.sx_in()
-        qp, vp, q, v, lg, lf = ins[:6]
-        phys, d, g = ins[6], ins[7], ins[8]
         w = ca.SX.sym("w", len(TERMS))
         lam_f = ca.SX.sym("lam_f")
         lk = ca.SX.sym("lam_kin", 3)
-        out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
-        y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-        H = self._local_hessian(out, y, w, lam_f, mode, extra=ca.dot(lk, out["g_kin"]))
-        return ca.Function("hess_stage", [qp, vp, q, v, lg, lf, phys, d, g, w, lam_f, lk], [H])
+        out = dict(zip(stage.name_out(), stage(*ins)))
+        H = self._local_hessian(out, stage_local_variables(ins), w, lam_f, mode, extra=ca.dot(lk, out["g_kin"]))
+        return ca.Function("hess_stage", [*ins, w, lam_f, lk], [H])
 
     def _local_hessian(self, out, y, w, lam_f, mode, extra=0, names=None):
         """Dense local Hessian of lam_f · (weighted loss) + extra with respect to y.
@@ -676,13 +697,11 @@ class Problem2D:
 
     def _start_hessian_function(self, start, mode):
         ins = start.sx_in()
-        q, v, phys, d, g = ins
         w = ca.SX.sym("w", len(TERMS))
         lam_f = ca.SX.sym("lam_f")
-        out = dict(zip(start.name_out(), start(q, v, phys, d, g)))
-        y = ca.vertcat(q, v, phys)
-        H = self._local_hessian(out, y, w, lam_f, mode, names=dict(START_TERM_OUTPUTS))
-        return ca.Function("hess_start", [q, v, phys, d, g, w, lam_f], [H])
+        out = dict(zip(start.name_out(), start(*ins)))
+        H = self._local_hessian(out, start_local_variables(ins), w, lam_f, mode, names=dict(START_TERM_OUTPUTS))
+        return ca.Function("hess_start", [*ins, w, lam_f], [H])
 
     def _stage_indices(self, i):
         """(T-1, n_y) global z indices of each sample's local variables (see above)."""
@@ -696,12 +715,15 @@ class Problem2D:
         lg = off["LG"][0] + 2 * K * (t - 1) + np.arange(2 * K)
         lf = off["LF"][0] + 2 * F * (t - 1) + np.arange(2 * F)
         ph = np.repeat(self.phys_offset + np.arange(self.n_phys)[None, :], T - 1, 0)
-        return np.hstack([q_prev, v_prev, q, v, lg, lf, ph])
+        s_prev = off["S"][0] + self.n_plate * (t - 1) + np.arange(self.n_plate)
+        s = off["S"][0] + self.n_plate * t + np.arange(self.n_plate)
+        return np.hstack([q_prev, v_prev, q, v, lg, lf, ph, s_prev, s])
 
     def _start_indices(self, i):
         off = self.offsets[i]
         return np.concatenate([off["Q"][0] + np.arange(3), off["V"][0] + np.arange(3),
-                               self.phys_offset + np.arange(self.n_phys)])[None, :]
+                               self.phys_offset + np.arange(self.n_phys),
+                               off["S"][0] + np.arange(self.n_plate)])[None, :]
 
     def _assemble_hessian(self, blocks):
         """Sum the local dense blocks into the upper triangle of the global Hessian.
@@ -821,6 +843,8 @@ class Problem2D:
         phys = ca.SX.sym("phys", self.n_phys)
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
+        sp = ca.SX.sym("s_prev", self.n_plate)
+        ss = ca.SX.sym("s", self.n_plate)
         dt, L, Lam = g[G["dt"]], g[G["L"]], g[G["Lam"]]
         eps = g[G["eps"]]
         V, mass, inertia, mu_g, mu_f = self._unpack_phys(phys, L, g[G["m0"]])
@@ -855,34 +879,32 @@ class Problem2D:
         vn_c = [ca.dot(n_g, point_velocity(v, levers[k])) for k in range(K)]
         sig_v = g[G["sig_proc"]] * 9.81 * dt  # m/s: process noise of a velocity change
         r_rest = []
+        r_plate = []
         if "soft_contact" in self.effects:
-            # a compliant ground, a plate on a spring k and damper c (Kelvin–Voigt): the
-            # sample's load W = k·s + c·ds/dt, so it sinks by s = W/k - tau·ds/dt with
-            # tau = c/k, and a vertex may penetrate that far.  The plate moves with the
-            # vertices that load it: ds/dt = -(their normal velocity at the sample's end,
-            # weighted by their normal impulses).  At rest s = W/k; at a landing or a
-            # strike the damper takes part of the load and the plate sinks less (a
-            # 0.5 m/s landing on 1675 N/m: 24 mm quasi-static, 6 mm with the simulator's
-            # damper, docs/diagnosis.md "soft_contact")
-            load = ca.sum1(lg[:K])
-            sink_load = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load  # m, W/k
-            # the plate's upward velocity: the vertices' that load it, for a plate that
-            # is sunk; gated by its sink against the gap's sigma so that a nearly rigid
-            # ground barely moves (a plate sunk 5 mm moves with 0.9 of its corner's
-            # velocity, one sunk 0.1 mm with 0.17)
-            gate = sink_load / (sink_load + g[G["sig_gap"]])
-            vn_plate = gate * sum(lg[k] * vn_c[k] for k in range(K)) / (load + SINK_LOAD_EPS)  # m/s
-            sink = sink_load + ev["soft_contact.tau"] * TAU_UNIT * vn_plate
-            phi_c = [p + sink for p in phi_c]
-            # The contact laws still see the vertices' velocities relative to the fixed
-            # ground, not to the plate: a corner rising with an unloading plate counts as
-            # separating while loaded (on a 2000 N/m ground the truth pays 600 in
-            # complementarity for the rebounds after the pushes).  Relative to the plate
-            # (tried), the plate's velocity, free within each sample, excused the pose
-            # noise's jitter of resting vertices from the contact laws: 16 of 20 clean
-            # benchmark recordings closed 20-100 % of their (noise) gap with it and were
-            # blamed on soft_contact.  A plate state carried from sample to sample would
-            # make its velocity pay for itself (docs/diagnosis.md, "soft_contact").
+            # a compliant ground: a massless plate on a spring k and damper c
+            # (Kelvin–Voigt) under the sample's load W (the normal ground impulses over
+            # dt): k·s + c·ds/dt = W.  Its sink s is a state of every sample (the S
+            # block, in units of PLATE_UNIT·L), so the plate's velocity ds/dt = (s -
+            # s_prev)/dt pays for itself: it follows from the loads of consecutive
+            # samples, and a plate that moved within one sample to excuse a vertex's
+            # jitter (as a per-sample velocity did: 16 of 20 clean benchmark recordings
+            # were blamed on soft_contact) needs the loads to jump with it.  The law
+            # s + tau·ds/dt = C·W (tau = c/k, C = 1/k) is a residual whitened by the sink
+            # one process sigma of velocity makes in one sample (it holds as tightly as
+            # the momentum balance does).  A vertex may penetrate the fixed ground by s,
+            # and the contact laws see its normal velocity relative to the plate.
+            unit = PLATE_UNIT * L  # m per unit of s
+            s_now, s_before = ss[0] * unit, sp[0] * unit  # m, the plate's sinks
+            rate = (s_now - s_before) / dt  # m/s, downward
+            load = ca.sum1(lg[:K])  # the ground's normal impulse, units of m0·g·dt
+            sink_static = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load  # m, W/k
+            # the law over the interval, exact for a load held constant across it (a
+            # backward difference, s + tau·(s - s_prev)/dt, would put the fitted tau at
+            # exp(dt/tau) - 1 = dt/tau_fit: 25 ms for 30 at dt = 10 ms)
+            decay = ca.exp(-dt / (ev["soft_contact.tau"] * TAU_UNIT + TAU_FLOOR))
+            r_plate.append(((s_now - decay * s_before) / (1 - decay) - sink_static) / (sig_v * dt))
+            phi_c = [p + s_now for p in phi_c]
+            vn_c = [vn + rate for vn in vn_c]
         if "face_friction" in self.effects:
             mu_g = mu_g + self._face_friction_offset(q, V, n_g, ev)
         if "restitution" in self.effects:
@@ -975,6 +997,8 @@ class Problem2D:
         r_dyn = ca.sqrt(g[G["dyn_mult"]]) * r_dyn_raw / ca.vertcat(sig_v, sig_v, sig_v / (L / 2))
         if r_rest:
             r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_rest))
+        if r_plate:
+            r_dyn = ca.vertcat(r_dyn, ca.sqrt(g[G["dyn_mult"]]) * ca.vertcat(*r_plate))
         occam = ca.SX.zeros(1)
         if self.with_occam:
             # the Occam term of a pose-observed sample (pose_occam): tracking indices of the
@@ -1024,9 +1048,10 @@ class Problem2D:
             "weight": mass / g[G["m0"]],
         }
         names = list(outs)
-        return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g],
+        return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g, sp, ss],
                            [outs[n] for n in names],
-                           ["q_prev", "v_prev", "q", "v", "lam_ground", "lam_finger", "phys", "d", "g"], names)
+                           ["q_prev", "v_prev", "q", "v", "lam_ground", "lam_finger", "phys", "d", "g", "s_prev", "s"],
+                           names)
 
     def _start_function(self, F):
         """Terms at sample 0: rest (v ≈ 0), penetration, pose observation, finger gap."""
@@ -1036,6 +1061,7 @@ class Problem2D:
         phys = ca.SX.sym("phys", self.n_phys)
         d = ca.SX.sym("d", self.n_data(F))
         g = ca.SX.sym("g", len(G_NAMES))
+        s0 = ca.SX.sym("s", self.n_plate)
         L = g[G["L"]]
         V, *_ = self._unpack_phys(phys, L, g[G["m0"]])
         c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose = \
@@ -1044,20 +1070,25 @@ class Problem2D:
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         phi, _, _ = ground_contacts(q, v, V, n_g, g[G["h"]])
-        if "soft_contact" in self.effects:  # at rest on a compliant ground: sunk by its weight
-            sink = self._effect_values(phys)["soft_contact.compliance"] * COMPLIANCE_UNIT * L * phys[2 * K]
+        rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
+        if "soft_contact" in self.effects:
+            # at rest on a compliant ground: the plate sunk by the object's weight (the
+            # load m·g·dt is phys's mass / m0 in impulse units), whitened as the plate
+            # law of every later sample
+            sink = s0[0] * PLATE_UNIT * L
+            sink_static = self._effect_values(phys)["soft_contact.compliance"] * COMPLIANCE_UNIT * L * phys[2 * K]
+            rest = ca.vertcat(rest, (sink - sink_static) / (g[G["sig_proc"]] * 9.81 * g[G["dt"]] ** 2))
             phi = [p + sink for p in phi]
         pen = ca.vertcat(*[one_sided(p, g[G["sig_pen"]]) for p in phi])
-        rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
         sd_fun = polygon_sd_and_normal_function(K)
         r_contact = []
         for f in range(F):
             phi_f, _, _ = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
             r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
-        return ca.Function("start", [qs, vs, phys, d, g],
+        return ca.Function("start", [qs, vs, phys, d, g, s0],
                            [rest, pen, r_pose, ca.vertcat(*r_contact) if F else ca.SX.zeros(0)],
-                           ["q", "v", "phys", "d", "g"], ["rest", "penetration", "pose", "contact"])
+                           ["q", "v", "phys", "d", "g", "s"], ["rest", "penetration", "pose", "contact"])
 
     # ------------------------------------------------------------------------------
     # helpers to slice z
@@ -1076,9 +1107,39 @@ class Problem2D:
         LF = blk("LF", 2 * st.F) if st.F else np.zeros((0, st.T - 1))
         return blk("Q", 3), blk("V", 3), blk("LG", 2 * self.K), LF
 
-    def set_run_blocks(self, z, i, Q=None, V=None, LG=None, LF=None):
+    def plate_block(self, z, i):
+        """(n_plate, T) the plate's sinks of run i (units of PLATE_UNIT·L; no rows
+        without soft_contact)."""
+        a, n = self.offsets[i]["S"]
+        return np.asarray(z, float).reshape(-1)[a: a + n].reshape(self.structures[i].T, self.n_plate).T
+
+    def stage_arguments(self, z, i, D, g):
+        """The stage function's inputs for every interval of run i (mapped over T-1):
+        from z (scaled decision vector), D (n_data, T) the run's data matrix and g its
+        global vector."""
+        Q, V, LG, LF = self.run_blocks(z, i)
+        S = self.plate_block(z, i)
+        phys = np.asarray(z, float).reshape(-1)[self.phys_offset: self.phys_offset + self.n_phys]
+        return (Q[:, :-1], V[:, :-1], Q[:, 1:], V[:, 1:], LG, LF, phys, D[:, 1:], g, S[:, :-1], S[:, 1:])
+
+    def start_arguments(self, z, i, D, g):
+        """The start function's inputs of run i (see stage_arguments)."""
+        Q, V, _, _ = self.run_blocks(z, i)
+        phys = np.asarray(z, float).reshape(-1)[self.phys_offset: self.phys_offset + self.n_phys]
+        return (Q[:, 0], V[:, 0], phys, D[:, 0], g, self.plate_block(z, i)[:, 0])
+
+    def set_run_blocks(self, z, i, Q=None, V=None, LG=None, LF=None, S=None):
+        """Write run i's blocks into z (scaled values, shapes as run_blocks and
+        plate_block give them).  New ground impulses LG without a plate S put the plate
+        where it rests under them (s = compliance × load, the law without its damper;
+        the object's weight at sample 0), with the compliance z holds."""
         off = self.offsets[i]
-        for name, arr in (("Q", Q), ("V", V), ("LG", LG), ("LF", LF)):
+        if LG is not None and S is None and self.n_plate:
+            u = np.asarray(z, float)[self.n_shape + len(PHYS_NAMES):self.n_theta]
+            comp = u[self.eff_index["soft_contact.compliance"]]
+            mass = float(np.exp(z[self.n_shape]))  # m / m0
+            S = comp * np.concatenate([[mass], np.asarray(LG, float)[: self.K].sum(axis=0)])[None, :]
+        for name, arr in (("Q", Q), ("V", V), ("LG", LG), ("LF", LF), ("S", S)):
             if arr is not None:
                 a, n = off[name]
                 z[a: a + n] = np.asarray(arr, float).T.reshape(-1)

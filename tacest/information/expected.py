@@ -415,9 +415,10 @@ class ExpectedInformation:
     def _build(self):
         pr = self.problem
         stage, start = pr.stage_funs[0], pr.start_funs[0]
-        qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
+        ins = stage.sx_in()
+        qp, vp, q, v, lg, lf, phys, d, g, _, _ = ins  # the plain model: no plate state
         w = ca.SX.sym("w", len(TERMS))
-        out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+        out = dict(zip(stage.name_out(), stage(*ins)))
         rows = {t: ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS}
         r = ca.vertcat(*[rows[t] for t in SQUARED_TERMS], out["g_kin"] / KINEMATICS_SIGMA)
         y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
@@ -484,14 +485,16 @@ class ExpectedInformation:
         phys = phys.reshape(-1)
         Q, Vv, LF = self._states(pred)
         N = T - 1
+        no_plate = np.zeros((0, N))
         args = [Q[:, :-1], Vv[:, :-1], Q[:, 1:], Vv[:, 1:], np.zeros((self.n_lg, N)), LF,
                 np.repeat(phys[:, None], N, 1), D[:, 1:], np.repeat(g[:, None], N, 1), np.repeat(w[:, None], N, 1)]
         args[4] = LG = self._fit_ground(args, N, model.friction_ground)
-        a = stage_active_weights(lambda *x: self._call(self.contact_state, N, *x), N, args[:9], self.K)
-        r, J = self._call(self.stage_rj, N, *args, a)
+        stage_args = args[:9] + [no_plate, no_plate]
+        a = stage_active_weights(lambda *x: self._call(self.contact_state, N, *x), N, stage_args, self.K)
+        r, J = self._call(self.stage_rj, N, *stage_args, args[9], a)
         n_r = r.shape[0]
         J = J.reshape(n_r, N, self.n_y)
-        r0, J0 = self._call(self.start_rj, 1, Q[:, 0], Vv[:, 0], phys, D[:, 0], g, w)
+        r0, J0 = self._call(self.start_rj, 1, Q[:, 0], Vv[:, 0], phys, D[:, 0], g, np.zeros(0), w)
         Ja, Jx, r_all = self._assemble(J, r, J0, r0.reshape(-1), dphys, T, run)
         return Linearization(Ja=Ja, Jx=Jx, r=r_all, theta=theta, Q=Q, V=Vv, LG=LG, LF=LF, run=run)
 

@@ -42,7 +42,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from tacest.estimation.problem import SLIP_EPS, SQUARED_TERMS, START_TERM_OUTPUTS, TERMS
+from tacest.estimation.problem import (SLIP_EPS, SQUARED_TERMS, START_TERM_OUTPUTS, TERMS, start_local_variables,
+                                       stage_local_variables)
 
 #: scaled units (L per second) of the stand-in residual for eq. D2; 1e-4 is far tighter
 #: than any measurement, so it acts as the constraint without dominating the conditioning
@@ -108,33 +109,34 @@ def stage_active_weights(cstate, N, args, n_k):
 
 
 def stage_residual_jacobian(stage):
-    """SX Function (q_prev, v_prev, q, v, lam_ground, lam_finger, phys, d, g, w, a) ->
-    (r, J): one interval's whitened residuals (each squared term times sqrt of its
-    weight, then eq. D2 over KINEMATICS_SIGMA, then the active-set rows a ⊙ [gaps;
-    slips] with a from :func:`active_weights`) and their dense Jacobian with respect to
-    the interval's local variables y = [q_prev, v_prev, q, v, lam_ground, lam_finger, phys]."""
-    qp, vp, q, v, lg, lf, phys, d, g = stage.sx_in()
+    """SX Function (the stage's inputs, w, a) -> (r, J): one interval's whitened
+    residuals (each squared term times sqrt of its weight, then eq. D2 over
+    KINEMATICS_SIGMA, then the active-set rows a ⊙ [gaps; slips] with a from
+    :func:`active_weights`) and their dense Jacobian with respect to the interval's
+    local variables y (problem.stage_local_variables: [q_prev, v_prev, q, v,
+    lam_ground, lam_finger, phys, s_prev, s])."""
+    ins = stage.sx_in()
     w = ca.SX.sym("w", len(TERMS))
-    out = dict(zip(stage.name_out(), stage(qp, vp, q, v, lg, lf, phys, d, g)))
+    out = dict(zip(stage.name_out(), stage(*ins)))
     K = out["phi_ground"].shape[0]
     a = ca.SX.sym("a", 2 * K)
     r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS],
                    out["g_kin"] / KINEMATICS_SIGMA,
                    a * ca.vertcat(out["phi_ground"], out["slip_ground"]))
-    y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-    return ca.Function("stage_rj", [qp, vp, q, v, lg, lf, phys, d, g, w, a],
-                       [ca.densify(r), ca.densify(ca.jacobian(r, y))])
+    y = stage_local_variables(ins)
+    return ca.Function("stage_rj", [*ins, w, a], [ca.densify(r), ca.densify(ca.jacobian(r, y))])
 
 
 def start_residual_jacobian(start):
-    """SX Function (q, v, phys, d, g, w) -> (r, J): a run's first-sample whitened
-    residuals (START_TERM_OUTPUTS) and their dense Jacobian with respect to [q, v, phys]."""
-    q0, v0, phys0, d0, g0 = start.sx_in()
+    """SX Function (the start function's inputs, w) -> (r, J): a run's first-sample
+    whitened residuals (START_TERM_OUTPUTS) and their dense Jacobian with respect to its
+    local variables [q, v, phys, s] (problem.start_local_variables)."""
+    ins = start.sx_in()
     w = ca.SX.sym("w", len(TERMS))
-    out0 = dict(zip(start.name_out(), start(q0, v0, phys0, d0, g0)))
+    out0 = dict(zip(start.name_out(), start(*ins)))
     r0 = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * ca.vec(out0[name]) for t, name in START_TERM_OUTPUTS])
-    return ca.Function("start_rj", [q0, v0, phys0, d0, g0, w],
-                       [ca.densify(r0), ca.densify(ca.jacobian(r0, ca.vertcat(q0, v0, phys0)))])
+    return ca.Function("start_rj", [*ins, w],
+                       [ca.densify(r0), ca.densify(ca.jacobian(r0, start_local_variables(ins)))])
 
 
 class _ResidualJacobian:
@@ -162,8 +164,7 @@ class _ResidualJacobian:
             off, n_g, n_d = pr.p_offsets[i]
             g = p[off: off + n_g]
             D = p[off + n_g: off + n_g + n_d].reshape(st.T, -1).T
-            Q, V, LG, LF = pr.run_blocks(z, i)
-            args = (Q[:, :-1], V[:, :-1], Q[:, 1:], V[:, 1:], LG, LF, phys, D[:, 1:], g)
+            args = pr.stage_arguments(z, i, D, g)
             a = stage_active_weights(self.contact_state[i].map(st.T - 1), st.T - 1, args, pr.K)
             r, J = self.stage_jac[i].map(st.T - 1)(*args, w, a)
             r = np.asarray(r)  # (n_r, T-1)
@@ -176,7 +177,7 @@ class _ResidualJacobian:
             vals.append(J.ravel())
             r_parts.append(r.T.ravel())
             m += n_r * (st.T - 1)
-            r0, J0 = self.start_jac[i](Q[:, 0], V[:, 0], phys, D[:, 0], g, w)
+            r0, J0 = self.start_jac[i](*pr.start_arguments(z, i, D, g), w)
             r0, J0 = np.asarray(r0).ravel(), np.asarray(J0)
             idx0 = pr._start_indices(i)[0]
             rows.append(np.repeat(m + np.arange(len(r0)), len(idx0)))
