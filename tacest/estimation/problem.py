@@ -7,7 +7,8 @@ Decision variables (all scaled to O(1); see :class:`Scales`):
   mu_finger] with the equality constraint phys = phys(theta)
 - per run i, per sample t: pose q[t] (3), velocity v[t] (3); per interval (t-1, t]:
   ground impulses [lambda_n (K), lambda_t (K)] at each shape vertex and, per finger,
-  its impulse on the object as a world-frame vector [x, y] (all scaled by m0 g dt).
+  its impulse on the object as a world-frame vector [x, y] (all scaled by m0 g dt);
+  with soft_contact, per sample: the sink of the ground's plate (units of PLATE_UNIT·L).
 
 Data (recorded streams, noise levels, homotopy settings) are CasADi *parameters*, so the
 NLP is built once per structure (shape, run lengths, fingers) and re-solved with new data.
@@ -102,10 +103,10 @@ PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_fing
 #: - force_scale log_gain: measured force = exp(log_gain) × model force;
 #: - linear_drag b: force -b·v on the COM, units of m0 per second (N·s/m);
 #: - angular_damping c: torque -c·ω, units of m0·L² per second (N·m·s);
-#: - soft_contact compliance, tau: the ground is a plate on a spring and damper
-#:   (Kelvin–Voigt): it sinks by compliance × (total normal ground impulse in units of
-#:   m0·g·dt) + tau × (its normal velocity), compliance in units of COMPLIANCE_UNIT·L,
-#:   tau (= damping / stiffness) in units of TAU_UNIT;
+#: - soft_contact compliance, tau: the ground is a massless plate on a spring and damper
+#:   (Kelvin–Voigt) whose sink s is a state of every sample: s + tau·ds/dt = compliance ×
+#:   (total normal ground impulse in units of m0·g·dt), compliance in units of
+#:   COMPLIANCE_UNIT·L, tau (= damping / stiffness) in units of TAU_UNIT;
 #: - restitution e: after an impact a vertex leaves with -e × its approach velocity;
 #: - face_friction d0..d{K-1}: ground friction of face i is friction_ground + d_i;
 #: - com_offset dx, dy: the COM in the centroid frame (body axes), units of L.
