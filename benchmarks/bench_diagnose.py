@@ -356,6 +356,8 @@ def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
                                            f"({plain_then} -> {plain_now}); entries not replaced")
         return res
     res["effects"] = [fresh.get(e["name"], e) for e in res["effects"]]
+    res.setdefault("notes", []).append(f"refit of {args.refit}: 'verdict' and 'reason' are the diagnosis' before it "
+                                       "(the summary re-derives the verdict)")
     res["effects"].sort(key=lambda e: -(e["score"] if e.get("score") is not None else -math.inf))
     return res
 
