@@ -802,6 +802,29 @@ class Problem2D:
         w = ca.exp(ca.vertcat(*scores))
         return ca.dot(w, ca.vertcat(*d)) / ca.sum1(w)
 
+    def _plate_law(self, ev, g, s, s_prev, load):
+        """soft_contact's plate over one sample: (sink m, its downward rate m/s, the
+        law's whitened residual).  s, s_prev: the sample's and the previous sample's
+        sinks (units of PLATE_UNIT·L), s_prev None for a plate at rest; load: the normal
+        ground impulse over the sample in units of m0·g·dt; ev: _effect_values.
+
+        The law k·s + c·ds/dt = W over the interval, exact for a load held constant
+        across it: (s - a·s_prev)/(1 - a) = C·W with a = exp(-dt/tau) (a backward
+        difference, s + tau·(s - s_prev)/dt, would put the fitted tau at exp(dt/tau) - 1
+        = dt/tau_fit: 25 ms for 30 at dt = 10 ms); at rest s = C·W.  Whitened by the
+        sink one process sigma of velocity makes in one sample: it holds as tightly as
+        the momentum balance does."""
+        L, dt = g[G["L"]], g[G["dt"]]
+        unit = PLATE_UNIT * L  # m per unit of s
+        sink = s * unit
+        sink_static = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load  # m, W/k
+        sig_sink = g[G["sig_proc"]] * 9.81 * dt * dt  # m
+        if s_prev is None:
+            return sink, 0.0, (sink - sink_static) / sig_sink
+        before = s_prev * unit
+        decay = ca.exp(-dt / (ev["soft_contact.tau"] * TAU_UNIT + TAU_FLOOR))
+        return sink, (sink - before) / dt, ((sink - decay * before) / (1 - decay) - sink_static) / sig_sink
+
     def _effect_values(self, phys):
         """{"effect.parameter": scaled value} of the effect block of a phys vector."""
         a = 2 * self.K + 4
@@ -889,21 +912,12 @@ class Problem2D:
             # s_prev)/dt pays for itself: it follows from the loads of consecutive
             # samples, and a plate that moved within one sample to excuse a vertex's
             # jitter (as a per-sample velocity did: 16 of 20 clean benchmark recordings
-            # were blamed on soft_contact) needs the loads to jump with it.  The law
-            # s + tau·ds/dt = C·W (tau = c/k, C = 1/k) is a residual whitened by the sink
-            # one process sigma of velocity makes in one sample (it holds as tightly as
-            # the momentum balance does).  A vertex may penetrate the fixed ground by s,
-            # and the contact laws see its normal velocity relative to the plate.
-            unit = PLATE_UNIT * L  # m per unit of s
-            s_now, s_before = ss[0] * unit, sp[0] * unit  # m, the plate's sinks
-            rate = (s_now - s_before) / dt  # m/s, downward
-            load = ca.sum1(lg[:K])  # the ground's normal impulse, units of m0·g·dt
-            sink_static = ev["soft_contact.compliance"] * COMPLIANCE_UNIT * L * load  # m, W/k
-            # the law over the interval, exact for a load held constant across it (a
-            # backward difference, s + tau·(s - s_prev)/dt, would put the fitted tau at
-            # exp(dt/tau) - 1 = dt/tau_fit: 25 ms for 30 at dt = 10 ms)
-            decay = ca.exp(-dt / (ev["soft_contact.tau"] * TAU_UNIT + TAU_FLOOR))
-            r_plate.append(((s_now - decay * s_before) / (1 - decay) - sink_static) / (sig_v * dt))
+            # were blamed on soft_contact) needs the loads to jump with it.  The law is
+            # a residual of the dynamics term (_plate_law); its load is the ground's
+            # normal impulse.  A vertex may penetrate the fixed ground by s, and the
+            # contact laws see its normal velocity relative to the plate.
+            s_now, rate, r = self._plate_law(ev, g, ss[0], sp[0], ca.sum1(lg[:K]))
+            r_plate.append(r)
             phi_c = [p + s_now for p in phi_c]
             vn_c = [vn + rate for vn in vn_c]
         if "face_friction" in self.effects:
@@ -1076,9 +1090,8 @@ class Problem2D:
             # at rest on a compliant ground: the plate sunk by the object's weight (the
             # load m·g·dt is phys's mass / m0 in impulse units), whitened as the plate
             # law of every later sample
-            sink = s0[0] * PLATE_UNIT * L
-            sink_static = self._effect_values(phys)["soft_contact.compliance"] * COMPLIANCE_UNIT * L * phys[2 * K]
-            rest = ca.vertcat(rest, (sink - sink_static) / (g[G["sig_proc"]] * 9.81 * g[G["dt"]] ** 2))
+            sink, _, r = self._plate_law(self._effect_values(phys), g, s0[0], None, phys[2 * K])
+            rest = ca.vertcat(rest, r)
             phi = [p + sink for p in phi]
         pen = ca.vertcat(*[one_sided(p, g[G["sig_pen"]]) for p in phi])
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])

@@ -50,7 +50,7 @@ import scipy.sparse as sp
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure
+from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure, stage_local_variables
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
 from tacest.information.observed import (KINEMATICS_SIGMA, contact_state_function, schur_information,
@@ -421,8 +421,7 @@ class ExpectedInformation:
         out = dict(zip(stage.name_out(), stage(*ins)))
         rows = {t: ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS}
         r = ca.vertcat(*[rows[t] for t in SQUARED_TERMS], out["g_kin"] / KINEMATICS_SIGMA)
-        y = ca.vertcat(qp, vp, q, v, lg, lf, phys)
-        self.n_y = y.shape[0]
+        self.n_y = stage_local_variables(ins).shape[0]
         # ground impulses per interval, as the estimator lays them out: [lambda_n (K)] or
         # [lambda_n (K), lambda_t (K)]; the normal ones are >= 0, tangential ones free
         self.n_lg = lg.shape[0]

@@ -157,7 +157,6 @@ class _ResidualJacobian:
         z = np.asarray(z, float).reshape(-1)
         p = np.asarray(p, float).reshape(-1)
         w = p[pr.n_p: pr.n_p + len(TERMS)]
-        phys = z[pr.phys_offset: pr.phys_offset + pr.n_phys]
         r_parts, rows, cols, vals = [], [], [], []
         m = 0
         for i, st in enumerate(pr.structures):
