@@ -1,10 +1,11 @@
 """Benchmark ``tacest diagnose`` on simulated recordings whose effect is hidden from it.
 
     nice -n 10 .venv/bin/python benchmarks/bench_diagnose.py [--seeds 2] [--first-seed 0] [--effects none,latency,...]
-                                                              [--design effects|random] [--pokes 3] [--tip-pokes 0]
+                                                              [--design toss|effects|random] [--pairs 3]
+                                                              [--pokes 3] [--tip-pokes 0]
                                                               [--cache DIR] [--timeout 1800]
                                                               [--fit-iterations 150] [--known-mass REL]
-                                                              [--quiet] [--json OUT.json]
+                                                              [--refit NAMES] [--quiet] [--json OUT.json]
 
 For every effect named in SPEC (and ``none``) and seeds FIRST..FIRST+N-1 (``--first-seed``, default 0) it records a 2-D box with
 tacest's simulator and the effect at a random strength, writes it twice (with /truth
@@ -13,14 +14,25 @@ without truth, every SPEC effect a candidate.
 
 Designs (what the recordings contain):
 
-``--design effects`` (default): an experiment meant to show the effects, as a
-    researcher testing for them would run it.  Every poke is a fast push high on the
-    object (``effect_poke``: 25-45 % of its height above the centroid, 0-10 deg above the
-    horizontal, 3-6 cm past the first touch, an approach of 0.15-0.3 s, i.e. 0.2-0.6
-    m/s): the box tips, often topples onto another face and lands, and slides fast
-    enough for drag to matter; every poke is of this one kind, so every piece the
-    held-out comparison holds out carries the same kinds of motion.  The object's pose
-    is observed (``SimOptions.observe_pose``, SPEC /observations/pose, sigma
+``--design toss`` (default): the experiment a researcher would run to test a model
+    for these effects.  A recording is ``--pairs`` (3) pairs of runs of one object: a
+    toss (``tacest record --toss``: released in the air at a random height, speed and
+    spin, seen flying, landing and coming to rest) and then one fast push high on the
+    object where it came to rest (``effect_poke`` below, the finger parked above it
+    first).  In flight only gravity, drag and the object's inertia act, so a toss shows
+    a clock error (gravity appears as g/s^2), linear drag and angular damping, which
+    friction and inertia absorb while a finger pushes; its landing shows restitution and
+    a soft ground; the pokes show the sensor effects, com_offset, face friction and the
+    ground's compliance under load.  The diagnosis holds out whole runs (fold j: runs
+    j and j + 3), so every held-out fold has a toss and a poke.  The pose is observed
+    (OBSERVE_POSE) and strengths are redrawn until visible (VISIBLE_D) as below.
+``--design effects``: one run of ``--pokes`` fast pushes high on the object
+    (``effect_poke``: 25-45 % of its height above the
+    centroid, 0-10 deg above the horizontal, 3-6 cm past the first touch, an approach of
+    0.15-0.3 s, i.e. 0.2-0.6 m/s): the box tips, often topples onto another face and
+    lands, and slides fast; every poke is of this one kind, so every piece the held-out
+    comparison holds out carries the same kinds of motion.  The object's pose is
+    observed (``SimOptions.observe_pose``, SPEC /observations/pose, sigma
     OBSERVE_POSE = 0.5 mm and 0.5 mm / 5 cm in angle: motion capture or a calibrated
     camera): tactile data alone do not see the object between touches, where impacts,
     spin and coasting happen.  Effect strengths are drawn from the effect's range
@@ -30,7 +42,8 @@ Designs (what the recordings contain):
     check is a necessary condition, not a sufficient one: it cannot say whether the
     plain model absorbs the change with other parameters (that is the diagnosis' job),
     and a toppling box amplifies small differences, so on this design nearly every first
-    draw passes.
+    draw passes.  A slippery box slides instead of tipping, and then every effect that
+    needs free motion is hidden (docs/diagnosis.md, "Measured").
 ``--design random``: the earlier design, ``--pokes`` random pokes of ``tacest record``
     (aimed at the centroid, 2-5 cm/s, no pose observations), the last ``--tip-pokes`` of
     them pushing high on the object (30-45 % of its height above the centroid).  Random
@@ -78,6 +91,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from dataclasses import dataclass, field
 
 SPEC_EFFECTS = ("none", "restitution", "angular_damping", "linear_drag", "soft_contact", "force_bias",
                 "force_scale", "latency", "face_friction", "com_offset", "time_scale")
@@ -101,10 +115,11 @@ def _echo(quiet):
 # worker: one diagnosis in its own process
 
 
-def worker(run_path: str, fit_iterations: int, known_mass: str = "", effects: str = "") -> dict:
-    """Diagnose one run file (without truth); never raises.  ``known_mass``:
-    "MASS,LOG_SIGMA" (kg, -) of a weighed object's mass prior, or empty; ``effects``:
-    the candidates, comma-separated (empty: every SPEC effect)."""
+def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "") -> dict:
+    """Diagnose the run files (without truth) of one recording, ``run_paths`` separated
+    by RUN_SEPARATOR; never raises.  ``known_mass``: "MASS,LOG_SIGMA" (kg, -) of a
+    weighed object's mass prior, or empty; ``effects``: the candidates,
+    comma-separated (empty: every SPEC effect)."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
     from tacest.estimation.config import EstimatorConfig
@@ -115,14 +130,14 @@ def worker(run_path: str, fit_iterations: int, known_mass: str = "", effects: st
         mass, log_sigma = (float(x) for x in known_mass.split(","))
         config.prior.mass, config.prior.mass_log_sigma = mass, log_sigma
 
-    run = read_run(run_path)
-    assert run.truth is None, "the diagnosed copy must not carry /truth"
+    runs = [read_run(p) for p in run_paths.split(RUN_SEPARATOR)]
+    assert all(r.truth is None for r in runs), "the diagnosed copies must not carry /truth"
     t0 = time.perf_counter()
     try:
         opts = DiagnoseOptions(fit_iterations=fit_iterations)
         if effects:
             opts.effects = tuple(effects.split(","))
-        d = diagnose([run], "box", config=config, options=opts)
+        d = diagnose(runs, "box", config=config, options=opts)
     except TacestError as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "wall": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a crash is a result to report
@@ -130,13 +145,19 @@ def worker(run_path: str, fit_iterations: int, known_mass: str = "", effects: st
     obj = d.to_json()
     return {"ok": True, "verdict": obj["verdict"], "reason": obj["reason"], "effects": obj["effects"],
             "where": obj["where"][:10], "heldout": obj["heldout"], "backend": obj["backend"],
-            "wall": time.perf_counter() - t0, "samples": run.n_samples,
+            "wall": time.perf_counter() - t0, "samples": sum(r.n_samples for r in runs), "runs": len(runs),
             "mass_known": mass_is_known(config)}
 
 
-def run_job(run_path: Path, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "") -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), str(fit_iterations), known_mass,
-           effects]
+#: separates the run files of one recording on the worker's command line
+RUN_SEPARATOR = "::"
+
+
+def run_job(run_paths: list, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "") -> dict:
+    """The worker's result for the run files ``run_paths`` (one recording), in a subprocess
+    with a time limit."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", RUN_SEPARATOR.join(map(str, run_paths)),
+           str(fit_iterations), known_mass, effects]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -151,6 +172,27 @@ def run_job(run_path: Path, fit_iterations: int, timeout: float, known_mass: str
 
 # ------------------------------------------------------------------------------------
 # recordings
+
+
+@dataclass
+class Recording:
+    """One benchmark recording: the run files diagnosed together (without /truth), their
+    twins with /truth, the injected effect ({"name": ..., params...}), the file-name tag
+    of its design, and the strength draws (``visibility``) where the design checks them."""
+
+    bare: list
+    truth: list
+    injected: dict
+    tag: str
+    draw: dict = field(default=None)
+
+
+def _injected(truth_path: Path) -> dict:
+    from tacest.io.run import read_run
+
+    truth = read_run(truth_path).truth.effects
+    injected = truth[0] if isinstance(truth, list) and truth else (truth if isinstance(truth, dict) else {"name": "none"})
+    return injected if injected.get("name") is not None else {"name": "none"}
 
 
 #: tipping pokes (--tip-pokes): aimed this fraction of the object's height above its
@@ -185,12 +227,11 @@ def tip_poke(rng: np.random.Generator, state) -> np.ndarray:
     return np.array([0.0, angle, target[0], target[1], depth, (CLEARANCE + depth) / APPROACH_TIME])
 
 
-def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> tuple[Path, dict]:
-    """Record (or reuse) the recording of ``effect`` and ``seed``: returns the path of the
-    copy without truth and the injected effect ({"name": ..., params...}).  With ``tip``
+def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> Recording:
+    """Record (or reuse) the random-design recording of ``effect`` and ``seed``.  With ``tip``
     > 0 the last ``tip`` of the ``pokes`` are tipping pokes (tip_poke), the first ones the
     random pokes of ``tacest record``; the files are named ``..._tip<N>``."""
-    from tacest.io.run import read_run, write_run
+    from tacest.io.run import write_run
     from tacest.sim.record import SimOptions, record_sim, simulate_aimed_pokes
 
     tag = f"_tip{tip}" if tip else ""
@@ -203,9 +244,7 @@ def record(effect: str, seed: int, pokes: int, folder: Path, tip: int = 0) -> tu
         run = simulate_aimed_pokes(lambda i, st: tip_poke(rng, st), tip, opts, run=record_sim(opts))
         write_run(run, full)
         write_run(run, bare, include_truth=False)
-    truth = read_run(full).truth.effects
-    injected = truth[0] if truth else {"name": "none"}
-    return bare, injected
+    return Recording([bare], [full], _injected(full), tag)
 
 
 #: the "effects" design (--design effects, the default): every poke of a recording is
@@ -272,7 +311,8 @@ def simulate_design(opts, pokes: int, seed: int, actions=None):
 
 def visibility(run, twin) -> float:
     """D of a recording against its clean twin (see VISIBLE_D), from /truth and the
-    streams; poke segments are compared sample by sample over their common length."""
+    streams; poke segments are compared sample by sample over their common length (a
+    run without pokes, a toss: the whole run)."""
     from tacest.geometry.transforms import rot2
 
     def verts(r, i):
@@ -282,7 +322,10 @@ def visibility(run, twin) -> float:
     sig_p = OBSERVE_POSE
     sig_f = float(np.asarray(run.extra_attrs.get("noise_force", 0.02)))
     D = 0.0
-    for (a, b), (c, d) in zip(run.actions.segments, twin.actions.segments):
+    pairs = list(zip(run.actions.segments, twin.actions.segments))
+    if not len(run.actions.segments):
+        pairs = [((0, run.n_samples), (0, twin.n_samples))]
+    for (a, b), (c, d) in pairs:
         n = min(b - a, d - c)
         for k in range(n):
             dv = verts(run, a + k) - verts(twin, c + k)
@@ -293,10 +336,10 @@ def visibility(run, twin) -> float:
     return D
 
 
-def record_design(effect: str, seed: int, pokes: int, folder: Path) -> tuple:
-    """Record (or reuse) an "effects"-design recording; returns (path without truth,
-    injected effect, {"visibility": D, "draws": n, "visible": bool})."""
-    from tacest.io.run import read_run, write_run
+def record_design(effect: str, seed: int, pokes: int, folder: Path) -> Recording:
+    """Record (or reuse) an "effects"-design recording (its draw: {"visibility": D,
+    "draws": n, "visible": bool})."""
+    from tacest.io.run import write_run
     from tacest.sim import effects as fx
     from tacest.sim.record import SimOptions
 
@@ -327,14 +370,85 @@ def record_design(effect: str, seed: int, pokes: int, folder: Path) -> tuple:
         write_run(run, full)
         write_run(run, bare, include_truth=False)
         meta.write_text(json.dumps(info))
-    truth = read_run(full).truth.effects
-    injected = truth[0] if isinstance(truth, list) and truth else (truth if isinstance(truth, dict) else {"name": "none"})
-    if injected.get("name") is None:
-        injected = {"name": "none"}
-    return bare, injected, json.loads(meta.read_text())
+    return Recording([bare], [full], _injected(full), "_design", json.loads(meta.read_text()))
 
 
-def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
+#: the "toss" design (--design toss): TOSS_PAIRS pairs of runs, each a toss (the
+#: object released in the air at a random height, speed and spin, tacest.sim.record's
+#: TOSS_* ranges, seen landing and coming to rest) and then one effect poke at the
+#: object where it came to rest, the finger parked above it first; the release is
+#: always over x = 0, so that the clean twin replays the same tosses
+TOSS_PAIRS = 3
+#: random stream of the tosses' releases
+TOSS_STREAM = 7074
+
+
+def simulate_toss_design(opts, pairs: int, seed: int, replay=None) -> tuple:
+    """(runs, pokes): the 2 × ``pairs`` runs of a toss-design recording (toss, poke,
+    toss, poke, ...) and the poke vectors (pairs, 6); with ``replay`` (pokes as
+    returned) those pokes are replayed as commanded (the clean twin)."""
+    from tacest.geometry.transforms import rot2
+    from tacest.sim.record import initial_state, park_fingers, simulate_pokes, state_from_run, toss_state
+
+    rng_toss = np.random.default_rng([seed, TOSS_STREAM])
+    rng_poke = np.random.default_rng([seed, DESIGN_STREAM])
+    state = initial_state(opts)
+    runs, pokes = [], []
+    for i in range(pairs):
+        tossed = toss_state(state, rng_toss, x=0.0)
+        toss_run = simulate_pokes(tossed, np.zeros((0, 6)), opts, noise_key=2 * i + 1, settle_first=True)
+        st = state_from_run(toss_run)
+        top = float(np.max((st.obj.vertices @ rot2(st.pose[2]).T)[:, 1])) + float(st.pose[1])
+        st.p_finger__world = park_fingers(float(st.pose[0]), top, st.n_fingers, float(np.max(st.finger_radius)))
+        poke = effect_poke(rng_poke, st) if replay is None else np.asarray(replay[i], float)
+        poke_run = simulate_pokes(st, poke[None], opts, noise_key=2 * i + 2)
+        runs += [toss_run, poke_run]
+        pokes.append(poke)
+        state = state_from_run(poke_run)
+    return runs, np.array(pokes)
+
+
+def record_toss_design(effect: str, seed: int, pairs: int, folder: Path) -> Recording:
+    """Record (or reuse) a "toss"-design recording: 2 × ``pairs`` run files, strengths
+    redrawn until visible against the clean twin as in the "effects" design."""
+    from tacest.io.run import write_run
+    from tacest.sim import effects as fx
+    from tacest.sim.record import SimOptions
+
+    n = 2 * pairs
+    stem = f"{effect}_{seed}_toss{pairs}"
+    full = [folder / f"{stem}_{i}_truth.h5" for i in range(n)]
+    bare = [folder / f"{stem}_{i}.h5" for i in range(n)]
+    meta = folder / f"{stem}_draw.json"
+    if not (all(p.exists() for p in full + bare) and meta.exists()):
+        base = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=OBSERVE_POSE)
+        info = {"visibility": None, "draws": 0, "visible": True}
+        if effect == "none":
+            runs, _ = simulate_toss_design(base, pairs, seed)
+        else:
+            ctx = _object_context(base)
+            for draw in range(MAX_DRAWS):
+                eff = (effect if draw == 0 else
+                       fx.resolve_effect(effect, {}, np.random.default_rng([seed, REDRAW_STREAM, draw]), ctx))
+                opts = SimOptions(**{**base.__dict__, "effects": [eff]})
+                runs, pokes = simulate_toss_design(opts, pairs, seed)
+                info["draws"] = draw + 1
+                if effect == "time_scale":
+                    info["visibility"], info["visible"] = None, True
+                    break
+                twins, _ = simulate_toss_design(base, pairs, seed, replay=pokes)
+                D = sum(visibility(r, t) for r, t in zip(runs, twins))
+                info["visibility"], info["visible"] = D, D >= VISIBLE_D
+                if info["visible"]:
+                    break
+        for run, f, b in zip(runs, full, bare):
+            write_run(run, f)
+            write_run(run, b, include_truth=False)
+        meta.write_text(json.dumps(info))
+    return Recording(bare, full, _injected(full[0]), f"_toss{pairs}", json.loads(meta.read_text()))
+
+
+def refit_candidates(res: dict, paths: list, args, known: str) -> dict:
     """A cached result with the candidates of ``args.refit`` refitted (a diagnosis with
     only them: the same plain fit, folds and plain held-out objectives, which do not
     depend on the candidates) and their entries replaced; the verdict is re-derived in
@@ -345,7 +459,7 @@ def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
     if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == tag for e in res["effects"])
                                 for n in names):
         return res
-    new = run_job(path, args.fit_iterations, args.timeout, known, ",".join(names))
+    new = run_job(paths, args.fit_iterations, args.timeout, known, ",".join(names))
     if not new.get("ok"):
         res.setdefault("notes", []).append(f"refit of {args.refit} failed: {new.get('error')}")
         return res
@@ -362,19 +476,19 @@ def refit_candidates(res: dict, path: Path, args, known: str) -> dict:
     return res
 
 
-def weighed_mass(folder: Path, effect: str, seed: int, tag: str, rel: float) -> str:
+def weighed_mass(rec: Recording, effect: str, seed: int, rel: float) -> str:
     """"MASS,LOG_SIGMA" of --known-mass: the truth's mass times exp(rel · N(0, 1)), a
     weighing error drawn per recording (seeded by effect and seed), and rel."""
     from tacest.io.run import read_run
 
     if not rel > 0:
         raise SystemExit("--known-mass must be > 0")
-    m = float(read_run(folder / f"{effect}_{seed}{tag}_truth.h5").truth.mass)
+    m = float(read_run(rec.truth[0]).truth.mass)
     rng = np.random.default_rng([seed, SPEC_EFFECTS.index(effect), WEIGHING_STREAM])
     return f"{m * math.exp(rel * rng.normal()):.6g},{rel:g}"
 
 
-def truth_motion(folder: Path, effect: str, seed: int, tag: str = "") -> dict:
+def truth_motion(rec: Recording) -> dict:
     """What the object did in the recording (from its /truth, never shown to the
     diagnosis): the largest tilt from its start angle (deg) and the fastest approach of a
     vertex arriving at the ground (m/s; an impact, where restitution could show).  Where
@@ -382,15 +496,19 @@ def truth_motion(folder: Path, effect: str, seed: int, tag: str = "") -> dict:
     trace in the data."""
     from tacest.io.run import read_run
 
-    run = read_run(folder / f"{effect}_{seed}{tag}_truth.h5")
-    tr = run.truth
-    P, V = np.asarray(tr.pose, float), np.asarray(tr.vertices, float)
-    c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
-    y = P[:, 1:2] + s[:, None] * V[None, :, 0] + c[:, None] * V[None, :, 1]  # (T, K) m, world height
-    vy = np.diff(y, axis=0) / run.dt  # m/s (a time_scale recording's dt is off by a few %)
-    arriving = y[1:] - y[1:].min() < IMPACT_HEIGHT  # at the ground (the lowest any vertex goes) at the end of the interval
-    speed = float(np.max(-vy[arriving], initial=0.0))
-    return {"tilt_deg": float(np.degrees(np.max(np.abs(P[:, 2] - P[0, 2])))), "impact_speed": max(speed, 0.0)}
+    tilt, speed = 0.0, 0.0
+    for path in rec.truth:
+        run = read_run(path)
+        tr = run.truth
+        P, V = np.asarray(tr.pose, float), np.asarray(tr.vertices, float)
+        c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
+        y = P[:, 1:2] + s[:, None] * V[None, :, 0] + c[:, None] * V[None, :, 1]  # (T, K) m, world height
+        vy = np.diff(y, axis=0) / run.dt  # m/s (a time_scale recording's dt is off by a few %)
+        arriving = y[1:] - y[1:].min() < IMPACT_HEIGHT  # at the ground (the lowest any vertex goes) at the end of the interval
+        speed = max(speed, float(np.max(-vy[arriving], initial=0.0)))
+        if run.actions is not None and len(run.actions.segments):  # a toss's tumbling is not a tilt
+            tilt = max(tilt, float(np.degrees(np.max(np.abs(P[:, 2] - P[0, 2])))))
+    return {"tilt_deg": tilt, "impact_speed": max(speed, 0.0)}
 
 
 #: m: a vertex this close to the lowest height seen counts as at the ground (truth_motion)
@@ -535,11 +653,13 @@ def main(argv=None):
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
     ap.add_argument("--effects", default=",".join(SPEC_EFFECTS), help="effects to record (default: all of SPEC)")
-    ap.add_argument("--design", choices=("effects", "random"), default="effects",
-                    help="effects: fast pokes high on the object, pose observed, effect strengths visible "
-                         "against a clean twin (default); random: the random pokes of tacest record, "
-                         "with --tip-pokes")
-    ap.add_argument("--pokes", type=int, default=3, help="pokes per recording (default 3)")
+    ap.add_argument("--design", choices=("toss", "effects", "random"), default="toss",
+                    help="toss: --pairs pairs of runs, a toss and a fast high poke, pose observed, effect "
+                         "strengths visible against a clean twin (default); effects: one run of --pokes fast "
+                         "high pokes, pose observed; random: the random pokes of tacest record, with --tip-pokes")
+    ap.add_argument("--pairs", type=int, default=TOSS_PAIRS,
+                    help=f"toss design: pairs of runs (toss, poke) per recording (default {TOSS_PAIRS})")
+    ap.add_argument("--pokes", type=int, default=3, help="effects and random designs: pokes per recording (default 3)")
     ap.add_argument("--tip-pokes", type=int, default=0,
                     help="random design: how many of the pokes (the last ones) push high to tip the object (default 0)")
     ap.add_argument("--cache", default=None, help="folder of recordings and cached results")
@@ -558,9 +678,12 @@ def main(argv=None):
         return 0
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     bad = [e for e in effects if e not in SPEC_EFFECTS]
-    if args.design == "effects" and args.tip_pokes:
-        print("--tip-pokes belongs to --design random (every poke of the effects design pushes high)",
+    if args.design != "random" and args.tip_pokes:
+        print("--tip-pokes belongs to --design random (every poke of the other designs pushes high)",
               file=sys.stderr)
+        return 1
+    if args.design == "toss" and args.pairs < 2:
+        print("--pairs must be >= 2 (every run is held out once)", file=sys.stderr)
         return 1
     if bad or args.seeds < 1 or args.pokes < 2 or not 0 <= args.tip_pokes < args.pokes:
         print(f"bad arguments: effects {bad}, seeds {args.seeds}, pokes {args.pokes} (>= 2), "
@@ -569,32 +692,35 @@ def main(argv=None):
     echo = _echo(args.quiet)
     cache = Path(args.cache or Path(tempfile.gettempdir()) / "tacest_bench_diagnose")
     cache.mkdir(parents=True, exist_ok=True)
-    design = (f"{args.pokes} fast high pokes each, pose observed at {OBSERVE_POSE * 1e3:g} mm"
-              if args.design == "effects" else f"{args.pokes} random pokes each ({args.tip_pokes} tipping)")
+    design = {"toss": f"{args.pairs} pairs of runs (a toss, a fast high poke) each, pose observed at "
+                      f"{OBSERVE_POSE * 1e3:g} mm",
+              "effects": f"{args.pokes} fast high pokes each, pose observed at {OBSERVE_POSE * 1e3:g} mm",
+              "random": f"{args.pokes} random pokes each ({args.tip_pokes} tipping)"}[args.design]
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}; {len(effects)} effects x {args.seeds} seeds, "
           f"{design}; estimator {estimator_fingerprint()}", flush=True)
     results = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for effect in effects:
-            draw = None
-            if args.design == "effects":
-                path, injected, draw = record_design(effect, seed, args.pokes, cache)
-                tag = "_design"
+            if args.design == "toss":
+                rec = record_toss_design(effect, seed, args.pairs, cache)
+            elif args.design == "effects":
+                rec = record_design(effect, seed, args.pokes, cache)
             else:
-                path, injected = record(effect, seed, args.pokes, cache, args.tip_pokes)
-                tag = f"_tip{args.tip_pokes}" if args.tip_pokes else ""
+                rec = record(effect, seed, args.pokes, cache, args.tip_pokes)
+            draw, injected = rec.draw, rec.injected
             known = ""
             if args.known_mass is not None:
-                known = weighed_mass(cache, effect, seed, tag, args.known_mass)
-            out = cache / f"{effect}_{seed}{tag}{'' if not known else f'_km{args.known_mass:g}'}.json"
+                known = weighed_mass(rec, effect, seed, args.known_mass)
+            out = cache / f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}.json"
             if out.exists() and args.refit:
-                res = refit_candidates(json.loads(out.read_text()), path, args, known)
+                res = refit_candidates(json.loads(out.read_text()), rec.bare, args, known)
                 out.write_text(json.dumps(res))
             elif out.exists():
                 res = json.loads(out.read_text())
             else:
-                echo(f"diagnosing {path.name} ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
-                res = run_job(path, args.fit_iterations, args.timeout, known)
+                echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
+                     " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
+                res = run_job(rec.bare, args.fit_iterations, args.timeout, known)
                 res.update(effect=effect, seed=seed, injected=injected)
                 out.write_text(json.dumps(res))
             results.append(res)
@@ -605,7 +731,7 @@ def main(argv=None):
                 extra = f", {effect}: reduction {_reduction(right):.0%}, params {right['params']}"
             elif right is not None:
                 extra = f", {effect}: {right.get('status')}"
-            mot = truth_motion(cache, effect, seed, tag)
+            mot = truth_motion(rec)
             res["motion"] = mot
             extra += f", truth: tilt {mot['tilt_deg']:.1f} deg, impacts up to {mot['impact_speed']:.2f} m/s"
             if draw is not None and effect != "none":

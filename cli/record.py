@@ -35,6 +35,9 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
 @click.option("--no-force", is_flag=True, help="[sim] no force stream (contact and normal only).")
 @click.option("--observe-pose", type=click.FloatRange(min=0), default=None,
               help="[sim] also write pose observations with this position sigma (m).")
+@click.option("--toss", is_flag=True,
+              help="[sim, 2-D] start with the object tossed: released in the air at a random height, speed and "
+                   "spin; it lands, and the pokes start once it is at rest (docs/simulation.md).")
 @click.option("--dt", type=click.FloatRange(min=1e-4, max=0.1), default=0.01, show_default=True,
               help="[sim] sample period, s.")
 @click.option("--no-truth", is_flag=True, help="[sim] leave out the /truth group.")
@@ -108,7 +111,7 @@ def _record_sim(output, quiet, **kw):
         dim=int(kw["dim"]), object_spec=kw["object_spec"], seed=kw["seed"], pokes=kw["pokes"],
         fingers=kw["fingers"], effects=list(kw["effects"]), noise_force=kw["noise_force"],
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
-        observe_pose=kw["observe_pose"], dt=kw["dt"],
+        observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"],
     )
     run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None,
                      echo=(lambda *a, **k: None) if quiet else _echo_err)

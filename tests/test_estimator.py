@@ -12,7 +12,7 @@ import pytest
 
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import load_config
-from tacest.estimation.data import parameter_vector
+from tacest.estimation.data import parameter_vector, starts_at_rest
 from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
 from tacest.estimation.initial import initial_guess
 from tacest.estimation.problem import SQUARED_TERMS, TERMS
@@ -117,6 +117,35 @@ def test_gauss_newton_hessian_is_jtj(observed):
     assert (np.abs(pen).max() > 0) == observed  # the Occam term acts on pose-observed runs only
     ref = np.triu(J.T @ J) + np.asarray(ca.DM(hp(z, p))) + pen
     np.testing.assert_allclose(gn, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_a_run_observed_at_its_first_sample_starts_free():
+    """The rest prior holds v[0] only where nothing measures it: a run whose sample 0 is
+    pose-observed (a toss seen by motion capture) starts free, whatever its velocity;
+    the same run with row 0 missing, and a run without observations, start at rest
+    (their sample-0 dynamics term is 0.5·|v0 / σ_rest|², hand-computed below)."""
+    run = pushed_box_run()
+    free = _pose_observed(run)
+    obs = free.pose_obs.copy()
+    obs[0] = np.nan
+    held = free.replace(pose_obs=obs)
+    assert not starts_at_rest(free) and starts_at_rest(held) and starts_at_rest(run)
+    est = ImplicitEstimator([free, held, run], "box")
+    z = initial_guess(est.problem, est.runs, est.scales, est.s0)
+    est.p_final = est.params(0.5, 2.0)
+    v0__world = np.array([0.3, -0.2, 1.5])  # m/s, m/s, rad/s
+    sig = est.config.noise.rest
+    L = est.scales.L
+    for i in range(3):
+        Q, V, _, _ = est.problem.run_blocks(z, i)
+        V = V.copy()
+        V[:, 0] = v0__world / np.array([L, L, 1.0])
+        est.problem.set_run_blocks(z, i, V=V)
+    expected = 0.5 * np.sum((v0__world / np.array([sig, sig, 2 * sig / L])) ** 2)
+    first = [est.per_sample_residuals(z, i)["dynamics"][0] for i in range(3)]
+    assert first[0] == 0.0
+    # rtol 1e-12: the same arithmetic in CasADi and NumPy, rounding only
+    assert first[1] == pytest.approx(expected, rel=1e-12) and first[2] == pytest.approx(expected, rel=1e-12)
 
 
 def test_signed_distance_hand_table_and_normal():

@@ -16,8 +16,8 @@ from tacest.geometry.transforms import rot2
 from tacest.sim.objects import (SimObject, convex_ccw, face_normals, inradius, random_polygon, rest_angle,
                                 resting_pose)
 from tacest.sim.pokes import POKE_NAMES
-from tacest.sim.record import (SimOptions, WorldState, initial_state, record_sim, simulate_pokes,
-                               state_from_run)
+from tacest.sim.record import (TOSS_DROP, TOSS_LIFT, TOSS_SPEED, TOSS_SPIN, SimOptions, WorldState, initial_state,
+                               record_sim, simulate_pokes, state_from_run, toss_state)
 from tacest.sim.world import MAX_FINGER_FORCE
 
 G = 9.81
@@ -346,3 +346,47 @@ def test_simulate_pokes_from_an_estimate_like_state():
     assert np.all(again.finger_position[0, :, 1] > 0.08)
     # the same pokes on the same object: the same outcome up to where the fingers started
     assert again.truth.pose[-1, 0] == pytest.approx(run.truth.pose[-1, 0], abs=1e-3)
+
+
+#: m: pymunk integrates gravity with semi-implicit Euler substeps (h = 0.5 ms), whose
+#: position error against the exact parabola is g·h·t/2, 0.5 mm after 0.2 s... measured
+#: well below that at the sample instants; 1e-3 m bounds it with room
+BALLISTIC_TOL = 1e-3
+
+
+def test_a_toss_flies_a_parabola_then_lands_and_rests():
+    """Known answer: between release and the first touch of the ground the COM follows
+    y = y0 + vy·t − g·t²/2, x = x0 + vx·t, and the angle turns at the release spin;
+    the recording ends at rest with the fingers never touching."""
+    opts = SimOptions(seed=5, **CLEAN)
+    tossed = toss_state(initial_state(opts), np.random.default_rng(1), x=0.0)
+    P0, V0 = tossed.pose, tossed.velocity
+    lowest = float(np.min((tossed.obj.vertices @ rot2(P0[2]).T)[:, 1])) + P0[1]
+    assert TOSS_DROP[0] <= lowest <= TOSS_DROP[1]
+    assert TOSS_SPEED[0] <= abs(V0[0]) <= TOSS_SPEED[1] and TOSS_LIFT[0] <= V0[1] <= TOSS_LIFT[1]
+    assert TOSS_SPIN[0] <= abs(V0[2]) <= TOSS_SPIN[1]
+    run = simulate_pokes(tossed, np.zeros((0, 6)), opts, settle_first=True)
+    P = run.truth.pose
+    t = run.time - run.time[0]
+    heights = np.array([np.min((run.truth.vertices @ rot2(q[2]).T)[:, 1]) + q[1] for q in P])
+    flying = np.cumprod(heights > 2e-3).astype(bool)  # up to the first touch of the ground
+    assert flying.sum() > 15, "a flight of 0.2-0.35 s at 100 Hz"
+    tf = t[flying]
+    assert np.allclose(P[flying, 0], P0[0] + V0[0] * tf, atol=BALLISTIC_TOL)
+    assert np.allclose(P[flying, 1], P0[1] + V0[1] * tf - 0.5 * G * tf ** 2, atol=BALLISTIC_TOL)
+    assert np.allclose(P[flying, 2], P0[2] + V0[2] * tf, atol=1e-6 + 1e-3 * abs(V0[2]))
+    assert not run.contact.any() and len(run.actions.segments) == 0
+    assert np.all(np.abs(P[-5:] - P[-1]) < SLOP_TOL), "it ends at rest"
+    assert np.min(heights) > -1e-3, "it lands on the ground, not through it"
+
+
+def test_a_toss_then_pokes_waits_for_rest_and_keeps_the_seeds_streams():
+    base = SimOptions(seed=2, pokes=1, observe_pose=5e-4)
+    tossed = record_sim(SimOptions(**{**base.__dict__, "toss": True}))
+    plain = record_sim(base)
+    assert np.allclose(tossed.truth.vertices, plain.truth.vertices) and tossed.truth.mass == plain.truth.mass
+    a = int(tossed.actions.segments[0, 0])
+    assert a > 0 and not tossed.contact[:a].any()
+    v = np.diff(tossed.truth.pose[a:a + 2], axis=0) / tossed.dt  # the finger is still in transit
+    assert np.all(np.abs(v) < 0.05), "the poke starts with the object at rest"
+    assert tossed.pose_obs is not None and np.all(np.isfinite(tossed.pose_obs[0]))

@@ -47,6 +47,7 @@ def test_cli_runner_no_truth_no_force_quiet(tmp_path):
     (["--dim", "3", "--object", "box:0.1,0.1"], "a 3-D box takes three extents"),
     (["--object", "sphere"], "--object sphere"),
     (["--seed", "-1"], "--seed must be >= 0"),
+    (["--toss", "--dim", "3"], "--toss is 2-D only"),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path, args, msg):
     out = tmp_path / "x.h5"
@@ -71,3 +72,15 @@ def test_plan_appends_through_the_cli(tmp_path):
     run = read_run(out)
     assert run.n_samples > first.n_samples and len(run.actions.segments) == 2
     assert np.array_equal(run.truth.pose[:first.n_samples], first.truth.pose)
+
+
+def test_toss_through_the_cli(tmp_path):
+    out = tmp_path / "toss.h5"
+    res = _tacest("record", "--toss", "--pokes", "1", "--seed", "3", "--observe-pose", "5e-4", "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert "tossed" in res.stderr
+    run = read_run(out)
+    start = int(run.actions.segments[0, 0])
+    assert start > 10, "the poke starts after the flight and landing"
+    assert not run.contact[:start].any(), "the parked finger never touches the tossed object"
+    assert run.contact[start:].any()

@@ -12,7 +12,8 @@ force              2 per finger with a force reading (D components)
 normal             1 per finger in contact (a unit vector: one angle)
 contact            1 per finger (gap where the flag is 1, overlap where 0)
 pose               3 where a pose was observed
-dynamics           3 (sample 0: the 3 components of the rest residual)
+dynamics           3 (sample 0: the 3 components of the rest residual; 0 for a run that
+                   starts free, pose-observed: estimation.data.starts_at_rest)
 penetration        1 per shape vertex (one-sided penalty)
 complementarity    1 per shape vertex (sample 0: none)
 dissipation        1 per finger (sample 0: none)
@@ -56,6 +57,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from tacest.estimation.data import starts_at_rest
+
 #: default family-wise false-alarm rate of the window tests (probability that a
 #: diagnosis of pure noise flags anything)
 ALPHA = 0.01
@@ -94,6 +97,8 @@ def residual_dof(run, n_vertices: int) -> dict:
     if run.pose_obs is not None:
         dof["pose"][:] = 3 * np.all(np.isfinite(run.pose_obs), axis=1)
     dof["dynamics"][:] = 3
+    if not starts_at_rest(run):  # sample 0's dynamics term is the rest prior, off here
+        dof["dynamics"][0] = 0
     dof["penetration"][:] = n_vertices
     dof["complementarity"][1:] = n_vertices
     return dof

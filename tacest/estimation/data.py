@@ -81,6 +81,16 @@ def finger_start_positions(run: Run) -> np.ndarray:
     return start
 
 
+def starts_at_rest(run: Run) -> bool:
+    """Whether the estimator holds the run's sample 0 at rest (the rest prior, noise
+    ``rest``): only where nothing measures it.  A run whose first sample's pose is
+    observed (e.g. an object tossed and seen by motion capture) starts free: the
+    observations give its velocity (the 3-D estimator's rule too)."""
+    if run.pose_obs is None:
+        return True
+    return not bool(np.all(np.isfinite(run.pose_obs[0])))
+
+
 def pose_observation_columns(run: Run):
     """(obs (T, 3), weight (T, 1)): 2-D pose observations with the angle unwrapped and
     missing rows zeroed, and 1 where a row was observed (zeros without observations)."""
@@ -124,6 +134,7 @@ def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float,
     vals = dict(dt=run.dt, L=scales.L, Lam=scales.m0 * GRAVITY * run.dt, m0=scales.m0, nx=up[0], ny=up[1],
                 h=run.ground_height, sig_force=nz.force, sig_normal=nz.normal, sig_gap=nz.contact_gap,
                 sig_proc=nz.process, sig_pen=nz.penetration, sig_rest=nz.rest,
+                w_rest=1.0 if starts_at_rest(run) else 0.0,
                 sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult,
                 dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation,
                 m_ref=scales.m0, I_ref=scales.m0 * scales.L ** 2 / 6, sig_diss_g=nz.dissipation_ground)

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacest.estimation.data import GRAVITY, Scales, pose_observation_columns, touch_inconsistency, touching
+from tacest.estimation.data import (GRAVITY, Scales, pose_observation_columns, starts_at_rest, touch_inconsistency,
+                                   touching)
 from tacest.geometry.polygon import convex_signed_distance
 from tacest.geometry.shapes import numeric_vertices
 from tacest.io.run import Run
@@ -269,6 +270,12 @@ def _tracked_batch(run: Run, Vs: np.ndarray) -> np.ndarray:
     return push_tracker_batch(run, Vs, np.array(poses0))
 
 
+#: the starting ground impulses carry the object's weight only where its lowest vertex
+#: is within this factor of the length scale L of the ground: higher, it flies (a
+#: toss), and a start that holds it up there is a start in the wrong contact mode
+FLIGHT_GAP_L = 0.1
+
+
 def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, trajectories=None):
     """Scaled decision vector z0 for :class:`Problem2D`: theta (shape s0, log mass 0,
     log inertia ratio 0, friction 0.5, 0.5) and, per run, the given (or push-tracker)
@@ -286,14 +293,19 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, traj
         T = run.n_samples
         vel = np.zeros_like(poses)
         vel[1:] = np.diff(poses, axis=0) / run.dt
+        if not starts_at_rest(run) and T > 1:  # a free start moves as its next sample does
+            vel[0] = vel[1]
         scale = np.array([scales.L, scales.L, 1.0])
         Q = (poses / scale).T
         Vv = (vel / scale).T
         LG = np.zeros((2 * K, T - 1))  # [normal; tangential], tangential 0 (sticking)
-        # ground: weight carried by the vertices within 1 mm of the ground
+        # ground: weight carried by the vertices within 1 mm of the lowest one, where that
+        # one is near the ground (not while a tossed object flies)
         for t in range(1, T):
             Rt = np.array([[np.cos(poses[t, 2]), -np.sin(poses[t, 2])], [np.sin(poses[t, 2]), np.cos(poses[t, 2])]])
             phi = (V @ Rt.T + poses[t, :2]) @ run.up - run.ground_height
+            if phi.min() > FLIGHT_GAP_L * scales.L:
+                continue
             low = phi < phi.min() + 1e-3
             LG[:K, t - 1][low] = 1.0 / low.sum()
         LF = np.zeros((2 * run.n_fingers, T - 1))

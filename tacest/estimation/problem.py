@@ -365,7 +365,8 @@ def start_local_variables(ins):
 
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
-           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g")
+           "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g",
+           "w_rest")
 G = {n: i for i, n in enumerate(G_NAMES)}
 
 
@@ -1069,7 +1070,9 @@ class Problem2D:
                            names)
 
     def _start_function(self, F):
-        """Terms at sample 0: rest (v ≈ 0), penetration, pose observation, finger gap."""
+        """Terms at sample 0: rest (v ≈ 0, weighted by the run's w_rest: 0 for a run that
+        starts pose-observed, data.starts_at_rest), penetration, pose observation,
+        finger gap."""
         K = self.K
         qs = ca.SX.sym("q", 3)
         vs = ca.SX.sym("v", 3)
@@ -1085,13 +1088,14 @@ class Problem2D:
         v = vs * ca.vertcat(L, L, 1)
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
         phi, _, _ = ground_contacts(q, v, V, n_g, g[G["h"]])
-        rest = v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
+        w_rest = g[G["w_rest"]]
+        rest = w_rest * v / ca.vertcat(g[G["sig_rest"]], g[G["sig_rest"]], g[G["sig_rest"]] / L * 2)
         if "soft_contact" in self.effects:
             # at rest on a compliant ground: the plate sunk by the object's weight (the
             # load m·g·dt is phys's mass / m0 in impulse units), whitened as the plate
-            # law of every later sample
+            # law of every later sample; a free start (w_rest 0) leaves the plate free too
             sink, _, r = self._plate_law(self._effect_values(phys), g, s0[0], None, phys[2 * K])
-            rest = ca.vertcat(rest, r)
+            rest = ca.vertcat(rest, w_rest * r)
             phi = [p + sink for p in phi]
         pen = ca.vertcat(*[one_sided(p, g[G["sig_pen"]]) for p in phi])
         r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])

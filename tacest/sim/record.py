@@ -6,6 +6,7 @@ Public API::
     SimOptions                                   recorder settings (the CLI's options)
     WorldState                                   object, its state, fingers, effects
     initial_state(opts, echo=None) -> WorldState a new object at rest on the ground
+    toss_state(state, rng) -> WorldState        the object released in the air (a toss)
     state_at_rest(obj, x=0, angle=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState
     simulate_pokes(state, actions, opts=None, echo=None, names=POKE_NAMES) -> Run
     record_sim(opts, plan_path=None, append_to=None, echo=None) -> Run
@@ -66,9 +67,21 @@ PARK_SPACING = 0.06
 POSE_ANGLE_LEVER = 0.05
 #: m, the loose size bound written to /prior (every simulated object is smaller)
 SIZE_BOUND = 0.3
+#: a toss (``SimOptions.toss``, ``tacest record --toss``): the robot lets go of the
+#: object in the air, from a random release drawn from these ranges: the lowest vertex
+#: TOSS_DROP m above the ground, horizontal speed TOSS_SPEED m/s either way, upward
+#: speed TOSS_LIFT m/s, spin TOSS_SPIN rad/s either way, any orientation.  The flight
+#: lasts 0.1-0.3 s, long enough for gravity, drag and spin decay to show in pose
+#: observations, and the landing is an impact of 1-2 m/s (docs/simulation.md, "Tosses")
+TOSS_DROP = (0.10, 0.25)
+TOSS_SPEED = (0.1, 0.5)
+TOSS_LIFT = (0.5, 1.0)
+TOSS_SPIN = (2.0, 10.0)
+#: s, longest wait for a tossed object to come to rest before the first poke (or the end)
+TOSS_WAIT = 3.0
 
 # independent random streams of one seed
-_STREAM_OBJECT, _STREAM_POKES, _STREAM_NOISE = 1, 2, 3
+_STREAM_OBJECT, _STREAM_POKES, _STREAM_NOISE, _STREAM_TOSS = 1, 2, 3, 4
 
 
 def _rng(seed, stream, *more) -> np.random.Generator:
@@ -90,6 +103,7 @@ class SimOptions:
     ``NAME[:key=value,...]`` strings or Effect objects; noise_force : N, noise_position :
     m, noise_normal : rad (one sigma); force_stream : write /tactile/force;
     observe_pose : m, write /observations/pose with this position sigma (None: don't);
+    toss : start with the object tossed (:func:`toss_state`) instead of at rest;
     dt : s, sample period; finger_radius : m; substeps : minimum physics substeps per
     sample (more when dt / substeps > MAX_SUBSTEP); max_finger_force : N, finger drive limit.
     """
@@ -105,6 +119,7 @@ class SimOptions:
     noise_normal: float = 0.02
     force_stream: bool = True
     observe_pose: Optional[float] = None
+    toss: bool = False
     dt: float = 0.01
     finger_radius: float = 0.01
     substeps: int = 20
@@ -130,6 +145,8 @@ class SimOptions:
             raise TacestError(f"--dt must be in [1e-4, 0.1] s, got {self.dt}")
         if not (0.001 <= self.finger_radius <= 0.05):
             raise TacestError(f"finger radius must be in [0.001, 0.05] m, got {self.finger_radius}")
+        if self.toss and int(self.dim) != 2:
+            raise TacestError("--toss is 2-D only (the 3-D simulator starts every object at rest)")
         if int(self.substeps) < 1 or not self.max_finger_force > 0:
             raise TacestError("substeps must be >= 1 and max_finger_force > 0")
         return self
@@ -237,13 +254,42 @@ def state_at_rest(obj: SimObject, x=0.0, angle=None, fingers=1, finger_radius=0.
     effects = list(effects)
     pose = resting_pose(obj.vertices, angle, x=x)
     top = float(np.max((obj.vertices @ rot2(angle).T)[:, 1])) + pose[1]
-    F = int(fingers)
-    park = np.stack([x + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING,
-                     np.full(F, top + finger_radius + PARK_HEIGHT)], axis=1)
     ground = _static_ground(obj, effects)  # the object starts sunk into a soft ground
     pose = pose + np.array([0.0, ground[0], 0.0])
-    return WorldState(obj=obj, pose=pose, velocity=np.zeros(3), p_finger__world=park,
-                      finger_radius=np.full(F, float(finger_radius)), effects=effects, ground_state=ground)
+    return WorldState(obj=obj, pose=pose, velocity=np.zeros(3), p_finger__world=park_fingers(x, top, fingers, finger_radius),
+                      finger_radius=np.full(int(fingers), float(finger_radius)), effects=effects, ground_state=ground)
+
+
+def park_fingers(x: float, top: float, fingers: int, finger_radius: float) -> np.ndarray:
+    """(F, 2) m: F fingertips of ``finger_radius`` m parked PARK_HEIGHT above the height
+    ``top`` (m, the highest point the object reaches), PARK_SPACING apart about ``x`` (m)."""
+    F = int(fingers)
+    return np.stack([x + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING,
+                     np.full(F, top + finger_radius + PARK_HEIGHT)], axis=1)
+
+
+def toss_state(state: WorldState, rng: np.random.Generator, x: float = None) -> WorldState:
+    """``state``'s object released in the air, as by a robot that lets go of it: at a
+    random orientation with its lowest vertex TOSS_DROP above the ground, its COM at
+    horizontal ``x`` (m; default: where it is now), moving at TOSS_SPEED sideways and TOSS_LIFT upwards and
+    spinning at TOSS_SPIN (each drawn from ``rng``, the sideways and spin senses at
+    random).  The fingers are parked above the highest point any vertex can reach in
+    the flight; a soft ground starts unloaded."""
+    obj = state.obj
+    angle = float(rng.uniform(-math.pi, math.pi))
+    drop = float(rng.uniform(*TOSS_DROP))
+    vx = float(rng.uniform(*TOSS_SPEED)) * (1.0 if rng.random() < 0.5 else -1.0)
+    vy = float(rng.uniform(*TOSS_LIFT))
+    omega = float(rng.uniform(*TOSS_SPIN)) * (1.0 if rng.random() < 0.5 else -1.0)
+    x = float(state.pose[0] if x is None else x)
+    pose = resting_pose(obj.vertices, angle, x=x) + np.array([0.0, drop, 0.0])
+    reach = float(np.max(np.linalg.norm(obj.vertices, axis=1)))  # any vertex, any angle
+    top = pose[1] + vy * vy / (2.0 * GRAVITY) + reach
+    radius = np.asarray(state.finger_radius, float)
+    return WorldState(obj=obj, pose=pose, velocity=np.array([vx, vy, omega]),
+                      p_finger__world=park_fingers(x, top, len(radius), float(np.max(radius))),
+                      finger_radius=radius.copy(), effects=list(state.effects), time=state.time,
+                      ground_state=np.zeros(2))
 
 
 # ---------------------------------------------------------------------------------
@@ -269,10 +315,14 @@ def _at_rest(velocity) -> bool:
     return math.hypot(velocity[0], velocity[1]) < REST_SPEED and abs(velocity[2]) < REST_OMEGA
 
 
-def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lead_idle=False) -> _Trajectory:
+def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lead_idle=False,
+              settle_first=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (6,) POKE_NAMES vector or None for a random
     poke) from ``state``.  Every poke but the first (and the first too with
-    ``lead_idle``) starts after one idle sample interval, so segments tile the run."""
+    ``lead_idle``) starts after one idle sample interval, so segments tile the run.
+    With ``settle_first`` (a toss) the fingers first hold still until the object has
+    come to rest (at most TOSS_WAIT s; then SETTLE_TIME more when there are no pokes):
+    those samples belong to no action."""
     world = state.world(opts.max_finger_force)
     F = world.n_fingers
     dt = float(opts.dt)
@@ -299,9 +349,18 @@ def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lea
                 world.step(p, h)
             record(world.take_measurement())
 
+    def hold_until_rest(limit_s):
+        for _ in range(int(round(limit_s / dt))):
+            if _at_rest(world.velocity):
+                return
+            hold(1)
+
     record()
     segments, params = [], []
     A = len(sources)
+    if settle_first:
+        echo("tossed: waiting for the object to come to rest")
+        hold_until_rest(TOSS_WAIT)
     for i, src in enumerate(sources):
         echo(f"poke {i + 1}/{A}")
         if i > 0 or lead_idle:
@@ -325,14 +384,11 @@ def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lea
                 world.step(ctl[k * n_sub + j], h)
             record(world.take_measurement())
         # like a robot, wait until the object has stopped (a tipped object may still fall)
-        for _ in range(int(round(REST_WAIT / dt))):
-            if _at_rest(world.velocity):
-                break
-            hold(1)
+        hold_until_rest(REST_WAIT)
         segments.append((start, len(cols["q"])))
         params.append(poke.to_vector())
     if A == 0:
-        hold(int(round(EMPTY_TIME / dt)))
+        hold(int(round((SETTLE_TIME if settle_first else EMPTY_TIME) / dt)))
     T = len(cols["q"])
     t_true = state.time + dt * np.arange(T)
     return _Trajectory(
@@ -437,7 +493,7 @@ def _make_run(traj: _Trajectory, state0: WorldState, opts: SimOptions, rng_noise
 
 
 def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = None,
-                   names=POKE_NAMES, noise_key: int = 0) -> Run:
+                   names=POKE_NAMES, noise_key: int = 0, settle_first: bool = False) -> Run:
     """Simulate the given pokes from ``state`` and return the recorded Run (with truth).
 
     state : WorldState, e.g. from :func:`initial_state`, :func:`state_from_run`, or built
@@ -447,7 +503,9 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
         POKE_NAMES); targets are used as given;
     opts : noise levels, dt, streams (SimOptions; its object/seed/pokes/effects are not
         used: the object and effects are the state's); noise draws from stream
-        (opts.seed, noise_key).
+        (opts.seed, noise_key); settle_first : the state is a toss (:func:`toss_state`):
+        record until the object has come to rest before the first poke (with no poke:
+        until it has come to rest, plus SETTLE_TIME).
     Sample 0 is ``state`` itself; poke i covers /actions/segments[i].
     """
     opts = (opts or SimOptions()).validate()
@@ -460,7 +518,7 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
     if acts.ndim == 1:
         acts = acts[None, :]
     sources = [Poke.from_vector(a, state.n_fingers, names).to_vector() for a in acts]
-    traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES, noise_key))
+    traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES, noise_key), settle_first=settle_first)
     return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE, noise_key))
 
 
@@ -598,16 +656,20 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable 
     plan = _plan_pokes(plan_path) if plan_path is not None else None
     if append_to is None:
         state = initial_state(opts, echo)
+        if opts.toss:
+            state = toss_state(state, _rng(opts.seed, _STREAM_TOSS))
         if plan is not None:
             sources = [Poke.from_vector(plan.chosen, state.n_fingers, plan.names).to_vector()]
             echo(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score})")
         else:
             sources = [None] * int(opts.pokes)
-        traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES))
+        traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES), settle_first=opts.toss)
         return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE))
 
     from tacest.io.run import read_run
 
+    if opts.toss:
+        raise TacestError(f"--toss starts a new recording; it cannot continue {append_to}")
     old = read_run(append_to)
     state = state_from_run(old)
     # the continuation keeps the old run's clock and streams
