@@ -270,12 +270,6 @@ def _tracked_batch(run: Run, Vs: np.ndarray) -> np.ndarray:
     return push_tracker_batch(run, Vs, np.array(poses0))
 
 
-#: the starting ground impulses carry the object's weight only where its lowest vertex
-#: is within this factor of the length scale L of the ground: higher, it flies (a
-#: toss), and a start that holds it up there is a start in the wrong contact mode
-FLIGHT_GAP_L = 0.1
-
-
 def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, trajectories=None):
     """Scaled decision vector z0 for :class:`Problem2D`: theta (shape s0, log mass 0,
     log inertia ratio 0, friction 0.5, 0.5) and, per run, the given (or push-tracker)
@@ -299,13 +293,10 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, traj
         Q = (poses / scale).T
         Vv = (vel / scale).T
         LG = np.zeros((2 * K, T - 1))  # [normal; tangential], tangential 0 (sticking)
-        # ground: weight carried by the vertices within 1 mm of the lowest one, where that
-        # one is near the ground (not while a tossed object flies)
+        # ground: weight carried by the vertices within 1 mm of the ground
         for t in range(1, T):
             Rt = np.array([[np.cos(poses[t, 2]), -np.sin(poses[t, 2])], [np.sin(poses[t, 2]), np.cos(poses[t, 2])]])
             phi = (V @ Rt.T + poses[t, :2]) @ run.up - run.ground_height
-            if phi.min() > FLIGHT_GAP_L * scales.L:
-                continue
             low = phi < phi.min() + 1e-3
             LG[:K, t - 1][low] = 1.0 / low.sum()
         LF = np.zeros((2 * run.n_fingers, T - 1))
