@@ -416,3 +416,35 @@ def test_the_occam_term_stops_the_light_object_collapse(seed):
         off = estimate_runs([run], "box", dataclasses.replace(base, weights=dataclasses.replace(base.weights,
                                                                                                 occam=0.0)))
         assert off.params["mass"] < 0.1 * run.truth.mass
+
+
+@pytest.mark.slow
+def test_known_answer_box_from_tosses_seen_by_motion_capture():
+    """Free starts: two tosses of one box (released in the air, seen by motion capture at
+    0.5 mm, each followed by one random poke; seed 0, a 13.1 × 10.5 cm box of 0.82 kg).
+    The estimate gives back the release velocity that no rest prior holds any more, the
+    shape, mass and ground friction.  Tolerances: the release velocity within 5 % of its
+    speed (the observations fix it to ~0.5 mm / 10 ms = 0.05 m/s per sample, averaged over
+    the flight's ~25 samples by the ballistic dynamics: ~1 % of the 1-2 m/s speeds, and
+    the spin to ~0.01 rad / 10 ms / sqrt(25) = 0.2 rad/s of 2-10; measured 0.3-0.6 % and
+    0.09-0.22 rad/s); the shape within 1 mm of Chamfer (a third of the issue's 3 mm
+    target; measured 0.05 mm); mass and ground friction within 10 % (the issue's 15 %
+    with room; measured 4.2 % and 5.7 %: two slow random pokes carry the force data)."""
+    from tacest.evaluation.metrics import evaluate
+    from tacest.sim.record import SimOptions, record_sim, simulate_pokes, state_from_run, toss_state
+
+    opts = SimOptions(object_spec="box", seed=0, pokes=1, observe_pose=5e-4, toss=True)
+    first = record_sim(opts)
+    second_release = toss_state(state_from_run(first), np.random.default_rng(11), x=0.0)
+    second = simulate_pokes(second_release, np.asarray(first.actions.params), opts, noise_key=7, settle_first=True)
+    runs = [first, second]
+    est = estimate_runs(runs, "box")
+    assert est.success
+    for run, er in zip(runs, est.runs):
+        v_true = (run.truth.pose[1] - run.truth.pose[0]) / run.dt  # the flight's first interval
+        v_est = er.velocity[1]
+        assert np.linalg.norm(v_est[:2] - v_true[:2]) <= 0.05 * np.linalg.norm(v_true[:2]), (v_est, v_true)
+        assert abs(v_est[2] - v_true[2]) <= 0.05 * abs(v_true[2]) + 0.2, (v_est, v_true)
+    m = evaluate(est, first)
+    assert m["chamfer_body"] <= 1e-3, m
+    assert m["mass_rel"] <= 0.10 and m["friction_ground_rel"] <= 0.10, m
