@@ -336,37 +336,51 @@ def visibility(run, twin) -> float:
     return D
 
 
+def record_visible(effect: str, seed: int, simulate) -> tuple:
+    """(runs, draw info) of ``effect`` on the box of ``seed`` (pose observed): the
+    effect's strength drawn from its range and redrawn (up to MAX_DRAWS draws) until the
+    recording differs from its clean twin by VISIBLE_D (``visibility``, summed over the
+    runs); info {"visibility": D, "draws": n, "visible": bool}.  ``simulate(opts,
+    replay)`` -> (runs, commands) records a design with SimOptions ``opts``, replaying
+    the commands it returned for the twin (``replay`` None: a new recording)."""
+    from tacest.sim import effects as fx
+    from tacest.sim.record import SimOptions
+
+    base = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=OBSERVE_POSE)
+    info = {"visibility": None, "draws": 0, "visible": True}
+    if effect == "none":
+        return simulate(base, None)[0], info
+    ctx = _object_context(base)
+    for draw in range(MAX_DRAWS):
+        eff = (effect if draw == 0 else
+               fx.resolve_effect(effect, {}, np.random.default_rng([seed, REDRAW_STREAM, draw]), ctx))
+        runs, commands = simulate(SimOptions(**{**base.__dict__, "effects": [eff]}), None)
+        info["draws"] = draw + 1
+        if effect == "time_scale":  # changes no stream, only /time
+            info["visibility"], info["visible"] = None, True
+            break
+        twins, _ = simulate(base, commands)
+        D = sum(visibility(r, t) for r, t in zip(runs, twins))
+        info["visibility"], info["visible"] = D, D >= VISIBLE_D
+        if info["visible"]:
+            break
+    return runs, info
+
+
 def record_design(effect: str, seed: int, pokes: int, folder: Path) -> Recording:
     """Record (or reuse) an "effects"-design recording (its draw: {"visibility": D,
     "draws": n, "visible": bool})."""
     from tacest.io.run import write_run
-    from tacest.sim import effects as fx
-    from tacest.sim.record import SimOptions
 
     full = folder / f"{effect}_{seed}_design_truth.h5"
     bare = folder / f"{effect}_{seed}_design.h5"
     meta = folder / f"{effect}_{seed}_design_draw.json"
     if not (full.exists() and bare.exists() and meta.exists()):
-        base = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=OBSERVE_POSE)
-        info = {"visibility": None, "draws": 0, "visible": True}
-        if effect == "none":
-            run = simulate_design(base, pokes, seed)
-        else:
-            ctx = _object_context(base)
-            for draw in range(MAX_DRAWS):
-                eff = (effect if draw == 0 else
-                       fx.resolve_effect(effect, {}, np.random.default_rng([seed, REDRAW_STREAM, draw]), ctx))
-                opts = SimOptions(**{**base.__dict__, "effects": [eff]})
-                run = simulate_design(opts, pokes, seed)
-                info["draws"] = draw + 1
-                if effect == "time_scale":
-                    info["visibility"], info["visible"] = None, True
-                    break
-                twin = simulate_design(base, pokes, seed, actions=run.actions.params)
-                D = visibility(run, twin)
-                info["visibility"], info["visible"] = D, D >= VISIBLE_D
-                if info["visible"]:
-                    break
+        def simulate(opts, replay):
+            run = simulate_design(opts, pokes, seed, actions=replay)
+            return [run], run.actions.params
+
+        (run,), info = record_visible(effect, seed, simulate)
         write_run(run, full)
         write_run(run, bare, include_truth=False)
         meta.write_text(json.dumps(info))
@@ -412,8 +426,6 @@ def record_toss_design(effect: str, seed: int, pairs: int, folder: Path) -> Reco
     """Record (or reuse) a "toss"-design recording: 2 × ``pairs`` run files, strengths
     redrawn until visible against the clean twin as in the "effects" design."""
     from tacest.io.run import write_run
-    from tacest.sim import effects as fx
-    from tacest.sim.record import SimOptions
 
     n = 2 * pairs
     stem = f"{effect}_{seed}_toss{pairs}"
@@ -421,26 +433,7 @@ def record_toss_design(effect: str, seed: int, pairs: int, folder: Path) -> Reco
     bare = [folder / f"{stem}_{i}.h5" for i in range(n)]
     meta = folder / f"{stem}_draw.json"
     if not (all(p.exists() for p in full + bare) and meta.exists()):
-        base = SimOptions(object_spec="box", seed=seed, pokes=0, observe_pose=OBSERVE_POSE)
-        info = {"visibility": None, "draws": 0, "visible": True}
-        if effect == "none":
-            runs, _ = simulate_toss_design(base, pairs, seed)
-        else:
-            ctx = _object_context(base)
-            for draw in range(MAX_DRAWS):
-                eff = (effect if draw == 0 else
-                       fx.resolve_effect(effect, {}, np.random.default_rng([seed, REDRAW_STREAM, draw]), ctx))
-                opts = SimOptions(**{**base.__dict__, "effects": [eff]})
-                runs, pokes = simulate_toss_design(opts, pairs, seed)
-                info["draws"] = draw + 1
-                if effect == "time_scale":
-                    info["visibility"], info["visible"] = None, True
-                    break
-                twins, _ = simulate_toss_design(base, pairs, seed, replay=pokes)
-                D = sum(visibility(r, t) for r, t in zip(runs, twins))
-                info["visibility"], info["visible"] = D, D >= VISIBLE_D
-                if info["visible"]:
-                    break
+        runs, info = record_visible(effect, seed, lambda opts, replay: simulate_toss_design(opts, pairs, seed, replay))
         for run, f, b in zip(runs, full, bare):
             write_run(run, f)
             write_run(run, b, include_truth=False)
