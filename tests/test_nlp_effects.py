@@ -41,12 +41,30 @@ def _point(shape, effects, seed=0):
 @pytest.mark.parametrize("shape", ["box", "polygon:5"])
 def test_gradient_and_jacobian_with_every_effect_match_finite_differences(shape):
     est, pr, z, p = _point(shape, ALL)
+    z = _with_impacts(est, pr, z)
     # the objective is large here (the effects move the generic point far from the data):
     # its own rounding, eps·|f| / h, with a factor 10 of margin joins the tolerance.
-    # Every coordinate of the soft ground's plate state (its sinks) is checked too
+    # Every coordinate of the per-sample states (the plate's sinks, the impact memory)
+    # is checked too
     a, n = pr.offsets[0]["S"]
-    assert n == pr.structures[0].T
+    assert n == (1 + pr.K) * pr.structures[0].T
     assert_derivatives_match_finite_differences(pr, z, p, f_rounding_margin=10.0, extra=range(a, a + n))
+
+
+def _with_impacts(est, pr, z, seed=7):
+    """z with the object's velocities stirred (±0.5 m/s, ±5 rad/s: vertices approach
+    the ground at up to ~1 m/s) and restitution's impact memory at 0-1 m/s, so that the
+    impact law and the interval after an impact are both active where derivatives are
+    checked (at the start's slow push their gates are ~0)."""
+    rng = np.random.default_rng(seed)
+    z = z.copy()
+    Q, V, _, _ = pr.run_blocks(z, 0)
+    V = V + rng.normal(size=V.shape) * np.array([[0.5 / est.scales.L], [0.5 / est.scales.L], [5.0]])
+    pr.set_run_blocks(z, 0, V=V)
+    S = pr.state_block(z, 0)
+    S[pr.n_plate:] = rng.uniform(0.0, 1.0, size=S[pr.n_plate:].shape)
+    pr.set_run_blocks(z, 0, S=S)
+    return z
 
 
 def test_information_jacobian_with_every_effect_matches_finite_differences():
@@ -56,6 +74,7 @@ def test_information_jacobian_with_every_effect_matches_finite_differences():
     from tacest.information.observed import residual_jacobian_function
 
     est, pr, z, p = _point("box", ALL)
+    z = _with_impacts(est, pr, z)
     rj = residual_jacobian_function(pr)
     r0, J = rj(z, p)
     J = np.asarray(ca.DM(J))
@@ -75,6 +94,7 @@ def test_information_jacobian_with_every_effect_matches_finite_differences():
 def test_exact_hessian_blocks_with_every_effect_match_casadi():
     """The per-sample block Hessian stays exact with the effect parameters in phys."""
     est, pr, z, p = _point("box", ALL)
+    z = _with_impacts(est, pr, z)
     lam_g = np.random.default_rng(2).normal(size=pr.g.shape[0])
     mine = np.asarray(ca.DM(pr.hess_lag["exact"](z, p, 0.7, lam_g)))
     lag = 0.7 * pr.f_reference + ca.dot(ca.DM(lam_g), pr.g)
@@ -118,7 +138,7 @@ def test_an_effect_at_no_effect_reproduces_the_plain_objective(effect):
     # the augmented z: theta + zeros, phys + zeros, the same run blocks (then, with
     # soft_contact, the plate's sinks: 0, the rigid ground's; one run, so they come last)
     z_a = np.concatenate([z_p[: pp.n_theta], np.zeros(n_eff), z_p[pp.n_theta: pp.n_theta + pp.n_phys],
-                          np.zeros(n_eff), z_p[pp.n_theta + pp.n_phys:], np.zeros(pa.n_plate * run.n_samples)])
+                          np.zeros(n_eff), z_p[pp.n_theta + pp.n_phys:], np.zeros(pa.n_state * run.n_samples)])
     assert z_a.size == pa.n_z
     p_p = parameter_vector(pp, [run], plain.scales, cfg, 0.5, 2.0, plain.s0)
     p_a = parameter_vector(pa, [run], aug.scales, cfg, 0.5, 2.0, aug.s0)

@@ -183,6 +183,7 @@ def _local_estimator_class():
             for label, eps, w, wd, which in plan:
                 lbx, ubx = self.variable_bounds()
                 if which == "impulses":
+                    self.z = self.settle_states(self.z, self.params(eps, w, wd))
                     lbx, ubx = self.impulse_only_bounds(lbx, ubx)
                 self.z = np.clip(self.z, lbx, ubx)
                 final = label == plan[-1][0]

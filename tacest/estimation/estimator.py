@@ -118,6 +118,10 @@ class ImplicitEstimator:
             a, n = off["LG"]
             normal_rows = np.tile(np.arange(2 * pr.K) < pr.K, n // (2 * pr.K))
             lbx[a: a + n][normal_rows] = 0.0  # lambda_n >= 0 (tangential impulses are free)
+            if pr.n_impact:  # restitution's impact memory holds approach speeds (m/s, >= 0)
+                a, n = off["S"]
+                memory_rows = np.tile(np.arange(pr.n_state) >= pr.n_plate, n // max(pr.n_state, 1))
+                lbx[a: a + n][memory_rows] = 0.0
             if st.F:
                 # finger impulses exist only where the tactile flag says the finger touched
                 a, n = off["LF"]
@@ -227,6 +231,7 @@ class ImplicitEstimator:
             lbx, ubx = self.variable_bounds()
             lbg, ubg = pr.lbg, pr.ubg
             if which == "impulses":
+                self.z = self.settle_states(self.z, self.params(eps, w, wd))
                 lbx, ubx = self.impulse_only_bounds(lbx, ubx)
             self.z = np.clip(self.z, lbx, ubx)
             mode = cfg.hessian
@@ -270,11 +275,22 @@ class ImplicitEstimator:
         out = pr.stage_funs[i].map(st.T - 1)(*pr.stage_arguments(z, i, D, g))
         return dict(zip(pr.stage_funs[i].name_out(), out))
 
-    def _run_data(self, i):
+    def _run_data(self, i, p=None):
+        """(g, D): run i's global vector and data matrix (n_data, T) in the parameter
+        vector p (default: the final stage's)."""
         pr = self.problem
         a, ng, nd = pr.p_offsets[i]
-        p = self.p_final
+        p = self.p_final if p is None else p
         return p[a: a + ng], p[a + ng: a + ng + nd].reshape(self.structures[i].T, -1).T
+
+    def settle_states(self, z, p):
+        """z with restitution's impact memory following its law along z's trajectories
+        (Problem2D.settle_impact_memory) under the parameter vector p; called before
+        every impulse stage."""
+        for i in range(len(self.structures)):
+            g, D = self._run_data(i, p)
+            z = self.problem.settle_impact_memory(z, i, D, g)
+        return z
 
     def per_sample_residuals(self, z, i):
         """{term: (T,)} value of each loss term per sample of run i (0.5 ||r||² for the
