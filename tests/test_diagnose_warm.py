@@ -57,6 +57,12 @@ def test_counts_guards():
     assert diag_mod.counts(**{**ok, "improvement": 29.0, "score": 26.0}, name="linear_drag")
     assert not diag_mod.counts(**{**ok, "folds_improved": 1}, name="linear_drag")
     assert not diag_mod.counts(**{**ok, "floor": float("nan")}, name="linear_drag")
+    # an effect below its material size (restitution at e 0.09: what clean landings fit)
+    assert diag_mod.params_immaterial({"restitution.e": 0.09, "mass": 0.01}) == ["restitution.e"]
+    assert diag_mod.params_immaterial({"restitution.e": 0.42}) == []
+    assert diag_mod.params_immaterial({"restitution.e": None}) == []
+    assert not diag_mod.counts(**ok, name="restitution", immaterial=["restitution.e"])
+    assert diag_mod.counts(**ok, name="restitution", immaterial=[])
 
 
 def test_counts_credits_an_effect_within_the_floors_spread():

@@ -72,6 +72,16 @@ FLOOR_SIGMAS = 2.0
 #: pushed it as far as the augmentation allows, so what it explains is not the effect
 #: within its physical range (1 %: far below any parameter's resolution in the tests)
 BOUND_TOLERANCE = 0.01
+#: effect parameters (estimate names) below which a candidate is not blamed: the fitted
+#: effect is within what the plain model's first-order contact discretization leaves
+#: (an effect too small to be the effect).  restitution.e: the impact law frees the
+#: ground's impulse on a vertex that an impact sends up, at any e, and a first-order
+#: model of the simulator's plastic tumbling landings (a box turning onto its next
+#: corner lifts the first one) gains from that: clean toss recordings fitted e 0.087 and
+#: 0.090 with held-out gains of 45 and 81 (3 of 3 folds), where the effect's recordings
+#: fit 0.41-0.45; a rebound at e < 0.2 from a 1 m/s landing is below 0.2 m/s and rises
+#: less than 2 mm (docs/diagnosis.md, "NLP augmentations")
+MATERIAL_SIZE = {"restitution.e": 0.2}
 #: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
 #: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
 #: 1 ± 0.15–0.35 (docs/effects.md), which a mass known to 10 % separates from the mass
@@ -174,6 +184,7 @@ class CandidateResult:
     folds_improved: int = 0
     folds_compared: int = 0
     at_bound: list = field(default_factory=list)
+    immaterial: list = field(default_factory=list)
     control: dict = field(default_factory=dict)
     significant: bool = False
     screening: float = 0.0
@@ -189,7 +200,7 @@ class CandidateResult:
             "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
             "score": _num(self.score), "significant": bool(self.significant),
             "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
-            "at_bound": list(self.at_bound),
+            "at_bound": list(self.at_bound), "immaterial": list(self.immaterial),
             "control_objective": {str(k): _num(v) for k, v in self.control.items()},
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
             "full_objective": _num(self.full_objective), "fits": self.fits, "screening": _num(self.screening),
@@ -590,6 +601,17 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                   f"at least half of the folds, closing at least {MIN_REDUCTION:.0%} of the plain model's gap "
                   f"plus {FLOOR_SIGMAS:g} sigma of the floor" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
                                     f"{best.penalty:.3g})" if best else ""))
+    # candidates that would have counted but for a guard (a parameter at a hard bound or
+    # below its material size): say so, a user may want to look at them
+    guarded = [c for c in ranked if c.status == "ok" and (c.at_bound or c.immaterial)
+               and counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
+                          (), c.name, mass_known=ctx.mass_known)]
+    if guarded:
+        reason += "; not blamed: " + ", ".join(
+            f"{c.name} (score {c.score:.3g}; "
+            + ", ".join([f"{k} at its bound" for k in c.at_bound]
+                        + [f"{k} {c.params[k]:.3g} below {MATERIAL_SIZE[k]:g}" for k in c.immaterial]) + ")"
+            for c in guarded)
     missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
     if missing:
         reason += f"; not compared: {', '.join(missing)} (see their status)"
@@ -653,6 +675,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
         K = len(np.asarray(cfit.estimate.vertices))
         theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, effects, K)
         c.at_bound = params_at_bound(theta, effects, K=K)
+        c.immaterial = params_immaterial(c.params)
         value = None
     c.full_objective = obj
     # held-out comparison on the folds where the plain model's fit succeeded
@@ -704,7 +727,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
     c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
-                           c.at_bound, c.name, mass_known=ctx.mass_known)
+                           c.at_bound, c.name, mass_known=ctx.mass_known, immaterial=c.immaterial)
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):
@@ -744,6 +767,13 @@ def params_at_bound(theta, effects, K: int) -> list:
     return out
 
 
+def params_immaterial(params: dict) -> list:
+    """Names of the effect parameters in ``params`` ({"effect.parameter": value}, as a
+    candidate reports them) below their MATERIAL_SIZE."""
+    return [k for k, least in MATERIAL_SIZE.items()
+            if k in params and params[k] is not None and np.isfinite(params[k]) and params[k] < least]
+
+
 #: candidates whose augmentation is observationally equivalent to the plain model with
 #: other parameter values unless the mass is known: a force-sensor gain g is a mass g
 #: times the true one (every force of the model scales with the mass, every measured
@@ -761,18 +791,19 @@ def mass_is_known(config: EstimatorConfig) -> bool:
 
 
 def counts(score, folds_improved, folds_compared, gap_before, improvement, floor, at_bound=(), name=None,
-           mass_known: bool = False) -> bool:
+           mass_known: bool = False, immaterial=()) -> bool:
     """The verdict rule for one candidate (module doc): score > 0, better than the plain
     model by its share of the penalty in at least half of the folds, at least
     MIN_REDUCTION of the plain model's plausible gap closed (its held-out gap plus
     FLOOR_SIGMAS sqrt(floor), which must be positive: a candidate must close a real part
     of the gap, not a sliver of a large misfit), and no effect parameter at a hard bound
-    of its augmentation (params_at_bound); a candidate of EQUIVALENT_TO_PLAIN counts only
+    of its augmentation (params_at_bound) and none below its MATERIAL_SIZE
+    (``immaterial``, params_immaterial); a candidate of EQUIVALENT_TO_PLAIN counts only
     with a known mass (``mass_known``, see mass_is_known)."""
     vals = [score, folds_improved, folds_compared, gap_before, improvement, floor]
     if any(v is None or not np.isfinite(float(v)) for v in vals):
         return False
-    if at_bound or (name in EQUIVALENT_TO_PLAIN and not mass_known):
+    if at_bound or immaterial or (name in EQUIVALENT_TO_PLAIN and not mass_known):
         return False
     plausible_gap = gap_before + FLOOR_SIGMAS * math.sqrt(max(float(floor), 0.0))
     return bool(score > 0 and 2 * folds_improved >= folds_compared > 0 and plausible_gap > 0
