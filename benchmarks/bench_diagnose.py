@@ -718,7 +718,8 @@ def main(argv=None):
                 res.update(effect=effect, seed=seed, injected=injected)
                 out.write_text(json.dumps(res))
             results.append(res)
-            verdict = res.get("verdict", "FAILED")
+            # the verdict under the current rule (a refit leaves the cached one stale)
+            verdict = rederive_verdict(res) if res.get("ok") else "FAILED"
             right = next((e for e in res.get("effects", []) if e["name"] == effect), None)
             extra = ""
             if right is not None and right.get("status") == "ok":
