@@ -5,7 +5,7 @@
                                                               [--pokes 3] [--tip-pokes 0]
                                                               [--cache DIR] [--timeout 1800]
                                                               [--fit-iterations 150] [--known-mass REL]
-                                                              [--refit NAMES] [--quiet] [--json OUT.json]
+                                                              [--refit NAMES] [--reach M] [--quiet] [--json OUT.json]
 
 For every effect named in SPEC (and ``none``) and seeds FIRST..FIRST+N-1 (``--first-seed``, default 0) it records a 2-D box with
 tacest's simulator and the effect at a random strength, writes it twice (with /truth
@@ -115,11 +115,11 @@ def _echo(quiet):
 # worker: one diagnosis in its own process
 
 
-def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "") -> dict:
+def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "", reach: str = "0") -> dict:
     """Diagnose the run files (without truth) of one recording, ``run_paths`` separated
     by RUN_SEPARATOR; never raises.  ``known_mass``: "MASS,LOG_SIGMA" (kg, -) of a
     weighed object's mass prior, or empty; ``effects``: the candidates,
-    comma-separated (empty: every SPEC effect)."""
+    comma-separated (empty: every SPEC effect); ``reach``: noise.complementarity_reach (m)."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
     from tacest.estimation.config import EstimatorConfig
@@ -129,6 +129,7 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     if known_mass:
         mass, log_sigma = (float(x) for x in known_mass.split(","))
         config.prior.mass, config.prior.mass_log_sigma = mass, log_sigma
+    config.noise.complementarity_reach = float(reach)
 
     runs = [read_run(p) for p in run_paths.split(RUN_SEPARATOR)]
     assert all(r.truth is None for r in runs), "the diagnosed copies must not carry /truth"
@@ -153,11 +154,12 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
 RUN_SEPARATOR = "::"
 
 
-def run_job(run_paths: list, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "") -> dict:
+def run_job(run_paths: list, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "",
+            reach: float = 0.0) -> dict:
     """The worker's result for the run files ``run_paths`` (one recording), in a subprocess
     with a time limit."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", RUN_SEPARATOR.join(map(str, run_paths)),
-           str(fit_iterations), known_mass, effects]
+           str(fit_iterations), known_mass, effects, repr(float(reach))]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -452,7 +454,7 @@ def refit_candidates(res: dict, paths: list, args, known: str) -> dict:
     if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == tag for e in res["effects"])
                                 for n in names):
         return res
-    new = run_job(paths, args.fit_iterations, args.timeout, known, ",".join(names))
+    new = run_job(paths, args.fit_iterations, args.timeout, known, ",".join(names), args.reach)
     if not new.get("ok"):
         res.setdefault("notes", []).append(f"refit of {args.refit} failed: {new.get('error')}")
         return res
@@ -642,7 +644,7 @@ def print_summary(s: dict):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worker", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
@@ -664,6 +666,9 @@ def main(argv=None):
     ap.add_argument("--refit", default=None, metavar="NAMES",
                     help="for recordings with a cached result: refit only these candidates (comma-separated) and "
                          "replace their entries (after a change to their augmentation)")
+    ap.add_argument("--reach", type=float, default=0.0, metavar="M",
+                    help="noise.complementarity_reach of the diagnoses (m; default 0: off, the estimator's "
+                         "default); results are cached apart (_reach<M>)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
@@ -678,6 +683,9 @@ def main(argv=None):
         return 1
     if args.design == "toss" and args.pairs < 2:
         print("--pairs must be >= 2 (every run is held out once)", file=sys.stderr)
+        return 1
+    if args.reach < 0:
+        print(f"--reach must be >= 0 (m), got {args.reach}", file=sys.stderr)
         return 1
     if bad or args.seeds < 1 or args.pokes < 2 or not 0 <= args.tip_pokes < args.pokes:
         print(f"bad arguments: effects {bad}, seeds {args.seeds}, pokes {args.pokes} (>= 2), "
@@ -705,7 +713,8 @@ def main(argv=None):
             known = ""
             if args.known_mass is not None:
                 known = weighed_mass(rec, effect, seed, args.known_mass)
-            out = cache / f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}.json"
+            out = cache / (f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}"
+                           f"{'' if not args.reach else f'_reach{args.reach:g}'}.json")
             if out.exists() and args.refit:
                 res = refit_candidates(json.loads(out.read_text()), rec.bare, args, known)
                 out.write_text(json.dumps(res))
@@ -714,7 +723,7 @@ def main(argv=None):
             else:
                 echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
                      " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
-                res = run_job(rec.bare, args.fit_iterations, args.timeout, known)
+                res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach)
                 res.update(effect=effect, seed=seed, injected=injected)
                 out.write_text(json.dumps(res))
             results.append(res)

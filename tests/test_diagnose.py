@@ -547,6 +547,36 @@ def test_time_scale_recovered_by_the_transform_path_where_gravity_shows_it(true_
     assert objs[1.0] - objs[chosen] > 3.0, objs  # more than one parameter's penalty
 
 
+@pytest.mark.parametrize("reach", [0.0, 0.01])
+def test_complementarity_reach_stops_ground_impulses_at_a_distance(reach):
+    """A falling box written by a clock 5 % fast (gravity looks 10 % weaker): the
+    saturating complementarity alone lets the fit hold the box up with ground impulses
+    at vertices far above the ground (measured: up to 20 % of the weight per sample,
+    0.27 N·s over the flight); with noise.complementarity_reach = 1 cm an impulse there
+    also costs its height in reaches, and the flight's ground impulses vanish (measured:
+    0.3 % of the weight per sample at most), which is what leaves the clock error to
+    the time_scale candidate.  Thresholds: 5 % and 1 % of the weight per sample, well
+    apart from both measurements; a sample counts as flying when the box's centre is
+    3 cm above its lowest, i.e. its lowest vertex 3 cm up."""
+    import dataclasses
+
+    from tacest.estimation.estimator import estimate_runs
+
+    run = _falling_box(1.05)
+    base = EstimatorConfig()
+    cfg = dataclasses.replace(base, noise=dataclasses.replace(base.noise, complementarity_reach=reach))
+    est = estimate_runs([run], "box", cfg)
+    r = est.runs[0]
+    flying = r.pose[:, 1] > r.pose[:, 1].min() + 0.03
+    assert flying.sum() > 20  # the drop's flight, ~0.28 s
+    weight_per_sample = est.params["mass"] * 9.81 * run.dt  # N·s
+    largest = np.abs(np.asarray(r.impulses["ground_normal"])[flying]).max() / weight_per_sample
+    if reach:
+        assert largest < 0.01, largest
+    else:
+        assert largest > 0.05, largest  # what the reach removes: the test can fail
+
+
 def _bouncing_box(e, T=100, dt=0.01, h=0.06, drop=0.1, sigma=1e-4, seed=0, t_release=0.05):
     """A box of height h dropped from ``drop`` m above its resting height at t_release s,
     bouncing with coefficient of restitution e (no rotation; bounces slower than 2 cm/s

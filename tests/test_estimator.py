@@ -54,19 +54,24 @@ def _pose_observed(run: Run, seed=5) -> Run:
     return run.replace(pose_obs=obs, sigma_position=5e-4, sigma_angle=0.01)
 
 
-def _problem_point(shape, seed=0, observed=False):
+def _problem_point(shape, seed=0, observed=False, reach=0.0):
     """An estimator and a generic point of its NLP; ``observed``: with pose observations
-    and the Occam term weighted 1 (its default is 0), so that its derivatives are checked."""
+    and the Occam term weighted 1 (its default is 0), so that its derivatives are checked;
+    ``reach`` (m): noise.complementarity_reach (the box's upper vertices, 6 cm up, are
+    beyond 1 cm, so the reach term is active there)."""
     import dataclasses
 
     from tacest.estimation.config import EstimatorConfig
 
     run = pushed_box_run()
     config = None
+    base = EstimatorConfig()
     if observed:
         run = _pose_observed(run)
-        base = EstimatorConfig()
         config = dataclasses.replace(base, weights=dataclasses.replace(base.weights, occam=1.0))
+    if reach:
+        config = config or base
+        config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, complementarity_reach=reach))
     est = ImplicitEstimator([run], shape, config)
     pr = est.problem
     rng = np.random.default_rng(seed)
@@ -77,16 +82,19 @@ def _problem_point(shape, seed=0, observed=False):
     return est, pr, z, p
 
 
-@pytest.mark.parametrize("shape,observed", [("box", False), ("polygon:5", False), ("box", True)])
-def test_gradient_and_constraint_jacobian_match_finite_differences(shape, observed):
-    est, pr, z, p = _problem_point(shape, observed=observed)
+POINTS = [("box", False, 0.0), ("polygon:5", False, 0.0), ("box", True, 0.0), ("box", False, 0.01)]
+
+
+@pytest.mark.parametrize("shape,observed,reach", POINTS)
+def test_gradient_and_constraint_jacobian_match_finite_differences(shape, observed, reach):
+    est, pr, z, p = _problem_point(shape, observed=observed, reach=reach)
     assert_derivatives_match_finite_differences(pr, z, p)
 
 
-@pytest.mark.parametrize("shape,observed", [("box", False), ("polygon:5", False), ("box", True)])
-def test_exact_hessian_blocks_match_casadi(shape, observed):
+@pytest.mark.parametrize("shape,observed,reach", POINTS)
+def test_exact_hessian_blocks_match_casadi(shape, observed, reach):
     """The O(T) block-assembled Hessian equals CasADi's Hessian of the whole Lagrangian."""
-    est, pr, z, p = _problem_point(shape, observed=observed)
+    est, pr, z, p = _problem_point(shape, observed=observed, reach=reach)
     lam_g = np.random.default_rng(2).normal(size=pr.g.shape[0])
     mine = np.asarray(ca.DM(pr.hess_lag["exact"](z, p, 0.7, lam_g)))
     # the objective through the compiled per-sample kernels (pr.f) and through the SX

@@ -13,6 +13,10 @@ from pathlib import Path
 from tacest.errors import TacestError
 
 
+#: keys of a section that may be 0 (off) where the section's others must be > 0
+NONNEGATIVE = {"Noise": ("complementarity_reach",)}
+
+
 @dataclass
 class Noise:
     """Noise levels that whiten the residuals (one sigma)."""
@@ -33,6 +37,10 @@ class Noise:
     #: object's weight: sliding at 0.5 object lengths per second, friction 10 % off the
     #: cone's limit on a vertex carrying half the weight (mu 0.5) is 0.6 sigma
     dissipation_ground: float = 0.02
+    #: m, no action at a distance (2-D): above this height a vertex's ground impulse costs
+    #: complementarity in proportion to the height over it, on top of the saturating
+    #: lambda_n·psi(phi); 0 (the default) leaves the saturating law alone
+    complementarity_reach: float = 0.0
 
 
 @dataclass
@@ -187,7 +195,10 @@ def _fill(cls, data: dict, where: str):
         elif isinstance(default, float):
             if not isinstance(v, (int, float)) or isinstance(v, bool):
                 raise TacestError(f"{where}.{k}: expected a number, got {v!r}")
-            if cls in (Noise, Prior) and not v > 0 and k != "friction":
+            if k in NONNEGATIVE.get(cls.__name__, ()):
+                if not v >= 0:
+                    raise TacestError(f"{where}.{k}: must be >= 0, got {v!r}")
+            elif cls in (Noise, Prior) and not v > 0 and k != "friction":
                 raise TacestError(f"{where}.{k}: must be > 0, got {v!r}")
             kwargs[k] = float(v)
         else:

@@ -31,7 +31,9 @@ so that a Gauss–Newton Hessian models the whole loss)::
                    tolerance), vn⁺ one of (vn / sigma_v - 1) (the vertex separating faster than
                    one process sigma: velocity-level complementarity); psi saturates at 1 so
                    that a vertex far above the ground costs lambda_n, not lambda_n · phi (the
-                   unbounded bilinear form makes IPOPT's Hessian badly indefinite)
+                   unbounded bilinear form makes IPOPT's Hessian badly indefinite); with
+                   noise.complementarity_reach > 0, + lambda_n max~(phi - reach, 0) / reach:
+                   an impulse far above the ground grows with the height (off by default)
     dissipation    (mu lambda_n |s| + lambda_t s) / sigma_diss (eq. C3, maximal dissipation:
                    0 when friction opposes the slip s at the cone's limit, or when sticking);
                    sigma_diss at the fingertips (slip from filtered positions), the tighter
@@ -167,6 +169,9 @@ REBOUND_SMOOTHING = 0.1
 #: a spinning box (an impact right at a sample had p = -0.3 mm), and one that ends 4 mm
 #: above the ground (the sample before a landing) must not count
 IMPACT_REACH = 1e-3
+#: m: smoothing width of the complementarity's reach term max(phi - reach, 0): at a
+#: vertex on the ground (phi = 0, reach 1 cm) it adds 0.25 % of the saturated psi
+REACH_SMOOTHING = 1e-3
 #: face_friction: sharpness of the softmax that picks the face facing the ground most
 #: (weights exp(-FACE_SHARPNESS · n_face·up)): between the faces of a box resting flat
 #: (n·up = -1 vs 0) the ratio is e^-20; at 45° the two lower faces share equally
@@ -382,7 +387,7 @@ def start_local_variables(ins):
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
            "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g",
-           "w_rest")
+           "w_rest", "reach", "w_reach")
 G = {n: i for i, n in enumerate(G_NAMES)}
 
 
@@ -1063,8 +1068,13 @@ class Problem2D:
             # touches (a 25 kg box moved by a 0.9 N push)
             sep = ground_gap_indicator(vn_c[k], sig_v, eps)
             # saturating (bounded curvature far from the ground); in units of the
-            # reference weight m0·g·dt, like every impulse (see the cone above)
-            comp.append(gain * ln * (gap + sep) / (1 + gap + sep))
+            # reference weight m0·g·dt, like every impulse (see the cone above).  With a
+            # reach (noise.complementarity_reach, w_reach = 1 / reach; 0 = off) an impulse
+            # at a vertex higher than the reach also costs its height over the reach in
+            # reaches: no action at a distance (a saturating law alone prices a flying
+            # vertex carrying sigma_comp of the weight at one sigma at any height)
+            far = g[G["w_reach"]] * smooth_pos(phi_c[k] - g[G["reach"]], REACH_SMOOTHING)
+            comp.append(gain * ln * ((gap + sep) / (1 + gap + sep) + far))
             pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
