@@ -410,6 +410,9 @@ class Problem2D:
         self.K = shape.n_vertices
         self.n_shape = shape.n_params
         self.effects = check_effects(effects)
+        #: the complementarity's reach term is built only when configured (a structural
+        #: choice, like the Occam term: part of the solver cache's key)
+        self.reach_on = config.noise.complementarity_reach > 0
         #: [(effect, parameter, prior centre, prior sigma, lower, upper)] of the effect block
         self.effect_params = effect_parameters(self.effects, self.K)
         self.n_eff = len(self.effect_params)
@@ -1073,8 +1076,11 @@ class Problem2D:
             # at a vertex higher than the reach also costs its height over the reach in
             # reaches: no action at a distance (a saturating law alone prices a flying
             # vertex carrying sigma_comp of the weight at one sigma at any height)
-            far = g[G["w_reach"]] * smooth_pos(phi_c[k] - g[G["reach"]], REACH_SMOOTHING)
-            comp.append(gain * ln * ((gap + sep) / (1 + gap + sep) + far))
+            if self.reach_on:
+                far = g[G["w_reach"]] * smooth_pos(phi_c[k] - g[G["reach"]], REACH_SMOOTHING)
+                comp.append(gain * ln * ((gap + sep) / (1 + gap + sep) + far))
+            else:  # the plain law, expression for expression (IPOPT's path unchanged)
+                comp.append(gain * ln * (gap + sep) / (1 + gap + sep))
             pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []

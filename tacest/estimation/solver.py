@@ -184,7 +184,8 @@ def get_solver(shape, structures: list[RunStructure], config: EstimatorConfig, e
     from tacest.estimation.problem import check_effects
 
     effects = check_effects(effects)
-    key = (shape.name, tuple(structures), repr(config.solver), config.weights.occam > 0) + ((effects,) if effects else ())
+    key = (shape.name, tuple(structures), repr(config.solver), config.weights.occam > 0,
+           config.noise.complementarity_reach > 0) + ((effects,) if effects else ())
     if key not in _CACHE:
         _CACHE[key] = BuiltSolver(Problem2D(shape, structures, config, effects=effects), config)
     return _CACHE[key]
