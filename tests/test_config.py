@@ -71,6 +71,13 @@ def test_every_key_in_the_shipped_config_has_a_comment():
         assert "#" in s.split("=", 1)[1], f"[{section}] {key} has no comment in configs/estimate.toml"
 
 
+def test_the_complementarity_reach_may_be_off_or_on(tmp_path):
+    """0 switches the reach off (the only noise key that may be 0); > 0 is a reach in m."""
+    for value in (0.0, 0.01):
+        assert load_config(_write(tmp_path, f"[noise]\ncomplementarity_reach = {value}\n")).noise.complementarity_reach \
+            == value
+
+
 def test_no_config_means_defaults():
     assert load_config(None) == EstimatorConfig()
 
@@ -112,6 +119,8 @@ def test_unknown_key_is_an_error(tmp_path, text, fragments):
     ('[solver]\nlinear_solver = "pardiso"\n', ["solver.linear_solver", "pardiso"]),
     ("[solver]\nhomotopy = [[1.0, 2.0]]\n", ["solver.homotopy", "triples"]),
     ("[solver]\nhomotopy = []\n", ["solver.homotopy"]),
+    ("[noise]\ncomplementarity_reach = -0.01\n", ["noise.complementarity_reach", "must be >= 0"]),
+    ("[noise]\npenetration = 0.0\n", ["noise.penetration", "must be > 0"]),
 ])
 def test_wrong_type_is_an_error(tmp_path, text, fragments):
     _assert_one_line_error(tmp_path, text, fragments)
