@@ -604,8 +604,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     # candidates that would have counted but for a guard (a parameter at a hard bound or
     # below its material size): say so, a user may want to look at them
     guarded = [c for c in ranked if c.status == "ok" and (c.at_bound or c.immaterial)
-               and counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
-                          (), c.name, mass_known=ctx.mass_known)]
+               and candidate_counts(c, ctx.mass_known, guards=False)]
     if guarded:
         reason += "; not blamed: " + ", ".join(
             f"{c.name} (score {c.score:.3g}; "
@@ -726,8 +725,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     c.folds_improved = sum(1 for j in common if plain[j] - c.heldout[j] > c.penalty * fold_share[j])
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
-    c.significant = counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
-                           c.at_bound, c.name, mass_known=ctx.mass_known, immaterial=c.immaterial)
+    c.significant = candidate_counts(c, ctx.mass_known)
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):
@@ -788,6 +786,14 @@ def mass_is_known(config: EstimatorConfig) -> bool:
     """Whether the configuration's mass prior is tight enough to split a force-sensor
     gain from the mass (``prior.mass_log_sigma`` <= KNOWN_MASS_LOG_SIGMA)."""
     return float(config.prior.mass_log_sigma) <= KNOWN_MASS_LOG_SIGMA
+
+
+def candidate_counts(c: CandidateResult, mass_known: bool, guards: bool = True) -> bool:
+    """counts() for a candidate's result; ``guards=False`` leaves out its parameter guards
+    (at a bound, below the material size), to tell which candidates only they stop."""
+    return counts(c.score, c.folds_improved, c.folds_compared, c.gap_before, c.improvement, c.floor,
+                  c.at_bound if guards else (), c.name, mass_known=mass_known,
+                  immaterial=c.immaterial if guards else ())
 
 
 def counts(score, folds_improved, folds_compared, gap_before, improvement, floor, at_bound=(), name=None,

@@ -138,8 +138,7 @@ def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float,
                 sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult,
                 dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation,
                 m_ref=scales.m0, I_ref=scales.m0 * scales.L ** 2 / 6, sig_diss_g=nz.dissipation_ground,
-                reach=nz.complementarity_reach,
-                w_reach=1.0 / nz.complementarity_reach if nz.complementarity_reach > 0 else 0.0)
+                reach=nz.complementarity_reach)
     for k, v in vals.items():
         g[G[k]] = v
     return g

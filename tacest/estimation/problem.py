@@ -387,7 +387,7 @@ def start_local_variables(ins):
 # indices into the per-run global parameter vector
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
            "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss", "m_ref", "I_ref", "sig_diss_g",
-           "w_rest", "reach", "w_reach")
+           "w_rest", "reach")
 G = {n: i for i, n in enumerate(G_NAMES)}
 
 
@@ -1072,12 +1072,12 @@ class Problem2D:
             sep = ground_gap_indicator(vn_c[k], sig_v, eps)
             # saturating (bounded curvature far from the ground); in units of the
             # reference weight m0·g·dt, like every impulse (see the cone above).  With a
-            # reach (noise.complementarity_reach, w_reach = 1 / reach; 0 = off) an impulse
+            # reach (noise.complementarity_reach > 0; the term is built only then) an impulse
             # at a vertex higher than the reach also costs its height over the reach in
             # reaches: no action at a distance (a saturating law alone prices a flying
             # vertex carrying sigma_comp of the weight at one sigma at any height)
             if self.reach_on:
-                far = g[G["w_reach"]] * smooth_pos(phi_c[k] - g[G["reach"]], REACH_SMOOTHING)
+                far = smooth_pos(phi_c[k] - g[G["reach"]], REACH_SMOOTHING) / g[G["reach"]]
                 comp.append(gain * ln * ((gap + sep) / (1 + gap + sep) + far))
             else:  # the plain law, expression for expression (IPOPT's path unchanged)
                 comp.append(gain * ln * (gap + sep) / (1 + gap + sep))
