@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_estimate.py [--seeds 10] [--cases box,polygon,noforce,scaling]
                                                   [--methods implicit,shooting] [--timeout 600]
-                                                  [--quiet] [--json OUT.json]
+                                                  [--reach M] [--quiet] [--json OUT.json]
 
 Cases (2-D, ``record_sim``; 6 pokes, force noise 0.02 N, about 8-10 s at 100 Hz each):
 
@@ -28,6 +28,9 @@ mass and friction errors <= 15 %, polygons <= 5 mm, no-force boxes <= 6 mm, wall
 <= recording duration, and scaling no worse than linear (time(T) / time(200) <= T / 200).
 Medians are over the successful runs; a target counts as met only if no run failed.
 The exit status is 0 whether or not the targets are met (1 only for bad arguments).
+``--reach M`` sets the estimator's ``noise.complementarity_reach`` (m, 0: off) for
+every estimate (the shooting method has no complementarity residual and ignores it), to
+compare the estimator with and without it on the same recordings.
 """
 
 from __future__ import annotations
@@ -59,10 +62,12 @@ REL_KEYS = ("mass_rel", "friction_ground_rel", "friction_finger_rel")
 # worker: one estimate in its own process
 
 
-def worker(run_path: str, shape: str, method: str) -> dict:
+def worker(run_path: str, shape: str, method: str, reach: str = "") -> dict:
     """Estimate one run file (2-D, or 3-D: estimate_runs hands those to the 3-D
     estimator) and score it against its truth; never raises.  ``starts``: the solves
-    from each starting shape (the estimate's attr ``starts``)."""
+    from each starting shape (the estimate's attr ``starts``); ``reach``: the
+    estimator's noise.complementarity_reach (m; empty: the default configuration)."""
+    from tacest.estimation.config import load_config
     from tacest.errors import TacestError
     from tacest.estimation.estimator import estimate_runs
     from tacest.evaluation.metrics import evaluate, match_run
@@ -75,7 +80,8 @@ def worker(run_path: str, shape: str, method: str) -> dict:
     out["duration"] = run.n_samples * run.dt
     t0 = time.perf_counter()
     try:
-        est = estimate_runs([run], shape, method=method)
+        config = load_config(overrides={"noise": {"complementarity_reach": float(reach)}}) if reach else None
+        est = estimate_runs([run], shape, config=config, method=method)
     except TacestError as exc:
         out["wall"] = time.perf_counter() - t0
         m = re.search(r": (\w+) after \d+ iterations", str(exc))  # IPOPT's status, when it says it
@@ -102,9 +108,11 @@ def worker(run_path: str, shape: str, method: str) -> dict:
     return out
 
 
-def run_job(run_path: Path, shape: str, method: str, timeout: float) -> dict:
-    """The worker in a subprocess with a time limit (killed when it runs over)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), shape, method]
+def run_job(run_path: Path, shape: str, method: str, timeout: float, reach: float | None = None) -> dict:
+    """The worker in a subprocess with a time limit (killed when it runs over); ``reach``
+    None: the estimator's default noise.complementarity_reach."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(run_path), shape, method,
+           "" if reach is None else repr(reach)]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -295,7 +303,9 @@ def main(argv=None) -> int:
     p.add_argument("--timeout", type=float, default=600.0, help="s per estimate (default 600)")
     p.add_argument("--json", dest="json_out", default=None, help="also write all figures to this JSON file")
     p.add_argument("--quiet", action="store_true", help="only the tables")
-    p.add_argument("--worker", nargs=3, metavar=("RUN", "SHAPE", "METHOD"), help=argparse.SUPPRESS)
+    p.add_argument("--reach", type=float, default=None, metavar="M",
+                   help="noise.complementarity_reach of the estimates (m; 0: off; default: the estimator's default)")
+    p.add_argument("--worker", nargs=4, metavar=("RUN", "SHAPE", "METHOD", "REACH"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
         print(json.dumps(worker(*a.worker)))
@@ -305,6 +315,8 @@ def main(argv=None) -> int:
     bad = [c for c in cases if c not in CASES] + [m for m in methods if m not in METHODS]
     if bad or a.seeds < 1:
         p.error(f"unknown case or method: {', '.join(bad)}" if bad else "--seeds must be >= 1")
+    if a.reach is not None and not a.reach >= 0:
+        p.error(f"--reach must be >= 0 (m), got {a.reach}")
 
     def say(msg):
         if not a.quiet:
@@ -320,7 +332,7 @@ def main(argv=None) -> int:
             for seed in range(a.seeds):
                 path, shape = record(case, seed, tmp)
                 for m in methods:
-                    j = run_job(path, shape, m, a.timeout)
+                    j = run_job(path, shape, m, a.timeout, a.reach)
                     j.update(seed=seed, shape=shape)
                     results[case][m]["jobs"].append(j)
                     if j.get("ok"):
@@ -336,7 +348,7 @@ def main(argv=None) -> int:
             for m in methods:
                 scaling[m] = []
                 for T, path in cuts:
-                    j = run_job(path, "box", m, a.timeout)
+                    j = run_job(path, "box", m, a.timeout, a.reach)
                     j["T"] = T
                     scaling[m].append(j)
                     say(f"[scaling T={T} {m}] {j['status'] or 'failed'}: wall {j['wall']:.1f} s")
@@ -346,7 +358,7 @@ def main(argv=None) -> int:
     if scaling:
         print_scaling(scaling)
     if a.json_out:
-        doc = {"seeds": a.seeds, "timeout": a.timeout, "cases": results, "scaling": scaling}
+        doc = {"seeds": a.seeds, "timeout": a.timeout, "reach": a.reach, "cases": results, "scaling": scaling}
         from tacest.evaluation.metrics import to_jsonable
 
         Path(a.json_out).write_text(json.dumps(to_jsonable(doc), indent=1))
