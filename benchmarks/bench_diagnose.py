@@ -666,9 +666,9 @@ def main(argv=None):
     ap.add_argument("--refit", default=None, metavar="NAMES",
                     help="for recordings with a cached result: refit only these candidates (comma-separated) and "
                          "replace their entries (after a change to their augmentation)")
-    ap.add_argument("--reach", type=float, default=0.0, metavar="M",
-                    help="noise.complementarity_reach of the diagnoses (m; default 0: off, the estimator's "
-                         "default); results are cached apart (_reach<M>)")
+    ap.add_argument("--reach", type=float, default=None, metavar="M",
+                    help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the estimator's "
+                         "default); results with a reach are cached apart (_reach<M>)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
@@ -684,7 +684,11 @@ def main(argv=None):
     if args.design == "toss" and args.pairs < 2:
         print("--pairs must be >= 2 (every run is held out once)", file=sys.stderr)
         return 1
-    if args.reach < 0:
+    if args.reach is None:
+        from tacest.estimation.config import EstimatorConfig
+
+        args.reach = EstimatorConfig().noise.complementarity_reach
+    if not args.reach >= 0:
         print(f"--reach must be >= 0 (m), got {args.reach}", file=sys.stderr)
         return 1
     if bad or args.seeds < 1 or args.pokes < 2 or not 0 <= args.tip_pokes < args.pokes:
