@@ -54,11 +54,11 @@ def _pose_observed(run: Run, seed=5) -> Run:
     return run.replace(pose_obs=obs, sigma_position=5e-4, sigma_angle=0.01)
 
 
-def _problem_point(shape, seed=0, observed=False, reach=0.0):
+def _problem_point(shape, seed=0, observed=False, reach=None):
     """An estimator and a generic point of its NLP; ``observed``: with pose observations
     and the Occam term weighted 1 (its default is 0), so that its derivatives are checked;
-    ``reach`` (m): noise.complementarity_reach (the box's upper vertices, 6 cm up, are
-    beyond 1 cm, so the reach term is active there)."""
+    ``reach`` (m): noise.complementarity_reach, 0 off, None the default (the box's upper
+    vertices, 6 cm up, are beyond 1 cm, so a reach of 1 cm is active there)."""
     import dataclasses
 
     from tacest.estimation.config import EstimatorConfig
@@ -69,7 +69,7 @@ def _problem_point(shape, seed=0, observed=False, reach=0.0):
     if observed:
         run = _pose_observed(run)
         config = dataclasses.replace(base, weights=dataclasses.replace(base.weights, occam=1.0))
-    if reach:
+    if reach is not None:
         config = config or base
         config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, complementarity_reach=reach))
     est = ImplicitEstimator([run], shape, config)
