@@ -547,6 +547,26 @@ def test_time_scale_recovered_by_the_transform_path_where_gravity_shows_it(true_
     assert objs[1.0] - objs[chosen] > 3.0, objs  # more than one parameter's penalty
 
 
+def test_the_reach_term_is_free_on_the_ground_and_the_height_beyond_it_above():
+    """problem.reach_excess(phi, r) = smoothed max(phi - r, 0) / r at r = 1 cm.  On the
+    ground it must be negligible against the saturated psi = 1 (below 1e-5; the
+    exponential tail gives 5e-6): a load-carrying vertex pays lambda_n times it, so an
+    algebraic tail (eps²/4r = 0.25 %) priced the weight and biased the mass.  5 mm
+    beyond the reach it is 0.5 reaches to within 1 % (the 1 mm smoothing's tail there is
+    e^-5 mm/1 mm = 0.7 % of a mm); it never decreases with the height."""
+    import casadi as ca
+
+    from tacest.estimation.problem import reach_excess
+
+    phi = ca.SX.sym("phi")
+    f = ca.Function("f", [phi], [reach_excess(phi, 0.01)])
+    assert 0.0 <= float(f(0.0)) < 1e-5
+    assert abs(float(f(0.015)) - 0.5) < 0.01 * 0.5
+    heights = np.linspace(-0.005, 0.05, 200)
+    values = np.array([float(f(h)) for h in heights])
+    assert np.all(np.diff(values) >= 0)
+
+
 @pytest.mark.parametrize("reach", [0.0, 0.01])
 def test_complementarity_reach_stops_ground_impulses_at_a_distance(reach):
     """A falling box written by a clock 5 % fast (gravity looks 10 % weaker): the
