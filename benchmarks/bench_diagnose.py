@@ -129,13 +129,12 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     if known_mass:
         mass, log_sigma = (float(x) for x in known_mass.split(","))
         config.prior.mass, config.prior.mass_log_sigma = mass, log_sigma
-    config.noise.complementarity_reach = float(reach)
 
     runs = [read_run(p) for p in run_paths.split(RUN_SEPARATOR)]
     assert all(r.truth is None for r in runs), "the diagnosed copies must not carry /truth"
     t0 = time.perf_counter()
     try:
-        opts = DiagnoseOptions(fit_iterations=fit_iterations)
+        opts = DiagnoseOptions(fit_iterations=fit_iterations, reach=float(reach))
         if effects:
             opts.effects = tuple(effects.split(","))
         d = diagnose(runs, "box", config=config, options=opts)
@@ -667,8 +666,8 @@ def main(argv=None):
                     help="for recordings with a cached result: refit only these candidates (comma-separated) and "
                          "replace their entries (after a change to their augmentation)")
     ap.add_argument("--reach", type=float, default=None, metavar="M",
-                    help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the estimator's "
-                         "default); results with a reach are cached apart (_reach<M>)")
+                    help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the diagnosis' "
+                         "default, DiagnoseOptions.reach); results with a reach are cached apart (_reach<M>)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
@@ -685,9 +684,9 @@ def main(argv=None):
         print("--pairs must be >= 2 (every run is held out once)", file=sys.stderr)
         return 1
     if args.reach is None:
-        from tacest.estimation.config import EstimatorConfig
+        from tacest.diagnosis.diagnose import DiagnoseOptions
 
-        args.reach = EstimatorConfig().noise.complementarity_reach
+        args.reach = DiagnoseOptions().reach
     if not args.reach >= 0:
         print(f"--reach must be >= 0 (m), got {args.reach}", file=sys.stderr)
         return 1

@@ -33,10 +33,13 @@ import click
 @click.option("--floor", "floor_mode", type=click.Choice(["calibrated", "nominal"]), default="calibrated",
               show_default=True, help="Noise floor: levels from the data (capped at the configured noise) "
               "or the configured noise levels themselves.")
+@click.option("--reach", type=click.FloatRange(min=0), default=None, metavar="M",
+              help="No action at a distance in every fit: a ground impulse at a vertex more than M m up "
+              "costs its height (noise.complementarity_reach; default 0.01; 0: off). 2-D runs.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, as_json, quiet):
+             max_candidates, floor_mode, reach, as_json, quiet):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  See docs/diagnosis.md."""
@@ -59,8 +62,9 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or effects:
-            raise TacestError("--estimate and --effects are for 2-D runs; 3-D runs compare the 3-D augmentations")
+        if estimate_path or effects or reach is not None:
+            raise TacestError("--estimate, --effects and --reach are for 2-D runs; 3-D runs compare the 3-D "
+                              "augmentations")
         opts3 = Options3D(fit_iterations=fit_iterations)
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
@@ -72,7 +76,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     shape = shape or (est.shape if est is not None else "box")
     opts = DiagnoseOptions(effects=names, floor=floor_mode)
     for key, val in (("window", window), ("alpha", alpha), ("max_folds", max_folds),
-                     ("fit_iterations", fit_iterations), ("max_candidates", max_candidates)):
+                     ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach)):
         if val is not None:
             setattr(opts, key, val)
     diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, echo=echo)
