@@ -30,7 +30,10 @@ Fairness.  Every candidate gets the same data, folds, iteration budget
 (``fit_iterations`` per IPOPT stage), warm start (from the plain model's fit to all
 data; a transform candidate's training fits from its own fit to all data), at most
 ``fits_per_candidate`` fits to all data to choose its parameters, and the same
-penalty per parameter.
+penalty per parameter.  Every fit, the plain model's included, is made with the
+complementarity's reach (``DiagnoseOptions.reach``, DIAGNOSIS_REACH): no ground impulse
+at a vertex far above the ground, so the plain model cannot hide an effect of flight or
+landing behind forces no ground could exert.
 """
 
 from __future__ import annotations
