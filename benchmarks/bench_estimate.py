@@ -67,7 +67,7 @@ def worker(run_path: str, shape: str, method: str, reach: str = "") -> dict:
     estimator) and score it against its truth; never raises.  ``starts``: the solves
     from each starting shape (the estimate's attr ``starts``); ``reach``: the
     estimator's noise.complementarity_reach (m; empty: the default configuration)."""
-    from tacest.estimation.config import load_config
+    from tacest.estimation.config import EstimatorConfig
     from tacest.errors import TacestError
     from tacest.estimation.estimator import estimate_runs
     from tacest.evaluation.metrics import evaluate, match_run
@@ -80,7 +80,7 @@ def worker(run_path: str, shape: str, method: str, reach: str = "") -> dict:
     out["duration"] = run.n_samples * run.dt
     t0 = time.perf_counter()
     try:
-        config = load_config(overrides={"noise": {"complementarity_reach": float(reach)}}) if reach else None
+        config = EstimatorConfig().with_reach(float(reach)) if reach else None
         est = estimate_runs([run], shape, config=config, method=method)
     except TacestError as exc:
         out["wall"] = time.perf_counter() - t0

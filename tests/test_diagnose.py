@@ -332,8 +332,6 @@ def test_every_fit_of_a_diagnosis_has_its_reach(recordings, stand_in):
     """The diagnosis fits with DiagnoseOptions.reach (1 cm by default) whatever the
     configuration says, reports it in diagnosis.json, keeps the configuration's with
     None, and refuses a negative reach."""
-    import dataclasses
-
     run = _read(recordings["none"])
     base = EstimatorConfig()
     assert base.noise.complementarity_reach == 0.0  # the estimator's default: off
@@ -341,7 +339,7 @@ def test_every_fit_of_a_diagnosis_has_its_reach(recordings, stand_in):
     assert stand_in.reaches == {diag_mod.DIAGNOSIS_REACH} and diag_mod.DIAGNOSIS_REACH > 0
     assert d.to_json()["options"]["reach"] == diag_mod.DIAGNOSIS_REACH
     stand_in.reaches.clear()
-    own = dataclasses.replace(base, noise=dataclasses.replace(base.noise, complementarity_reach=0.02))
+    own = base.with_reach(0.02)
     d = diag_mod.diagnose([run], "box", own, diag_mod.DiagnoseOptions(effects=("latency",), reach=None))
     assert stand_in.reaches == {0.02} and d.to_json()["options"]["reach"] == 0.02
     with pytest.raises(TacestError, match="reach must be a length >= 0"):
@@ -638,14 +636,10 @@ def test_complementarity_reach_stops_ground_impulses_at_a_distance(reach):
     the time_scale candidate.  Thresholds: 5 % and 1 % of the weight per sample, well
     apart from both measurements; a sample counts as flying when the box's centre is
     3 cm above its lowest, i.e. its lowest vertex 3 cm up."""
-    import dataclasses
-
     from tacest.estimation.estimator import estimate_runs
 
     run = _falling_box(1.05)
-    base = EstimatorConfig()
-    cfg = dataclasses.replace(base, noise=dataclasses.replace(base.noise, complementarity_reach=reach))
-    est = estimate_runs([run], "box", cfg)
+    est = estimate_runs([run], "box", EstimatorConfig().with_reach(reach))
     r = est.runs[0]
     flying = r.pose[:, 1] > r.pose[:, 1].min() + 0.03
     assert flying.sum() > 20  # the drop's flight, ~0.28 s

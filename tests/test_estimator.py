@@ -70,8 +70,7 @@ def _problem_point(shape, seed=0, observed=False, reach=None):
         run = _pose_observed(run)
         config = dataclasses.replace(base, weights=dataclasses.replace(base.weights, occam=1.0))
     if reach is not None:
-        config = config or base
-        config = dataclasses.replace(config, noise=dataclasses.replace(config.noise, complementarity_reach=reach))
+        config = (config or base).with_reach(reach)
     est = ImplicitEstimator([run], shape, config)
     pr = est.problem
     rng = np.random.default_rng(seed)

@@ -162,10 +162,7 @@ class DiagnoseOptions:
     def fit_config(self, config: EstimatorConfig) -> EstimatorConfig:
         """The estimator configuration of the diagnosis' fits: ``config`` with this
         reach (unchanged when reach is None)."""
-        if self.reach is None:
-            return config
-        return dataclasses.replace(config, noise=dataclasses.replace(config.noise,
-                                                                     complementarity_reach=float(self.reach)))
+        return config if self.reach is None else config.with_reach(self.reach)
 
 
 @dataclass

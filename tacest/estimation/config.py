@@ -171,6 +171,10 @@ class EstimatorConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    def with_reach(self, reach: float) -> "EstimatorConfig":
+        """A copy with noise.complementarity_reach = ``reach`` (m; 0: off)."""
+        return dataclasses.replace(self, noise=dataclasses.replace(self.noise, complementarity_reach=float(reach)))
+
 
 def _fill(cls, data: dict, where: str):
     if not isinstance(data, dict):
