@@ -69,7 +69,7 @@ def worker(run_path: str, shape: str, method: str, reach: str = "") -> dict:
     estimator's noise.complementarity_reach (m; empty: the default configuration)."""
     from tacest.estimation.config import EstimatorConfig
     from tacest.errors import TacestError
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.evaluation.metrics import evaluate, match_run
     from tacest.io.h5util import sha256_file
     from tacest.io.run import read_run

@@ -42,16 +42,18 @@ def demo(out_dir, seed, quiet):
     against the truth, and print a summary.  Files go to OUTPUT."""
     from tacest.errors import SolveFailedError, TacestError
     from tacest.estimation.config import load_config
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.evaluation.metrics import evaluate, to_jsonable
     from tacest.evaluation.plots import plot_evaluation
     from tacest.io.estimate import read_estimate, write_estimate
     from tacest.io.run import read_run, write_run
+    from tacest.cli.logs import setup_logging
     from tacest.sim.record import SimOptions, record_sim
 
+    log = setup_logging(quiet)
+
     def progress(msg):
-        if not quiet:
-            click.echo(msg, err=True)
+        log.info(msg)
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -66,7 +68,7 @@ def demo(out_dir, seed, quiet):
     # -- record ----------------------------------------------------------------------
     t0 = time.perf_counter()
     opts = SimOptions(dim=2, object_spec=DEMO_OBJECT, seed=seed, pokes=DEMO_POKES)
-    write_run(record_sim(opts, echo=progress), run_path)
+    write_run(record_sim(opts), run_path)
     run = read_run(run_path)  # as every stage sees it (validated, with its file name)
     t_record = time.perf_counter() - t0
     progress(f"record: wrote {run_path} ({run.n_samples} samples, {t_record:.1f} s)")
@@ -74,7 +76,7 @@ def demo(out_dir, seed, quiet):
     # -- estimate --------------------------------------------------------------------
     t0 = time.perf_counter()
     try:
-        est = estimate_runs([run], DEMO_SHAPE, config=load_config(None), echo=progress, method="implicit")
+        est = estimate_runs([run], DEMO_SHAPE, config=load_config(None), method="implicit")
     except SolveFailedError as exc:
         raise SolveFailedError(f"demo: solve failed on {run_path}: {exc}") from None
     write_estimate(est, est_path)

@@ -52,7 +52,9 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     from tacest.io.estimate import read_estimate
     from tacest.io.run import read_run
 
-    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    from tacest.cli.logs import setup_logging
+
+    setup_logging(quiet)
     out = Path(output)
     if out.exists() and not out.is_dir():
         raise TacestError(f"{out}: exists and is not a folder")
@@ -69,7 +71,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
                 setattr(opts3, key, val)
-        diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, echo=echo)
+        diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3)
         _report(diag, write_report_3d, out, as_json, quiet)
         return
     est = read_estimate(estimate_path) if estimate_path else None
@@ -79,7 +81,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
                      ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach)):
         if val is not None:
             setattr(opts, key, val)
-    diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, echo=echo)
+    diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est)
     _report(diag, write_report, out, as_json, quiet)
 
 

@@ -20,14 +20,16 @@ def estimate(runs, output, shape, method, config_path, quiet):
     """Estimate one object from RUNS (run files of the same object; shared parameters,
     one trajectory each) and write the estimate file OUTPUT."""
     from tacest.estimation.config import load_config
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.io.estimate import write_estimate
     from tacest.io.run import read_run
 
-    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    from tacest.cli.logs import setup_logging
+
+    setup_logging(quiet)
     config = load_config(config_path)
     loaded = [read_run(p) for p in runs]
-    est = estimate_runs(loaded, shape, config=config, echo=echo, method=method)
+    est = estimate_runs(loaded, shape, config=config, method=method)
     write_estimate(est, Path(output))
     if not quiet:
         p = est.params

@@ -36,7 +36,9 @@ def explore(out_dir, object_spec, seed, policy, pokes, shape, score, vary, confi
         make_shape(shape)  # a bad --shape is an error before anything is simulated
     opts = ExploreOptions(object_spec=object_spec, seed=seed, policy=policy, pokes=pokes, shape=shape, score=score,
                           config_path=config_path, vary=tuple(vary)).validate()
-    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    from tacest.cli.logs import setup_logging
+
+    setup_logging(quiet)
 
     def progress(done, total):
         if quiet:
@@ -45,7 +47,7 @@ def explore(out_dir, object_spec, seed, policy, pokes, shape, score, vary, confi
         k = int(round(width * done / total))
         click.echo(f"  [{'#' * k}{'.' * (width - k)}] {done}/{total} pokes", err=True)
 
-    summary = run_loop(opts, out_dir, echo=echo, progress=progress)
+    summary = run_loop(opts, out_dir, progress=progress)
     last = summary["steps"][-1]
     ch = last.get("chamfer")
     if not quiet:

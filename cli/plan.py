@@ -36,7 +36,9 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
     from tacest.io.run import read_run
     from tacest.planning.planner import PlanSettings, plan_next
 
-    echo = (lambda *a, **k: None) if quiet else (lambda msg: click.echo(msg, err=True))
+    from tacest.cli.logs import setup_logging
+
+    setup_logging(quiet)
     folder = Path(output).parent
     if str(folder) and not folder.is_dir():
         raise TacestError(f"{output}: folder {folder} does not exist")
@@ -44,7 +46,7 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
                             population=population).validate()
     est = read_estimate(estimate)
     loaded = [read_run(p) for p in runs]
-    result = plan_next(est, loaded, settings, echo=echo)
+    result = plan_next(est, loaded, settings)
     write_plan(result, Path(output))
     if not quiet:
         a = result.chosen_dict()

@@ -72,8 +72,11 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def record(source, output, **kw):
     """Record a run file (SPEC run format) from SOURCE."""
+    from tacest.cli.logs import setup_logging
+
     output = Path(output)
     quiet = kw.pop("quiet")
+    setup_logging(quiet)
     if source == "sim":
         _record_sim(output, quiet=quiet, **kw)
     elif source == "serial":
@@ -81,8 +84,7 @@ def record(source, output, **kw):
             raise click.UsageError("--source serial needs --port")
         from tacest.sensors.serial_rig import record_serial
 
-        record_serial(kw["port"], baud=kw["baud"], duration=kw["duration"], output=output,
-                      echo=(lambda *a, **k: None) if quiet else _echo_err)
+        record_serial(kw["port"], baud=kw["baud"], duration=kw["duration"], output=output)
     else:
         missing = [n for n in ("frames", "calib", "finger_log") if not kw[n]]
         if missing:
@@ -95,8 +97,7 @@ def record(source, output, **kw):
             flow=FlowSettings(work_scale=kw["flow_scale"], dis_preset=kw["flow_preset"]),
             detect=DetectSettings(noise_frames=kw["noise_frames"], k_on=kw["contact_k"], k_off=kw["contact_k"] * 2 / 3),
         )
-        record_video(kw["frames"], kw["calib"], kw["finger_log"], output=output,
-                     echo=(lambda *a, **k: None) if quiet else _echo_err, options=options)
+        record_video(kw["frames"], kw["calib"], kw["finger_log"], output=output, options=options)
 
 
 def _echo_err(*args, **kwargs):
@@ -105,7 +106,8 @@ def _echo_err(*args, **kwargs):
 
 def _record_sim(output, quiet, **kw):
     from tacest.io.run import write_run
-    from tacest.sim.record import SimOptions, record_sim
+    from tacest.dims import record_sim
+    from tacest.sim.record import SimOptions
 
     opts = SimOptions(
         dim=int(kw["dim"]), object_spec=kw["object_spec"], seed=kw["seed"], pokes=kw["pokes"],
@@ -113,8 +115,7 @@ def _record_sim(output, quiet, **kw):
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
         observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"],
     )
-    run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None,
-                     echo=(lambda *a, **k: None) if quiet else _echo_err)
+    run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None)
     write_run(run, output, include_truth=not kw["no_truth"])
     if not quiet:
         _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), "

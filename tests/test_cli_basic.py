@@ -128,10 +128,10 @@ def test_demo_writes_every_file_and_an_honest_summary(tmp_path, capsys, monkeypa
 
     import numpy as np
 
-    import tacest.estimation.estimator as estimator
+    import tacest.dims as dims
     from tacest.io.estimate import Estimate, RunEstimate
 
-    def truth_as_estimate(runs, shape, config=None, echo=None, method="implicit"):
+    def truth_as_estimate(runs, shape, config=None, method="implicit"):
         (run,) = runs
         tr = run.truth
         return Estimate(dim=2, shape=shape, vertices=tr.vertices, runs=[RunEstimate(
@@ -141,7 +141,7 @@ def test_demo_writes_every_file_and_an_honest_summary(tmp_path, capsys, monkeypa
             identifiable={"mass": True, "inertia": True, "friction_ground": True, "friction_finger": False},
             solver_status="Solve_Succeeded", success=True, iterations=7)
 
-    monkeypatch.setattr(estimator, "estimate_runs", truth_as_estimate)
+    monkeypatch.setattr(dims, "estimate_runs", truth_as_estimate)
     code, out, err = _run_demo(tmp_path, capsys, ["--seed", "1"])
     assert code == 0, err
     assert err == ""  # --quiet
@@ -160,7 +160,7 @@ def test_demo_writes_every_file_and_an_honest_summary(tmp_path, capsys, monkeypa
 
 
 def test_demo_reports_a_failed_solve_and_exits_2(tmp_path, capsys, monkeypatch):
-    import tacest.estimation.estimator as estimator
+    import tacest.dims as dims
     from tacest.errors import SolveFailedError
 
     def fails(*args, **kwargs):
@@ -169,7 +169,7 @@ def test_demo_reports_a_failed_solve_and_exits_2(tmp_path, capsys, monkeypatch):
     d = tmp_path / "out"
     d.mkdir()
     (d / "estimate.h5").write_text("from an earlier demo")
-    monkeypatch.setattr(estimator, "estimate_runs", fails)
+    monkeypatch.setattr(dims, "estimate_runs", fails)
     code, out, err = _run_demo(tmp_path, capsys, [])
     assert code == 2
     lines = err.strip().splitlines()

@@ -22,7 +22,7 @@ import pytest
 
 from tacest.diagnosis import diagnose as diag_mod
 from tacest.diagnosis.candidates import candidate, latency_mismatch, parse_effect_list
-from tacest.diagnosis.fitting import FitResult, estimator_supports_effects, occam_objective
+from tacest.diagnosis.fitting import FitResult, occam_objective
 from tacest.diagnosis.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
                                     residual_dof, window_tests)
 from tacest.diagnosis.heldout import make_folds, make_pieces
@@ -289,8 +289,8 @@ class _StandIn:
                        runs=rests, solver_status="Solve_Succeeded", success=True, objective=0.0)
         return FitResult(estimate=est, runs=list(runs), theta=np.zeros(6))
 
-    def fit_estimator(self, *a, **k):
-        raise AssertionError("the stand-in pipeline uses the local back end")
+    def fit_estimator(self, runs, shape, config, effects=()):
+        return self.fit_local(runs, shape, config, effects=effects)
 
 
 @pytest.fixture
@@ -361,7 +361,6 @@ def test_a_plain_fit_that_fails_is_kept_at_its_budget(recordings, stand_in, monk
         raise SolveFailedError("IPOPT failed in stage 'homotopy 2/2': Maximum_Iterations_Exceeded after 400 "
                                "iterations (no estimate written)")
 
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)  # the warm back end
     monkeypatch.setattr(diag_mod, "fit_estimator", failing)
     run = _read(recordings["latency"])
     # an NLP candidate (force_bias) makes the back end the warm one
@@ -373,10 +372,8 @@ def test_a_plain_fit_that_fails_is_kept_at_its_budget(recordings, stand_in, monk
 
 def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, monkeypatch):
     """A sensor gain is the same data as a scaled mass: a "none" verdict with force_scale
-    among the candidates says that it cannot be excluded (here the stand-in cannot fit
-    NLP candidates: force_scale is "unavailable", the caveat holds all the same)."""
-    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
+    among the candidates says that it cannot be excluded (the stand-in's residuals do
+    not change with the gain: the caveat holds all the same)."""
     run = _read(recordings["none"])
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
     assert d.verdict == "none", d.reason
@@ -391,51 +388,10 @@ def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, 
     assert d.to_json()["mass_prior"] == {"mass": 0.3, "log_sigma": 0.02, "known": True}
 
 
-def test_nlp_candidates_degrade_with_a_clear_status(recordings, stand_in, monkeypatch):
-    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
-    run = _read(recordings["none"])
-    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_bias", "latency")))
-    fb = next(c for c in d.effects if c.name == "force_bias")
-    assert fb.status == "unavailable" and "effects=" in fb.message
-
-
-def test_nlp_candidates_go_through_the_estimator_when_it_offers_them(recordings, stand_in, monkeypatch):
-    """The estimator back end: every fit through fit_estimator (effects=, fixed=), the
-    effect's parameters and their std taken from the estimate (stand-in values)."""
-    calls = []
-
-    def fake_fit_estimator(runs, shape, config, effects=(), fixed=None, echo=None, refit_shape=False):
-        calls.append((tuple(effects), fixed is not None))
-        if fixed is not None:
-            # held out: the shape refitted, the warm trajectories one per held-out piece
-            assert refit_shape and len(fixed.runs) == len(runs)
-            assert all(len(w.pose) == r.n_samples for w, r in zip(fixed.runs, runs))
-        f = stand_in.fit_local(runs, shape, config)
-        if effects:
-            f.estimate.params["gain"] = 1.2
-            f.estimate.std = {"gain": 0.05}
-        return f
-
-    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: True)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
-    monkeypatch.setattr(diag_mod, "fit_estimator", fake_fit_estimator)
-    run = _read(recordings["none"])
-    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("force_scale",)))
-    assert d.backend == "estimator"
-    fs = d.effects[0]
-    assert fs.status == "ok" and fs.params == {"gain": 1.2} and fs.params_std == {"gain": 0.05}
-    # plain fit, then per fold a training fit and a held-out fit with the training estimate fixed
-    assert ((), False) in calls and (("force_scale",), True) in calls and ((), True) in calls
-    assert d.verdict == "none"  # the stand-in's residuals do not change with the effect
-
-
 def test_json_schema_and_report_folder(recordings, stand_in, tmp_path, monkeypatch):
     from click.testing import CliRunner
 
-    # the stand-in fits through the local back end only: force_bias is then "unavailable"
-    monkeypatch.setattr(diag_mod, "estimator_supports_effects", lambda: False)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: False)
+    # the stand-in's residuals do not change with force_bias: the latency decides
 
     from tacest.cli.diagnose import diagnose as cmd
 
@@ -614,7 +570,7 @@ def test_the_reach_term_is_free_on_the_ground_and_the_height_beyond_it_above():
     e^-5 mm/1 mm = 0.7 % of a mm); it never decreases with the height."""
     import casadi as ca
 
-    from tacest.estimation.problem import reach_excess
+    from tacest.dynamics.laws import reach_excess
 
     phi = ca.SX.sym("phi")
     f = ca.Function("f", [phi], [reach_excess(phi, 0.01)])
@@ -636,7 +592,7 @@ def test_complementarity_reach_stops_ground_impulses_at_a_distance(reach):
     the time_scale candidate.  Thresholds: 5 % and 1 % of the weight per sample, well
     apart from both measurements; a sample counts as flying when the box's centre is
     3 cm above its lowest, i.e. its lowest vertex 3 cm up."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
 
     run = _falling_box(1.05)
     est = estimate_runs([run], "box", EstimatorConfig().with_reach(reach))
@@ -676,14 +632,12 @@ def _bouncing_box(e, T=100, dt=0.01, h=0.06, drop=0.1, sigma=1e-4, seed=0, t_rel
                sigma_angle=sigma / 0.05, prior={"size_bound": 0.3, "initial_pose": pose[0]})
 
 
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 @pytest.mark.parametrize("true_e", [0.3, 0.6])
 def test_restitution_augmentation_recovers_e_from_an_observed_bounce(true_e):
     """Where the bounces are in the data (a dropped box seen by motion capture, landing
     at 1.2 m/s), the restitution augmentation gives e back and explains most of what the
     plastic model cannot (fits of 100 samples: about a second each)."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
 
     run = _bouncing_box(true_e)
     plain = estimate_runs([run], "box")
@@ -735,12 +689,10 @@ NLP_NOT_RECOVERED = {
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects=/fixed= (NLP augmentations) in this version")
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=NLP_NOT_RECOVERED[n], strict=False))
                                   if n in NLP_NOT_RECOVERED else n for n in sorted(NLP_EFFECTS)])
 def test_nlp_augmentation_recovers_its_parameter(name):
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
     spec, params, rel = NLP_EFFECTS[name]
@@ -816,13 +768,11 @@ TOSS_EFFECTS = {
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 @pytest.mark.parametrize("name", sorted(TOSS_EFFECTS))
 def test_free_motion_augmentations_are_recovered_from_tosses(name):
     """Two tosses of a box seen by motion capture (0.5 mm), each followed by a tipping
     poke; the effect drawn at random in its range (docs/effects.md); mass unknown."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
     spec, params, rel = TOSS_EFFECTS[name]
@@ -836,8 +786,6 @@ def test_free_motion_augmentations_are_recovered_from_tosses(name):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 def test_force_scale_gain_is_recovered_with_a_weighed_mass():
     """force_scale is a scaled mass unless the mass is known (NLP_NOT_RECOVERED): with the
     object weighed (mass prior at the truth, log sigma 0.02) and pokes that tip the box
@@ -845,7 +793,7 @@ def test_force_scale_gain_is_recovered_with_a_weighed_mass():
     diagnosis benchmark's design), the gain comes back within 10 % and the mass stays at
     the scale's reading.  (On the sliding pushes of the recording above a gain still
     trades with the ground friction, mu·m·g, even with the mass known: 0.68 for 1.3.)"""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
 
     run = _tipping_pokes(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4,
                                     effects=["force_scale:gain=1.3"]))
@@ -866,8 +814,6 @@ def test_force_scale_gain_is_recovered_with_a_weighed_mass():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 def test_soft_contact_stiffness_is_recovered_from_tipping_pokes():
     """soft_contact on pokes that tip the box (pose observed at 0.5 mm), mass unknown:
     the ground's stiffness and the box's mass come back, and the damper's time constant
@@ -876,7 +822,7 @@ def test_soft_contact_stiffness_is_recovered_from_tipping_pokes():
     1920 N/m, 0.799 kg, c/k 21 ms.  (With a plate that had no memory between samples:
     2176 N/m, mass 0.66-0.71 kg, c/k 27-68 ms; docs/diagnosis.md, NLP augmentations,
     soft_contact.)"""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
 
     k, c = 2000.0, 60.0
     run = _tipping_pokes(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4,
@@ -913,7 +859,7 @@ def test_face_friction_augmentation_recovers_the_face_on_the_ground():
     face facing the ground at the start, in the truth and in the estimate) is recovered
     within 15 % (measured before the estimator's friction/mass split moved: 0.387 for
     0.377; now 0.442); faces that never touched the ground keep their prior value."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
     run = record_sim(SimOptions(seed=4, pokes=6, effects=["face_friction"]))
@@ -927,8 +873,6 @@ def test_face_friction_augmentation_recovers_the_face_on_the_ground():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 def test_restitution_is_recovered_from_tumbling_landings():
     """restitution on three tosses of a weighed box (each followed by a tipping poke;
     e 0.42): spinning corner landings at 1.5-2.7 m/s, whose impacts fall anywhere inside
@@ -938,7 +882,7 @@ def test_restitution_is_recovered_from_tumbling_landings():
     benchmark's six-run recording reach 1783 from 7831 with the mass and e right,
     docs/diagnosis.md).  Until the law followed impacts inside an interval (an impact
     memory, the impulses at the impact's levers) such fits ended at e 0.75."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
     runs = _tosses(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4, effects=["restitution"]), n=3)
@@ -954,8 +898,6 @@ def test_restitution_is_recovered_from_tumbling_landings():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 def test_face_friction_is_recovered_on_the_faces_tosses_and_pokes_slide_on():
     """face_friction on three tosses, each followed by a tipping poke (seed 0, faces
     1.02, 0.36, 1.19, 0.43): the box lands and tumbles on several faces and the pokes
@@ -965,7 +907,7 @@ def test_face_friction_is_recovered_on_the_faces_tosses_and_pokes_slide_on():
     friction (face_friction.d<k>; the ground friction itself is known far better: a face the box only
     sticks or pivots on bounds its coefficient from below: measured 1.22 ± 0.40 and
     0.95 ± 0.26 for the two grippy faces)."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
     runs = _tosses(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4, effects=["face_friction"]), n=3)
@@ -982,15 +924,13 @@ def test_face_friction_is_recovered_on_the_faces_tosses_and_pokes_slide_on():
     assert np.all(np.abs(got - values) <= 3 * std), (got, values, std)
 
 
-@pytest.mark.skipif(not estimator_supports_effects(),
-                    reason="estimate_runs has no effects= (NLP augmentations) in this version")
 def test_restitution_leaves_slow_landings_to_the_plain_model():
     """A box lowered onto the table (landing at 0.04 m/s, below problem.BOUNCE_SPEED)
     and seen by motion capture at 0.5 mm: no bounce the data could tell, so the
     restitution model (whatever e it picks) fits as the plain one does.  With the
     previous gate a/(a + 0.02 m/s) its impact law weighed every slow approach and the
     objective rose by 19.6."""
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.dims import estimate_runs
 
     run = _bouncing_box(0.0, T=150, drop=1e-4, sigma=5e-4)
     plain = estimate_runs([run], "box")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tacest.diagnosis import diagnose as diag_mod
-from tacest.diagnosis.fitting import FitResult, local_supports_effects
+from tacest.diagnosis.fitting import FitResult
 from tacest.diagnosis.floor import TERMS, residual_dof
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import Estimate, RunEstimate
@@ -29,9 +29,10 @@ def _theta(effects, values, K=4):
 
 
 def test_params_at_bound_flags_the_far_bound_only():
-    from tacest.estimation.problem import NLP_EFFECTS
+    from tacest.model.registry import REGISTRY
 
-    lo, hi = NLP_EFFECTS["force_scale"][0][3:5]
+    (par,) = REGISTRY["force_scale"].parameters(4, 2)
+    lo, hi = par.lower, par.upper
     assert diag_mod.params_at_bound(_theta(("force_scale",), [hi]), ("force_scale",), 4) == ["force_scale.log_gain"]
     assert diag_mod.params_at_bound(_theta(("force_scale",), [lo]), ("force_scale",), 4) == ["force_scale.log_gain"]
     # inside the range (2 % of it away from the bound): not at the bound
@@ -130,7 +131,6 @@ def test_a_candidate_is_not_credited_with_the_basin_its_fit_found(clean_run, mon
     s = _BasinStandIn(lucky="linear_drag")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
     opts = diag_mod.DiagnoseOptions(effects=("linear_drag", "force_bias"))
     d = diag_mod.diagnose([clean_run], "box", options=opts)
     assert d.backend == "warm"
@@ -152,7 +152,6 @@ def test_without_the_control_the_lucky_basin_would_have_been_blamed(clean_run, m
     s = _BasinStandIn(lucky="linear_drag")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
     real = diag_mod._Context.fold_objective
 
     def no_control(self, fold, name, value, effects, cfit):
@@ -170,7 +169,6 @@ def test_without_the_control_the_lucky_basin_would_have_been_blamed(clean_run, m
 # a warm-started local fit with an NLP augmentation (real estimator)
 
 
-@pytest.mark.skipif(not local_supports_effects(), reason="ImplicitEstimator takes no effects= in this version")
 def test_warm_local_fit_adds_an_effect_from_no_effect():
     """Warm-started from the plain fit, the augmented model starts at "no effect"
     (restitution e = 0: the plain model) and can only go down: on a box dropped 10 cm
@@ -208,7 +206,6 @@ def test_candidate_fit_keeps_the_better_of_warm_and_cold_starts(clean_run, monke
     s = _ColdLuckStandIn(lucky="linear_drag")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
     d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag", "force_bias")))
     lin = next(c for c in d.effects if c.name == "linear_drag")
     fb = next(c for c in d.effects if c.name == "force_bias")
@@ -244,7 +241,6 @@ def test_observed_warm_runs_take_the_observations_as_recorded():
     assert observed_warm_runs([blind], [fb])[0] is fb
 
 
-@pytest.mark.skipif(not local_supports_effects(), reason="ImplicitEstimator takes no effects= in this version")
 def test_typical_start_holds_the_parameters_first_then_frees_them():
     """typical_start_fit on a box dropped 10 cm and bouncing with e = 0.6: its first fit
     holds every parameter at the start's values (the plain fit's, e = 0.5) to within the
@@ -292,7 +288,6 @@ def test_the_reason_names_the_other_candidates_that_count(clean_run, monkeypatch
     s = _BasinStandIn(lucky="none")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
-    monkeypatch.setattr(diag_mod, "local_supports_effects", lambda: True)
     improvement = {"linear_drag": 30.0, "angular_damping": 40.0, "force_bias": 1.0}
 
     def preset(ctx, c, spec, *args, **kwargs):

@@ -13,9 +13,10 @@ import pytest
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import load_config
 from tacest.estimation.data import parameter_vector, starts_at_rest
-from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
+from tacest.dims import estimate_runs
+from tacest.estimation.estimator import ImplicitEstimator
 from tacest.estimation.initial import initial_guess
-from tacest.estimation.problem import SQUARED_TERMS, TERMS
+from tacest.model.stage2d import SQUARED_TERMS, TERMS
 from tacest.geometry.shapes import polygon_sd_and_normal_function
 from tacest.io.run import Run
 from tests.nlp_checks import assert_derivatives_match_finite_differences

@@ -14,7 +14,7 @@ import pytest
 
 from tacest.dynamics.rigid3d import (cholesky_from_inertia, inertia_numeric, qexp_half, qmul, quat_log_rate)
 from tacest.errors import TacestError
-from tacest.estimation.problem3d import body_rate
+from tacest.model.stage3d import body_rate
 from tacest.geometry.polytope import box_vertices_3d, polytope_inertia
 from tacest.geometry.shapes3d import Box3D, box_signed_distance, shape_sd_and_normal_function
 from tacest.geometry.transforms import quat_angle, quat_from_axis_angle, quat_multiply
@@ -190,11 +190,15 @@ def test_derivatives_match_finite_differences(tosses, monkeypatch):
     run = tosses[0]
     # the last 8 samples: the box on the ground, so that the contact terms are live
     short = run.replace(time=run.time[-8:] - run.time[-8], pose_obs=run.pose_obs[-8:], truth=None)
-    est = Estimator3D([short], "box")
+    from tacest.estimation.config import load_config
+
+    # both 3-D effects in the model (ground_offset is off by default)
+    est = Estimator3D([short], "box", load_config(None, {"solver3d": {"ground_offset_sigma": 0.005}}))
     pr = est.problem
+    assert pr.effects == ("ground_offset", "edge_radius")
     J = _assert_derivatives_match_finite_differences(est)
-    # the augmentations' columns (ground offset, rounded edges) are live, so the checks
-    # above cover their derivatives: both move the vertex gaps of every sample
+    # the effects' columns (ground offset, rounded edges) are live, so the checks above
+    # cover their derivatives: both move the vertex gaps of every sample
     for name in ("ground_offset", "edge_radius"):
         assert np.abs(J[: pr.n_res_data, pr.theta_index(name)]).max() > 1e-2
 
@@ -218,7 +222,7 @@ def test_derivatives_with_a_pushing_fingertip_match_finite_differences(monkeypat
 
 
 def test_noiseless_tosses_give_back_the_box(tosses):
-    from tacest.estimation.estimator3d import estimate_runs_3d
+    from tacest.estimation.estimator3d import estimate_3d as estimate_runs_3d
 
     est = estimate_runs_3d(tosses, "box")
     assert est.success, est.solver_status
@@ -264,7 +268,7 @@ def _augmented_tosses(edge_radius, ground_height):
 def test_rounded_edges_are_recovered_and_the_box_keeps_its_size():
     """Known answer for the augmentation ``edge_radius`` (on by default): tosses of a box
     with 6 mm rounded edges give back the radius and the outer extents."""
-    from tacest.estimation.estimator3d import estimate_runs_3d
+    from tacest.estimation.estimator3d import estimate_3d as estimate_runs_3d
 
     est = estimate_runs_3d(_augmented_tosses(0.006, 0.0), "box")
     assert est.success, est.solver_status
@@ -276,7 +280,7 @@ def test_rounded_edges_are_recovered_and_the_box_keeps_its_size():
 
 
 def test_sharp_box_gets_a_small_edge_radius(tosses):
-    from tacest.estimation.estimator3d import estimate_runs_3d
+    from tacest.estimation.estimator3d import estimate_3d as estimate_runs_3d
 
     est = estimate_runs_3d(tosses, "box")
     # 1 mm: the prior is a half-normal at 0; noiseless sharp tosses leave it near 0
@@ -287,7 +291,7 @@ def test_a_ground_offset_is_found_when_estimated():
     """Known answer for the augmentation ``ground_offset``: the ground simulated 4 mm
     above where the run files say is found with the box's size right (sharp edges held)."""
     from tacest.estimation.config import load_config
-    from tacest.estimation.estimator3d import estimate_runs_3d
+    from tacest.estimation.estimator3d import estimate_3d as estimate_runs_3d
 
     cfg = load_config(overrides={"solver3d": {"ground_offset_sigma": 0.01, "edge_radius_sigma": 0.0}})
     est = estimate_runs_3d(_augmented_tosses(0.0, 0.004), "box", cfg)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from tacest.estimation.estimator import ImplicitEstimator
-from tacest.information.observed import FLAT_LOADING, FLAT_RCOND, _std_of, observed_information
+from tacest.estimation.uncertainty import FLAT_LOADING, FLAT_RCOND
+from tacest.estimation.uncertainty import std_of as _std_of
 from tacest.sim.record import SimOptions, record_sim
 
 
@@ -15,8 +16,8 @@ class _WidthPinned(ImplicitEstimator):
 
     pin = None
 
-    def variable_bounds(self):
-        lbx, ubx = super().variable_bounds()
+    def variable_bounds(self, z):
+        lbx, ubx = super().variable_bounds(z)
         lbx[0], ubx[0] = self.pin - 1e-9, self.pin + 1e-9
         return lbx, ubx
 
@@ -29,7 +30,7 @@ def test_a_press_from_above_leaves_the_width_uncertain_and_measures_the_height()
     assert np.median(normals[:, 1]) > 0.9  # the finger felt the top face (normal up)
     est = ImplicitEstimator([run], "box")
     out = est.solve()
-    _, _, std = observed_information(est, out.z)
+    std = est.information(out.z).std_data
     width = float(np.ptp(est.physical(out.z)[0][:, 0]))
     # the premise, from the objective itself: the width refitted 50 % larger costs
     # less than 1 objective unit (measured: 0.2 units from 44 to 160 mm wide)
@@ -37,7 +38,7 @@ def test_a_press_from_above_leaves_the_width_uncertain_and_measures_the_height()
     pinned.pin = 1.5 * width / pinned.scales.L
     s0 = pinned.s0.copy()
     s0[0] = pinned.pin
-    wider = pinned._solve_from(s0)
+    wider = pinned.solve_from(pinned.own_start(s0))
     assert wider.objective - out.objective < 1.0
     # so the information must not pin the width: a quadratic with sigma s would charge
     # 0.5 (0.5 w / s)^2 for that change; s >= 0.25 w keeps it <= 2 units (a ridge that
@@ -53,7 +54,8 @@ def test_a_press_from_above_leaves_the_width_uncertain_and_measures_the_height()
     # the posterior (data and priors), which the estimate reports: the width, which the
     # data leave free, is held by the shape prior (sigma shape_sigma · L) and no looser;
     # the height stays measured
-    _, _, std_data, std_post = observed_information(est, out.z, posterior=True)
+    info = est.information(out.z)
+    std_data, std_post = info.std_data, info.std
     assert std_data == std
     shape_sigma = est.config.prior.shape_sigma * est.scales.L
     assert std_post["width"] <= shape_sigma * (1 + 1e-9)
@@ -73,7 +75,8 @@ def _face_sigmas(run):
     the observed information of a box fit (final_x ± width / 2)."""
     est = ImplicitEstimator([run], "box")
     out = est.solve()
-    info, names, _ = observed_information(est, out.z)
+    got = est.information(out.z)
+    info, names = got.matrix, got.names
     C = np.linalg.pinv(info)
     iw, ix = names.index("width"), names.index("final_x")
     sig = []
@@ -86,7 +89,7 @@ def _face_sigmas(run):
 
 def test_a_pushed_box_at_rest_keeps_its_touched_face_where_it_was_felt():
     # seed 0 pushes a resting box on its left face (normal -x), seed 3 on its right face
-    # (+x); afterwards the box rests.  On the active set of the fit (observed.py) the
+    # (+x); afterwards the box rests.  On the active set of the fit (uncertainty.py) the
     # resting box stays put, so the touched face is located to about the contact sigma
     # (0.5 mm; measured 0.5-0.7 mm, allowed 1.5 mm) and the untouched one only as well as
     # the width (measured 10 mm; at least 5 times the touched one).  Linearized without

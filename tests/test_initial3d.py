@@ -114,7 +114,7 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     cfg = EstimatorConfig()
     cfg.solver3d.restart_physics = restart_physics
     cfg.solver3d.restarts = restarts
-    est.config, est.echo, est.problem = cfg, lambda *_: None, _FakeProblem()
+    est.config, est.problem = cfg, _FakeProblem()
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")
     est.scales = type("S", (), {"L": 0.1})()
@@ -134,7 +134,7 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
         return SolveOutcome(z=np.array([obj, phys]), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded",
                             success=True, iterations=1, wall_time=0.0, objective=obj, stages=[])
 
-    monkeypatch.setattr(est, "_solve_from", solve_from)
+    monkeypatch.setattr(est, "solve_from_shape", solve_from)
     monkeypatch.setattr(est, "physics_per_sample", lambda z: float(z[1]))
     return est, calls
 

@@ -9,7 +9,8 @@ import pytest
 
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import finger_start_positions
-from tacest.estimation.problem import G, G_NAMES, Problem2D, RunStructure
+from tacest.estimation.problem2d import Problem2D, RunStructure
+from tacest.model.stage2d import G, G_NAMES
 from tacest.geometry.shapes import make_shape
 from tacest.geometry.transforms import rot2
 from tests.test_estimator import pushed_box_run

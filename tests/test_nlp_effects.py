@@ -10,9 +10,14 @@ import pytest
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import choose_scales, parameter_vector
-from tacest.estimation.estimator import ImplicitEstimator, estimate_runs
+from tacest.dims import estimate_runs
+from tacest.estimation.estimator import ImplicitEstimator
 from tacest.estimation.initial import initial_guess
-from tacest.estimation.problem import NLP_EFFECTS, PHYS_NAMES, TERMS, Problem2D, RunStructure
+from tacest.estimation.problem2d import Problem2D, RunStructure
+from tacest.model.registry import model_effect_names
+from tacest.model.stage2d import PHYS_NAMES, TERMS
+
+NLP_EFFECTS = model_effect_names(2)
 from tacest.geometry.shapes import make_shape
 from tests.nlp_checks import FD_RTOL, FD_STEP, assert_derivatives_match_finite_differences
 from tests.test_estimator import pushed_box_run
@@ -62,20 +67,19 @@ def _with_impacts(est, pr, z, seed=7):
     V = V + rng.normal(size=V.shape) * np.array([[0.5 / est.scales.L], [0.5 / est.scales.L], [5.0]])
     pr.set_run_blocks(z, 0, V=V)
     S = pr.state_block(z, 0)
-    S[pr.n_plate:] = rng.uniform(0.0, 1.0, size=S[pr.n_plate:].shape)
+    memory = pr.state_slices["restitution"]
+    S[memory] = rng.uniform(0.0, 1.0, size=S[memory].shape)
     pr.set_run_blocks(z, 0, S=S)
     return z
 
 
 def test_information_jacobian_with_every_effect_matches_finite_differences():
-    """The residual Jacobian the information is built from (observed.py, assembled from
-    per-sample blocks) matches central differences of its own residuals in every
-    parameter, every plate sink and 40 other coordinates, with every effect in the NLP."""
-    from tacest.information.observed import residual_jacobian_function
-
+    """The residual Jacobian the information is built from (problem2d.ResidualJacobian2D,
+    assembled from per-sample blocks) matches central differences of its own residuals in
+    every parameter, every plate sink and 40 other coordinates, with every effect in the NLP."""
     est, pr, z, p = _point("box", ALL)
     z = _with_impacts(est, pr, z)
-    rj = residual_jacobian_function(pr)
+    rj = pr.residual_jacobian
     r0, J = rj(z, p)
     J = np.asarray(ca.DM(J))
     a, n = pr.offsets[0]["S"]
@@ -228,19 +232,22 @@ def test_fixed_holds_every_parameter_and_fits_the_trajectories():
 
 @pytest.mark.parametrize("shape", ["box", "polygon:5"])
 def test_effect_parameters_round_trip_through_physical_units(shape):
-    """augment.effect_params (scaled theta -> an estimate's /params, physical units) and
-    augment.effect_theta (back, from the effect names and vertex count alone) are
-    inverses for every effect at once: the fixed= fits and the diagnosis' bound check
-    read effect parameters through effect_theta.  Tolerance 1e-12 relative: a product
-    and a quotient by the same unit (or exp and log) in double precision."""
-    from tacest.estimation.augment import effect_params, effect_theta
+    """Every effect's report (scaled theta -> an estimate's /params, physical units) and
+    scaled (back) are inverses, for every effect at once: the fixed= fits and the
+    diagnosis' bound check read effect parameters through them (estimator.theta_of).
+    Tolerance 1e-12 relative: a product and a quotient by the same unit (or exp and log)
+    in double precision."""
+    from tacest.estimation.estimator import theta_of
+    from tacest.io.estimate import Estimate
 
     est, pr, z, _ = _point(shape, ALL)
+    est.p_final = parameter_vector(pr, est.runs, est.scales, est.config, 0.3, 1.0, est.s0)
+    V, mass, inertia, mu_g, mu_f = est.physical(z)
+    params = dict(est.effect_params(z), mass=mass, inertia=inertia, friction_ground=mu_g, friction_finger=mu_f)
+    fake = Estimate(dim=2, shape=shape, vertices=V, params=params, runs=[])
     theta = z[: pr.n_theta]
-    L, m0, mu_g = est.scales.L, est.scales.m0, float(theta[pr.n_shape + 2])
-    params = dict(effect_params(pr, theta, L, m0), friction_ground=mu_g)
-    u = effect_theta(ALL, pr.K, params, L, m0, mu_g)
     a = pr.n_shape + len(PHYS_NAMES)
-    np.testing.assert_allclose(u, theta[a: a + pr.n_eff], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(theta_of(est, fake)[a:], theta[a: a + pr.n_eff], rtol=1e-12, atol=1e-14)
     with pytest.raises(TacestError, match="linear_drag.b"):
-        effect_theta(ALL, pr.K, {k: v for k, v in params.items() if k != "linear_drag.b"}, L, m0, mu_g)
+        theta_of(est, Estimate(dim=2, shape=shape, vertices=V, runs=[],
+                               params={k: v for k, v in params.items() if k != "linear_drag.b"}))

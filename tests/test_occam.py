@@ -11,7 +11,7 @@ import scipy.linalg as sl
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
-from tacest.estimation.problem import pose_occam
+from tacest.model.occam import pose_occam
 
 _x = ca.SX.sym("log_lam")
 OCCAM = ca.Function("occam", [_x], [pose_occam(_x)])
@@ -98,13 +98,13 @@ HALF = 0.05
 
 
 def _free(rows, weights, half=HALF):
-    from tacest.estimation.problem import occam_free_weights
+    from tacest.model.occam import occam_free_weights
 
     return np.asarray(ca.DM(occam_free_weights(rows, weights, half))).ravel()
 
 
 def test_occam_free_weights_hold_what_the_contacts_hold():
-    from tacest.estimation.problem import OCCAM_HELD_EPS as EPS
+    from tacest.model.occam import OCCAM_HELD_EPS as EPS
 
     # nothing touching: every direction free, exactly
     np.testing.assert_allclose(_free(BOTTOM, [0.0, 0.0]), [1.0, 1.0, 1.0], rtol=0, atol=1e-15)

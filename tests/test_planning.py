@@ -6,6 +6,8 @@ truth (no IPOPT solve), so the file stays quick.
 
 from __future__ import annotations
 
+import logging
+
 import json
 import math
 import subprocess
@@ -19,12 +21,12 @@ import pytest
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, parameter_vector, touching
-from tacest.estimation.problem import Problem2D, RunStructure
+from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.geometry.polygon import box_vertices, polygon_centroid, polygon_inertia
 from tacest.geometry.shapes import make_shape
 from tacest.information.expected import (MEASUREMENT_TERMS, ExpectedInformation, ModelState, information_names_for,
                                          past_information, predict_poke, prior_information, schur_information)
-from tacest.information.observed import fold_lifted_parameters, residual_jacobian_function
+from tacest.estimation.uncertainty import fold_lifted_parameters
 from tacest.information.scores import score
 from tacest.io.estimate import Estimate, RunEstimate, read_estimate, write_estimate
 from tacest.io.plan import read_plan
@@ -82,7 +84,7 @@ def _observed_route(model, lin):
     z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(lin.theta, L, M0)).ravel()
     pr.set_run_blocks(z, 0, Q=lin.Q, V=lin.V, LG=lin.LG, LF=lin.LF)
     eps, cm, dm = CONFIG.solver.homotopy[-1]
-    p = parameter_vector(pr, [lin.run], Scales(L, M0), CONFIG, eps, cm, lin.theta[: pr.n_shape], dyn_mult=dm)
+    p = parameter_vector(pr, [lin.run], Scales(L, M0, 9.81), CONFIG, eps, cm, lin.theta[: pr.n_shape], dyn_mult=dm)
     return pr, z, p
 
 
@@ -99,7 +101,7 @@ def test_information_matches_finite_differences_and_observed_construction(make):
     info = _info(model.shape.name)
     lin = info.linearize(model, predict_poke(model, _poke(model, 35)))
     pr, z, p = _observed_route(model, lin)
-    rj = residual_jacobian_function(pr)
+    rj = pr.residual_jacobian
     r, J = rj(z, p)
     # the same residuals, whichever route built them (order differs: compare norms)
     assert np.linalg.norm(np.asarray(r)) == pytest.approx(np.linalg.norm(lin.r), rel=1e-12)
@@ -151,7 +153,7 @@ def test_identity_information_matches_finite_differences():
     lin = info.linearize(model, pred)
     pr, z, p = _observed_route(model, lin)
     w = pr.weight_sym
-    from tacest.estimation.problem import TERMS
+    from tacest.model.stage2d import TERMS
 
     r_meas = ca.Function("rm", [pr.z_sym, pr.p_sym],
                          [ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * pr.residual_stack[t] for t in MEASUREMENT_TERMS])])
@@ -379,7 +381,7 @@ def test_explore_cli_failures_exit_2(tmp_path):
         assert msg in _one_error_line(_tacest("explore", *args, cwd=tmp_path)), args
 
 
-def test_explore_loop_files_and_summary(tmp_path, monkeypatch):
+def test_explore_loop_files_and_summary(tmp_path, monkeypatch, caplog):
     """The loop's mechanics with a stand-in estimator (no solve): per-step files, the
     plan from the estimator's start guess after a failed estimate, summary.json and the
     learning curve."""
@@ -392,11 +394,12 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch):
         calls.append(runs[0].n_samples)
         return estimate_from_truth(runs[0], fail=len(calls) == 2)
 
-    monkeypatch.setattr(estimator, "estimate_runs", fake)
-    lines = []
+    monkeypatch.setattr(estimator, "estimate_2d", fake)
     out = tmp_path / "loop"
-    summary = explore(ExploreOptions(object_spec="box", seed=2, policy="eig", pokes=3, iterations=1, population=3),
-                      out, echo=lines.append)
+    with caplog.at_level(logging.INFO, logger="tacest.planning.explore"):
+        summary = explore(ExploreOptions(object_spec="box", seed=2, policy="eig", pokes=3, iterations=1,
+                                         population=3), out)
+    lines = [r.getMessage() for r in caplog.records if r.name == "tacest.planning.explore"]
     names = sorted(p.name for p in out.iterdir())
     assert names == ["estimate_1.h5", "estimate_3.h5", "learning_curve.png", "plan_1.h5", "plan_2.h5", "run.h5",
                      "summary.json"]

@@ -1,6 +1,7 @@
 """End to end: the emulator and ``tacest record --source serial`` through a real
 pseudo-terminal (os.openpty) and through pyserial's ``loop://``."""
 
+import logging
 import os
 import signal
 import subprocess
@@ -116,7 +117,7 @@ def test_cli_port_that_cannot_be_opened_exits_2(tmp_path):
     assert len(lines) == 1 and "cannot open serial port /dev/nonexistent-tty" in lines[0]
 
 
-def test_loop_url_round_trip(tmp_path):
+def test_loop_url_round_trip(tmp_path, caplog):
     """Emulator and recorder share one pyserial loop:// port (its queue holds 4 kB, so
     the emulator writes from a thread)."""
     out = tmp_path / "rec.h5"
@@ -125,9 +126,10 @@ def test_loop_url_round_trip(tmp_path):
     writer = threading.Thread(target=play, args=(iter_chunks(src, Faults(corrupt=0.01, seed=2)), port.write, 0.0),
                               daemon=True)
     writer.start()
-    msgs = []
     # ends on --duration: a loop never hangs up; 3 s is > 10x what 1500 lines need here
-    s = record_serial(port, duration=3.0, output=out, echo=msgs.append)
+    with caplog.at_level(logging.INFO, logger="tacest"):
+        s = record_serial(port, duration=3.0, output=out)
+    msgs = [r.getMessage() for r in caplog.records]
     writer.join(timeout=5)
     port.close()
     assert "duration" in s.stop_reason

@@ -9,7 +9,7 @@ import pytest
 from tacest.estimation.data import data_matrix, parameter_vector, touching
 from tacest.estimation.estimator import ImplicitEstimator
 from tacest.estimation.initial import initial_guess
-from tacest.estimation.problem import Problem2D
+from tacest.estimation.problem2d import Problem2D
 from tacest.io.run import read_run
 from tacest.sensors.emulator import Faults, builtin_run, emulate_bytes
 from tacest.sensors.serial_protocol import Precision, format_sample
@@ -185,9 +185,9 @@ def test_an_unknown_finger_constrains_nothing_on_its_sample():
     assert run.missing_finger[k, 1] == 1 and run.missing_finger.sum() == 1
     est = ImplicitEstimator([run], "box")
     pr = est.problem
-    lbx, ubx = est.variable_bounds()
     rng = np.random.default_rng(0)
     z = initial_guess(pr, [run], est.scales, est.s0) + rng.normal(size=pr.n_z) * 0.02
+    lbx, ubx = est.variable_bounds(z)
     z = np.clip(z, lbx, ubx)  # impulses of fingers that do not touch (or are unknown) at 0
     p = parameter_vector(pr, [run], est.scales, est.config, 0.5, 2.0, est.s0, ridge=0.0)
     fg = ca.Function("fg", [pr.z_sym, pr.p_sym], [pr.f, pr.g])

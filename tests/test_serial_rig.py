@@ -1,6 +1,7 @@
 """Serial recorder (tacest.sensors.serial_rig) on in-memory byte streams: every link
 fault of the issue, the always-valid output file, and the emulator round trip."""
 
+import logging
 import math
 import time
 
@@ -311,7 +312,7 @@ def test_round_trip_equals_original_streams(tmp_path, dim, fingers, force):
         src = src.replace(force=None)
     data, _ = emulate_bytes(src)
     out = tmp_path / "rec.h5"
-    summary = record_stream(FakeStream([data[i:i + 999] for i in range(0, len(data), 999)]), out, echo=quiet)
+    summary = record_stream(FakeStream([data[i:i + 999] for i in range(0, len(data), 999)]), out)
     assert summary.kept_samples == 400 and summary.dropped_lines == 0 and summary.stop_reason == "end of input"
     rec = read_run(out)
     assert (rec.dim, rec.n_fingers, rec.source) == (dim, fingers, "serial")
@@ -345,7 +346,7 @@ def test_round_trip_keeps_missing_mask(tmp_path):
     src.normal[miss == 1] = np.nan
     data, _ = emulate_bytes(src)
     out = tmp_path / "rec.h5"
-    s = record_stream(FakeStream([data]), out, echo=quiet)
+    s = record_stream(FakeStream([data]), out)
     assert (s.missing_samples, s.gaps) == (3, 2)
     np.testing.assert_array_equal(read_run(out).missing, miss)
 
@@ -381,7 +382,7 @@ def test_output_is_a_valid_run_at_every_moment_and_unplug_keeps_what_arrived(tmp
         time.sleep(0.02)  # data trickles in: 40 reads take ~0.8 s, snapshots every 0.05 s
 
     s = record_stream(FakeStream(chunks[:40], end=serial.SerialException("device disconnected"), on_read=check),
-                      out, echo=quiet, snapshot_interval=0.05)
+                      out, snapshot_interval=0.05)
     assert "link closed" in s.stop_reason and "disconnected" in s.stop_reason
     # grew while recording (>= 2 distinct sizes: a loaded machine may write few snapshots)
     assert len(set(sizes)) >= 2 and sizes == sorted(sizes)
@@ -394,15 +395,16 @@ def test_output_is_a_valid_run_at_every_moment_and_unplug_keeps_what_arrived(tmp
 def test_unplug_through_oserror_eio(tmp_path):
     out = tmp_path / "rec.h5"
     _, chunks = _chunks(50)
-    s = record_stream(FakeStream(chunks, end=OSError(5, "Input/output error")), out, echo=quiet)
+    s = record_stream(FakeStream(chunks, end=OSError(5, "Input/output error")), out)
     assert "Input/output error" in s.stop_reason and read_run(out).n_samples == 50
 
 
-def test_keyboard_interrupt_leaves_a_valid_file(tmp_path):
+def test_keyboard_interrupt_leaves_a_valid_file(tmp_path, caplog):
     out = tmp_path / "rec.h5"
     src, chunks = _chunks(100, per=10)
-    msgs = []
-    s = record_stream(FakeStream(chunks[:7], end=KeyboardInterrupt()), out, echo=msgs.append)
+    with caplog.at_level(logging.INFO, logger="tacest"):
+        s = record_stream(FakeStream(chunks[:7], end=KeyboardInterrupt()), out)
+    msgs = [r.getMessage() for r in caplog.records]
     assert s.stop_reason == "interrupted (Ctrl-C)"
     rec = read_run(out)
     assert rec.n_samples == 70
@@ -414,7 +416,7 @@ def test_duration_stops_recording(tmp_path):
     out = tmp_path / "rec.h5"
     _, chunks = _chunks(100, per=1)
     fs = FakeStream(chunks)
-    s = record_stream(fs, out, duration=2.05, echo=quiet, clock=lambda: 0.1 * fs.i)  # 0.1 s per read
+    s = record_stream(fs, out, duration=2.05, clock=lambda: 0.1 * fs.i)  # 0.1 s per read
     assert "duration" in s.stop_reason and s.kept_samples == 21
 
 
@@ -423,7 +425,7 @@ def test_duration_stops_recording(tmp_path):
 def test_nothing_valid_raises_and_writes_no_file(tmp_path, data):
     out = tmp_path / "rec.h5"
     with pytest.raises(TacestError) as exc:
-        record_stream(FakeStream([data]), out, echo=quiet, name="/dev/fake")
+        record_stream(FakeStream([data]), out, name="/dev/fake")
     msg = str(exc.value)
     assert "\n" not in msg and "no run recorded from /dev/fake" in msg and "kept" in msg
     assert not out.exists() and not list(tmp_path.iterdir())
@@ -431,7 +433,7 @@ def test_nothing_valid_raises_and_writes_no_file(tmp_path, data):
 
 def test_port_that_cannot_be_opened(tmp_path):
     with pytest.raises(TacestError) as exc:
-        record_serial("/dev/does-not-exist-tacest", output=tmp_path / "x.h5", echo=quiet)
+        record_serial("/dev/does-not-exist-tacest", output=tmp_path / "x.h5")
     assert "cannot open serial port /dev/does-not-exist-tacest" in str(exc.value) and "\n" not in str(exc.value)
     assert not (tmp_path / "x.h5").exists()
 
@@ -464,7 +466,7 @@ def test_output_folder_vanishing_is_a_one_line_error(tmp_path):
 
     # no snapshot before the end (interval 1000 s): the final write finds no folder
     with pytest.raises(TacestError) as exc:
-        record_stream(FakeStream(chunks, on_read=remove), out, echo=quiet, snapshot_interval=1000.0)
+        record_stream(FakeStream(chunks, on_read=remove), out, snapshot_interval=1000.0)
     assert "does not exist" in str(exc.value) and "\n" not in str(exc.value)
 
 
@@ -477,11 +479,11 @@ def test_write_error_in_the_snapshot_thread_reaches_the_caller(tmp_path, monkeyp
     monkeypatch.setattr(rig, "write_snapshot", broken)
     _, chunks = _chunks(100, per=10)
     with pytest.raises(TacestError) as exc:
-        record_stream(FakeStream(chunks), tmp_path / "rec.h5", echo=quiet, snapshot_interval=0.0)
+        record_stream(FakeStream(chunks), tmp_path / "rec.h5", snapshot_interval=0.0)
     assert "cannot write the run file" in str(exc.value) and "No space left" in str(exc.value)
 
 
-def test_docs_example_session(tmp_path):
+def test_docs_example_session(tmp_path, caplog):
     """The example session of docs/serial_protocol.md §9, line for line."""
     session = (b"S,6,0.06,0,0.1,0.048,0,0,0,,*4E\n"
                b"#TACEST,1,dim=2,fingers=1,radius=0.010,dt=0.01\n"
@@ -491,9 +493,10 @@ def test_docs_example_session(tmp_path):
                b"S,11,0.11,0,0.104,0.058,0,0,0,,*45\n"
                b"#TACEST,1,dim=2,fingers=1,radius=0.010,dt=0.01\n"
                b"S,12,0.12,0,0.105,0.06,1,0.2,-0.9,0.0,1.0*59\n")
-    msgs = []
     out = tmp_path / "run.h5"
-    record_stream(FakeStream([session]), out, echo=msgs.append)
+    with caplog.at_level(logging.INFO, logger="tacest"):
+        record_stream(FakeStream([session]), out)
+    msgs = [r.getMessage() for r in caplog.records]
     assert ("kept 4 samples (4 lines), dropped 2 lines (checksum 1, before header 1), "
             "missing 2 samples in 1 gaps") in msgs
     run = read_run(out)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tacest.errors import TacestError
-from tacest.estimation.estimator import estimate_runs
+from tacest.dims import estimate_runs
 from tacest.estimation.shooting import ShootingEstimator, simulate_run
 from tacest.io.run import Run, read_run, write_run
 

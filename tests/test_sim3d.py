@@ -13,7 +13,8 @@ from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.plan import Plan, write_plan
 from tacest.io.run import read_run, write_run
 from tacest.sim import effects as fx
-from tacest.sim.record import SimOptions, record_sim
+from tacest.dims import record_sim
+from tacest.sim.record import SimOptions
 from tacest.sim3d.objects import (SimObject3, check_convex, hull_faces, inradius, random_polytope, stable_faces)
 from tacest.sim3d.pokes import POKE3_NAMES
 from tacest.sim3d.record import (WorldState3, effect_context, simulate_pokes, state_at_rest, state_from_run)

@@ -96,8 +96,7 @@ def written(tmp_path_factory):
 
 def test_record_normal_sign_and_direction(written, tmp_path):
     seq, paths = written
-    run, res = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=tmp_path / "r.h5",
-                            echo=lambda *a: None, options=VideoOptions(**SMALL_OPTS))
+    run, res = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=tmp_path / "r.h5", options=VideoOptions(**SMALL_OPTS))
     run = read_run(tmp_path / "r.h5")
     assert run.source == "video" and run.dim == 3 and run.force is None
     c = run.contact[:, 0].astype(bool)
@@ -124,7 +123,7 @@ def test_record_time_matching(written, tmp_path):
         w = csv.writer(fh)
         w.writerow(["t", "x", "y", "z"])
         w.writerows([[f"{a:.6f}", *(f"{x:.6f}" for x in p)] for a, p in zip(t, pos)])
-    run, _ = record_video(paths["frames"], paths["calib"], log, echo=lambda *a: None,
+    run, _ = record_video(paths["frames"], paths["calib"], log,
                           options=VideoOptions(**SMALL_OPTS))
     # first sample = first frame at or after 0.4 s = frame 12 (t = 0.4 s at 30 Hz)
     assert run.time[0] == pytest.approx(12 / 30.0)
@@ -151,8 +150,7 @@ def test_record_2d_and_log_orientation(tmp_path):
         w.writerow(["t", "x", "y", "qw", "qx", "qy", "qz"])
         for t in np.arange(-0.5, 2.5, 0.01):
             w.writerow([f"{t:.4f}", "0.1", "0.2", *(f"{x:.9f}" for x in q)])
-    run, _ = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=tmp_path / "r.h5",
-                          echo=lambda *a: None, options=VideoOptions(**SMALL_OPTS))
+    run, _ = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=tmp_path / "r.h5", options=VideoOptions(**SMALL_OPTS))
     run = read_run(tmp_path / "r.h5")
     assert run.dim == 2 and run.finger_position.shape == (50, 1, 2)
     c = run.contact[:, 0].astype(bool)
@@ -173,7 +171,7 @@ def test_dropped_frame_is_marked_missing(written, tmp_path):
     for r in keep[1:]:
         name = r.split(",")[0]
         (sub / name).symlink_to(paths["frames"] / name)
-    run, _ = record_video(sub, paths["calib"], paths["finger_log"], echo=lambda *a: None,
+    run, _ = record_video(sub, paths["calib"], paths["finger_log"],
                           options=VideoOptions(**SMALL_OPTS))
     assert run.n_samples == 80 and run.missing is not None
     assert np.flatnonzero(run.missing).tolist() == [20]
@@ -185,7 +183,7 @@ def test_no_overlap_and_bad_logs(written, tmp_path):
     late = tmp_path / "late.csv"
     late.write_text("t,x,y,z\n100,0,0,0\n101,0,0,0\n")
     with pytest.raises(TacestError, match="overlap in 0 frame"):
-        record_video(paths["frames"], paths["calib"], late, echo=lambda *a: None)
+        record_video(paths["frames"], paths["calib"], late)
     for text, msg in [("t,x\n0,1\n1,2\n", "missing column 'y'"),
                       ("t,x,y,w\n0,1,2,3\n1,2,3,4\n", "unknown column 'w'"),
                       ("t,x,y\n0,1,2\n0,2,3\n", "strictly increasing"),

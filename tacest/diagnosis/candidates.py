@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.estimation.problem import EFFECT_STARTS
+from tacest.model.effects_contact import RESTITUTION_START
 
 #: data-transform candidates: the values their parameter may take (sorted), and the
 #: value that means "no effect".  Latency: whole samples, SPEC draws 1-4, one more for
@@ -44,7 +44,7 @@ TRANSFORM_START = {"latency": (1,), "time_scale": (0.965, 1.035)}
 #: the fits started at e = 0 ended at objective 2329 with e = 0, the plain fit at 2245;
 #: trajectories from the pose observations with every parameter held and e = 0.5, then
 #: everything freed, reach the basin of the truth (1025-1125).  See typical_start_fit.
-TYPICAL_STARTS = {"restitution": {"restitution.e": EFFECT_STARTS["restitution.e"]}}
+TYPICAL_STARTS = {"restitution": {"restitution.e": RESTITUTION_START}}
 
 #: loss terms where each effect shows first (screening, report)
 SIGNATURE_TERMS = {

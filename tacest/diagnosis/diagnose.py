@@ -38,6 +38,8 @@ landing behind forces no ground could exert.
 
 from __future__ import annotations
 
+import logging
+
 import copy
 import dataclasses
 import math
@@ -48,17 +50,20 @@ from typing import Optional
 import numpy as np
 
 from tacest.diagnosis import candidates as cands
-from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, estimator_supports_effects, fit_estimator,
-                                      fit_local, local_supports_effects, observed_warm_runs, occam_objective,
+from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, fit_estimator,
+                                      fit_local, observed_warm_runs, occam_objective,
                                       weighted_objective)
 from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
 from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
 from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_folds, make_pieces
 from tacest.diagnosis.transforms import apply_transform
+from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import CORE_PARAMS, Estimate
+
+log = logging.getLogger(__name__)
 
 #: smallest share of the plain model's held-out gap a candidate must close to be blamed
 MIN_REDUCTION = 0.2
@@ -336,12 +341,11 @@ def check_estimate_matches(estimate: Estimate, runs: list):
 class _Context:
     """Shared state of one diagnosis: runs, shape, configs, back end, base fits."""
 
-    def __init__(self, runs, shape, config, options, echo, backend):
+    def __init__(self, runs, shape, config, options, backend):
         self.runs = runs
         self.shape = shape
         self.config = config
         self.options = options
-        self.echo = echo
         self.backend = backend
         # the fit budget: the same for every candidate and held-out fit
         self.budget_config = copy.deepcopy(config)
@@ -354,8 +358,6 @@ class _Context:
     def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
         """Candidate fit to all runs (a transform applied first), warm-started from ``warm``."""
         runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
-        if self.backend == "estimator":
-            return fit_estimator(runs, self.shape, self.budget_config, effects=effects, echo=self.echo)
         extra = {"effects": tuple(effects), "information": True} if effects else {}
 
         def warm_fit():
@@ -377,7 +379,7 @@ class _Context:
                 elif how == "warm":
                     f = warm_fit()
                 else:  # the plain fit's own budget (the configuration's), as the plain fit had
-                    f = fit_estimator(runs, self.shape, self.config, effects=effects, echo=_noop)
+                    f = fit_estimator(runs, self.shape, self.config, effects=effects)
                 f.notes.append(f"start: {how}")
                 fits.append((weighted_objective(f.estimate, self.config), f))
             except SolveFailedError as exc:
@@ -397,23 +399,16 @@ class _Context:
         tr_runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
         train = [p.cut(tr_runs) for p in fold.train]
         held = [p.cut(tr_runs) for p in fold.heldout]
-        if self.backend == "estimator":
-            tf = fit_estimator(train, self.shape, self.budget_config, effects=effects, echo=_noop)
-            # held out: the trained parameters held, the shape refitted (as in the local
-            # back end: a held-out poke may touch a face the training pokes never did, and
-            # a training fit that missed the shape made held-out objectives of ~2000 for a
-            # plain level of ~4), trajectories started from this candidate's fit to all
-            # data (matched by position: the pieces share their run's file name)
-            warm = [dataclasses.replace(p.cut_estimate(cfit.estimate), source_file="") for p in fold.heldout]
-            hf = fit_estimator(held, self.shape, self.budget_config, effects=effects,
-                               fixed=dataclasses.replace(tf.estimate, runs=warm), echo=_noop, refit_shape=True)
-        else:
-            extra = {"effects": tuple(effects)} if effects else {}
-            tf = fit_local(train, self.shape, self.budget_config, warm=cfit.estimate,
-                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True, **extra)
-            hf = fit_local(held, self.shape, self.budget_config, warm=cfit.estimate,
-                           warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.heldout], pinned=tf.theta,
-                           pin="physics", accept_budget=True, **extra)
+        # training fit warm-started from the candidate's fit to all data; held out: the
+        # trained parameters held, the shape refitted (a held-out poke may touch a face
+        # the training pokes never did, and a training fit that missed the shape made
+        # held-out objectives of ~2000 for a plain level of ~4)
+        extra = {"effects": tuple(effects)} if effects else {}
+        tf = fit_local(train, self.shape, self.budget_config, warm=cfit.estimate,
+                       warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.train], accept_budget=True, **extra)
+        hf = fit_local(held, self.shape, self.budget_config, warm=cfit.estimate,
+                       warm_runs=[p.cut_estimate(cfit.estimate) for p in fold.heldout], pinned=tf.theta,
+                       pin="physics", accept_budget=True, **extra)
         status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
         return weighted_objective(hf.estimate, self.config), status, occam_objective(hf.estimate, self.config)
 
@@ -434,12 +429,12 @@ def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str
 
 
 def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, options: DiagnoseOptions = None,
-             estimate: Estimate = None, echo=None) -> Diagnosis:
+             estimate: Estimate = None) -> Diagnosis:
     """Diagnose where and why the model (the estimator) disagrees with ``runs``.
 
     runs : list of 2-D Run (one object); shape : ``box`` or ``polygon:K``;
     estimate : an estimate of exactly these runs with the plain model (optional: saves
-    the first fit; checked by :func:`check_estimate_matches`); echo : progress lines.
+    the first fit; checked by :func:`check_estimate_matches`).  Progress: the module's logger.
     Raises TacestError for bad input and SolveFailedError when the plain model's fit
     to all data fails.
     """
@@ -448,7 +443,6 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     from tacest.geometry.shapes import make_shape
 
     t_start = time.perf_counter()
-    echo = echo or _noop
     options = (options or DiagnoseOptions()).validate()
     config = options.fit_config(config or EstimatorConfig())
     options = dataclasses.replace(options, reach=float(config.noise.complementarity_reach))  # as in effect
@@ -461,14 +455,9 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     K = make_shape(shape, dim=2).n_vertices
     names = cands.parse_effect_list(options.effects)
     wanted = [cands.candidate(n, n_vertices=K) for n in names]
-    need_nlp = any(c.kind == "nlp" for c in wanted)
-    if need_nlp and local_supports_effects():
-        backend = "warm"
-    elif need_nlp and estimator_supports_effects():
-        backend = "estimator"
-    else:
-        backend = "local"
-    ctx = _Context(runs, shape, config, options, echo, backend)
+    # warm: candidates inside the NLP get the estimator's own starts beside the warm one
+    backend = "warm" if any(c.kind == "nlp" for c in wanted) else "local"
+    ctx = _Context(runs, shape, config, options, backend)
     mass_prior = {"mass": float(choose_scales(runs, config).m0), "log_sigma": float(config.prior.mass_log_sigma),
                   "known": ctx.mass_known}
 
@@ -478,24 +467,24 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         if make_shape(estimate.shape, dim=2).name != make_shape(shape, dim=2).name:
             raise TacestError(f"{estimate.filename or 'estimate'}: shape {estimate.shape}, "
                               f"but --shape {shape} was asked for")
-        echo(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
-        base = FitResult(estimate=estimate, runs=list(runs), backend=backend)
+        log.info(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
+        base = FitResult(estimate=estimate, runs=list(runs))
         base_est = estimate
     else:
-        echo("plain model: fitting all runs")
+        log.info("plain model: fitting all runs")
         base = None
-        if backend in ("estimator", "warm"):
+        if backend == "warm":
             try:
-                base = fit_estimator(runs, shape, config, echo=_noop)
+                base = fit_estimator(runs, shape, config)
             except SolveFailedError as exc:
                 # a plain model that cannot fit the data (a bounce it cannot make, with
                 # no ground impulses in the air to fake it) is what a diagnosis is for:
                 # its fit at the iteration budget is the baseline the candidates improve
-                echo(f"plain model: {exc}; its fit at the iteration budget is the baseline")
+                log.info(f"plain model: {exc}; its fit at the iteration budget is the baseline")
         if base is None:
             base = fit_local(runs, shape, config, accept_budget=True)
         base_est = base.estimate
-        echo(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
+        log.info(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
              f"{base.wall_time:.1f} s")
         ctx.notes += [f"plain model, fit to all data: {n}" for n in base.notes]
         if not base_est.success:
@@ -512,7 +501,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     stats = window_tests(residuals, dofs, states, floor, alpha=options.alpha)
     where = flagged_windows(stats)
     table = breakdown(stats, floor)
-    echo(f"where: {len(where)} flagged window(s); largest share "
+    log.info(f"where: {len(where)} flagged window(s); largest share "
          f"{where[0].share:.0%} ({where[0].term}, run {where[0].run}, samples {where[0].start}-{where[0].stop})"
          if where else "where: nothing stands out from the noise floor")
     screening = cands.signature_scores(stats, names)
@@ -544,14 +533,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                 cres[i].status = "screened"
                 cres[i].message = (f"not refitted: screening signature {cres[i].screening:.0%} ranked "
                                    f"{rank + 1} of {len(order)} (max_candidates {options.max_candidates})")
-    for c in cres:
-        if c.status == "ok" and c.kind == "nlp" and backend == "local":
-            c.status = "unavailable"
-            c.message = ("the estimator has no NLP augmentation for this effect yet "
-                         "(estimate_runs takes no effects=/fixed=)")
-
     # 4. the plain model, held out ---------------------------------------------------
-    echo(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
+    log.info(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
     base_fold = {}
     base_fold_status = {}
     base_fold_occam = {}
@@ -563,7 +546,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         except (SolveFailedError, CandidateUnavailable) as exc:
             base_fold_status[fold.index] = f"failed: {exc}"
             ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({exc}); fold dropped")
-        echo(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
+        log.info(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
              + (f", held-out objective {base_fold[fold.index]:.4g}" if fold.index in base_fold else ""))
     floor_fold = {}
     for fold in folds:
@@ -577,7 +560,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     # 5. candidates ------------------------------------------------------------------
     for c, spec in zip(cres, results):
         if c.status != "ok":
-            echo(f"{c.name}: {c.status} ({c.message})")
+            log.info(f"{c.name}: {c.status} ({c.message})")
             continue
         t0 = time.perf_counter()
         try:
@@ -586,7 +569,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         except CandidateUnavailable as exc:
             c.status, c.message = "unavailable", str(exc)
         c.wall_time = time.perf_counter() - t0
-        echo(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
+        log.info(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
              + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
                 + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
                 + f"), score {c.score:.3g}" if c.status == "ok" else "")
@@ -725,8 +708,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
     # reference of each fold is the lower of its own held-out objective and this one, so
     # that a candidate is not credited with a better basin its fit happened to find
     # (on a clean recording a com_offset fit of 0.5 mm found one and "improved" by 35)
-    control = FitResult(estimate=dataclasses.replace(cfit.estimate, model=[]), runs=list(ctx.runs),
-                        backend=cfit.backend)
+    control = FitResult(estimate=dataclasses.replace(cfit.estimate, model=[]), runs=list(ctx.runs))
     for j in common:
         fold = next(f for f in folds if f.index == j)
         try:
@@ -761,13 +743,18 @@ def _theta_of_estimate(est: Estimate, effects, K: int):
     """Scaled theta whose effect block is that of an estimate's effect parameters (the
     entries before it are zeros: params_at_bound reads the effect block only); None when
     the estimate lacks the scales or a parameter."""
-    from tacest.estimation.augment import effect_theta
-    from tacest.estimation.problem import PHYS_NAMES
+    from tacest.model.effect import Scales
+    from tacest.model.registry import resolve
+    from tacest.model.stage2d import PHYS_NAMES
 
     try:
-        L = float(est.extra_attrs["length_scale"])
-        m0 = float(est.extra_attrs["mass_scale"])
-        u = effect_theta(effects, K, est.params, L, m0, float(est.params["friction_ground"]))
+        sc = Scales(L=float(est.extra_attrs["length_scale"]), m0=float(est.extra_attrs["mass_scale"]),
+                    g=float(est.extra_attrs.get("gravity", STANDARD_GRAVITY)))
+        mu_g = float(est.params["friction_ground"])
+        u = []
+        for e in resolve(effects, 2):
+            vals = e.scaled(est.params, sc, K, mu_g, 2)
+            u += [vals[p.name] for p in e.parameters(K, 2)]
     except (KeyError, TypeError, ValueError, TacestError):
         return None
     return np.concatenate([np.zeros(2 + len(PHYS_NAMES)), u])
@@ -776,21 +763,25 @@ def _theta_of_estimate(est: Estimate, effects, K: int):
 def params_at_bound(theta, effects, K: int) -> list:
     """Names (problem order, ``effect.parameter``) of the effect parameters of a scaled
     theta that sit within BOUND_TOLERANCE of their range from a hard bound that is not
-    their "no effect" value (problem.NLP_EFFECTS); [] without theta or effects."""
-    from tacest.estimation.problem import PHYS_NAMES, effect_parameters
+    their "no effect" value (tacest.model.effect.EffectParameter); [] without theta or
+    effects."""
+    from tacest.model.effect import parameter_table
+    from tacest.model.registry import resolve
+    from tacest.model.stage2d import PHYS_NAMES
 
     if theta is None or not effects:
         return []
-    rows = effect_parameters(tuple(effects), int(K))
+    rows = parameter_table(resolve(effects, 2), int(K), 2)
     theta = np.asarray(theta, float)
     a = len(theta) - len(rows)
     if a < len(PHYS_NAMES):
         return []
     out = []
-    for j, (eff, name, centre, _sigma, lo, hi) in enumerate(rows):
+    for j, (eff, par) in enumerate(rows):
+        lo, hi, centre = par.lower, par.upper, par.centre
         u, tol = float(theta[a + j]), BOUND_TOLERANCE * (hi - lo)
         if (abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol):
-            out.append(f"{eff}.{name}")
+            out.append(f"{eff.name}.{par.name}")
     return out
 
 

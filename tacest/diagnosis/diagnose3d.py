@@ -29,6 +29,8 @@ compared (docs/estimation3d.md).
 
 from __future__ import annotations
 
+import logging
+
 import dataclasses
 import json
 import math
@@ -38,6 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.errors import TacestError
+
+log = logging.getLogger(__name__)
 
 #: the 3-D augmentations a diagnosis compares: name -> [solver3d] overrides (prior sigmas,
 #: m): weak priors at 0 (a few times the millimetre effects they are meant to find)
@@ -127,11 +131,11 @@ def _losses(est, z):
     return res, total / max(n, 1)
 
 
-def _fit(runs, shape, cfg, fixed_theta=None, echo=None):
+def _fit(runs, shape, cfg, fixed_theta=None):
     from tacest.estimation.estimator3d import Estimator3D
     from tacest.estimation.solver import SUCCESS_STATUSES
 
-    est = Estimator3D(runs, shape, cfg, echo=echo, fixed_theta=fixed_theta)
+    est = Estimator3D(runs, shape, cfg, fixed_theta=fixed_theta)
     out = est.solve()
     if out.status not in SUCCESS_STATUSES:
         raise TacestError(f"diagnose: a 3-D fit failed ({out.status})")
@@ -195,11 +199,10 @@ def flag_windows(res_runs, window, alpha, floor):
     return flags, stretches
 
 
-def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None, echo=None) -> Diagnosis3D:
+def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None) -> Diagnosis3D:
     """Diagnose 3-D pose-observed runs (see the module docstring)."""
     from tacest.estimation.config import EstimatorConfig
 
-    echo = echo or (lambda *_: None)
     config = config or EstimatorConfig()
     opts = options or Options3D()
     if len(runs) < 2:
@@ -216,7 +219,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     for name, ov in [("none", PLAIN)] + list(AUGMENTATIONS.items()):
         t0 = time.perf_counter()
         cfg = _config(config, ov, opts.fit_iterations)
-        echo(f"fit {name} on {len(train)} training runs ...")
+        log.info(f"fit {name} on {len(train)} training runs ...")
         est, out = _fit(train, shape, cfg)
         res, per = _losses(est, out.z)
         if name == "none":
@@ -227,7 +230,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         held_theta[name] = (cfg, out.z[: est.problem.n_theta].copy(), est.scales)
     for name, (cfg, theta, sc) in held_theta.items():
         t0 = time.perf_counter()
-        echo(f"held-out evaluation of {name} on {len(held)} runs ...")
+        log.info(f"held-out evaluation of {name} on {len(held)} runs ...")
         from tacest.estimation.data import choose_scales
 
         sh = choose_scales(held, cfg)

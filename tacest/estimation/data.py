@@ -2,34 +2,30 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+
 
 import numpy as np
 
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import G, G_NAMES, TERMS, Problem2D
 from tacest.io.run import Run
+from tacest.model.effect import Scales
+from tacest.model.stage2d import G, G_NAMES, TERMS
 
-GRAVITY = 9.81
 
-
-@dataclass
-class Scales:
-    """Problem scales: L (m) length, m0 (kg) reference mass.  Impulses are scaled per run by
-    m0·g·dt (N·s), velocities by L per second."""
-
-    L: float
-    m0: float
+def gravity_of(run: Run) -> float:
+    """m/s², the magnitude of the run's gravity (SPEC attr ``gravity``)."""
+    return float(np.linalg.norm(np.asarray(run.gravity, float)))
 
 
 def choose_scales(runs: list[Run], config: EstimatorConfig) -> Scales:
-    """Length scale from the prior size hint (or the config default); mass from the prior."""
+    """Length scale from the prior size hint (or the config default); mass from the
+    prior; gravity the runs' (their median magnitude)."""
     sizes = [float(r.prior["size"]) for r in runs if "size" in r.prior]
     L = float(np.median(sizes)) if sizes else config.prior.size
     masses = [float(r.prior["mass"]) for r in runs if "mass" in r.prior]
     m0 = float(np.median(masses)) if masses else config.prior.mass
-    return Scales(L=L, m0=m0)
+    return Scales(L=L, m0=m0, g=float(np.median([gravity_of(r) for r in runs])))
 
 
 #: half-width (samples) of the fingertip velocity filter: a least-squares line over
@@ -131,23 +127,25 @@ def global_vector(run: Run, scales: Scales, config: EstimatorConfig, eps: float,
     nz = config.noise
     g = np.zeros(len(G_NAMES))
     up = run.up
-    vals = dict(dt=run.dt, L=scales.L, Lam=scales.m0 * GRAVITY * run.dt, m0=scales.m0, nx=up[0], ny=up[1],
+    grav = gravity_of(run)
+    vals = dict(dt=run.dt, L=scales.L, Lam=scales.m0 * grav * run.dt, m0=scales.m0, nx=up[0], ny=up[1],
                 h=run.ground_height, sig_force=nz.force, sig_normal=nz.normal, sig_gap=nz.contact_gap,
                 sig_proc=nz.process, sig_pen=nz.penetration, sig_rest=nz.rest,
                 w_rest=1.0 if starts_at_rest(run) else 0.0,
                 sig_pos=run.sigma_position, sig_ang=run.sigma_angle, eps=eps, comp_mult=comp_mult,
                 dyn_mult=dyn_mult, sig_comp=nz.complementarity, sig_diss=nz.dissipation,
                 m_ref=scales.m0, I_ref=scales.m0 * scales.L ** 2 / 6, sig_diss_g=nz.dissipation_ground,
-                reach=nz.complementarity_reach)
+                reach=nz.complementarity_reach, grav=grav,
+                gx=float(run.gravity[0]), gy=float(run.gravity[1]))
     for k, v in vals.items():
         g[G[k]] = v
     return g
 
 
-def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config: EstimatorConfig,
+def parameter_vector(problem, runs: list[Run], scales: Scales, config: EstimatorConfig,
                      eps: float, comp_mult: float, s_ref: np.ndarray, weights_override: dict | None = None,
                      dyn_mult: float = 1.0, ridge: float | None = None):
-    """The full parameter vector p for :attr:`Problem2D.nlp`."""
+    """The full parameter vector p of a tacest.estimation.problem2d.Problem2D's NLP."""
     if len(runs) != len(problem.structures):
         raise TacestError("internal: runs do not match the problem structure")
     parts = [np.array([scales.L, scales.m0])]
@@ -164,6 +162,7 @@ def parameter_vector(problem: Problem2D, runs: list[Run], scales: Scales, config
     pr = config.prior
     parts.append(np.array([pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
                            pr.shape_sigma, 1.0]))
+    parts.append(problem.effect_priors(config, scales.L))
     parts.append(np.asarray(s_ref, float))
     parts.append([config.solver.hessian_ridge if ridge is None else ridge])
     p = np.concatenate(parts)

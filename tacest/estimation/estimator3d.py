@@ -19,6 +19,7 @@ is identified only relative to that mass (I / m).
 
 from __future__ import annotations
 
+import logging
 import time
 
 import casadi as ca
@@ -27,28 +28,25 @@ import numpy as np
 from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
+from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales, finger_velocity, touching
+from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
 from tacest.estimation.initial3d import start_candidates_3d
-from tacest.estimation.problem import PHYSICS_TERMS
-from tacest.estimation.problem3d import (D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D,
-                                         Problem3D, impulse_variable)
-from tacest.estimation.solver import (FATAL_STATUSES, SUCCESS_STATUSES, BuiltSolver, SolveOutcome, StageInfo,
-                                     attempts_json, check_success, solve_from_starts)
+from tacest.estimation.problem3d import Problem3D
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound
+from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, pin, plan_stages, run_stages,
+                                     solve_from_starts)
+from tacest.estimation.uncertainty import observed_information_3d
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
 from tacest.io.run import Run
+from tacest.model.stage2d import PHYSICS_TERMS
+from tacest.model.stage3d import D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D, impulse_variable
 
-#: log(m / m0) bounds (as in 2-D: a factor e^6 either way)
-LOG_MASS_BOUNDS = (-6.0, 6.0)
-#: friction coefficient bounds (as in 2-D)
-FRICTION_BOUNDS = (0.01, 2.0)
-#: log-Cholesky diagonal bounds: sqrt of the second moment per unit mass between
-#: e^-8 L and e^2 L (any object of size ~L lies far inside); off-diagonals ±2 L
-INERTIA_DIAG_BOUNDS = (-8.0, 2.0)
-INERTIA_OFFDIAG_BOUND = 2.0
+log = logging.getLogger(__name__)
+
 #: Estimator3D.choose_start_shape: range of starting scales (units of L) and the
 #: relative width of its histogram bins (0.5 %: 0.5 mm on a 10 cm object, finer than the
 #: spread of a resting object's height under motion-capture noise but not much finer)
@@ -59,11 +57,8 @@ START_SCALE_REFINE = np.array([0.995, 1.0, 1.01, 1.02, 1.03, 1.045, 1.06])
 #: largest number of fingers a 3-D run may have
 MAX_FINGERS = 8
 
-_CACHE: dict = {}
-
-
-def _noop(*_a, **_k):
-    pass
+#: one structure at a time: a 3-D problem holds large CasADi graphs
+_SOLVERS = SolverCache(limit=1)
 
 
 def check_runs_3d(runs: list[Run]):
@@ -90,17 +85,30 @@ def check_runs_3d(runs: list[Run]):
             raise TacestError(f"{name}: /observations/pose sigmas must be > 0")
 
 
-def get_solver_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, echo=None) -> BuiltSolver:
+def effects_3d(shape: Shape3D, config: EstimatorConfig) -> tuple:
+    """The effects a 3-D fit models: ``edge_radius`` (boxes) and ``ground_offset`` where
+    their prior sigmas in [solver3d] are above 0 (docs/estimation3d.md)."""
+    s3 = config.solver3d
+    for k in ("ground_offset_sigma", "edge_radius_sigma"):
+        v = getattr(s3, k)
+        if not (np.isfinite(v) and v >= 0):
+            raise TacestError(f"solver3d.{k} must be >= 0, got {v!r}")
+    out = []
+    if s3.edge_radius_sigma > 0 and shape.name == "box":  # rounded edges are a box's effect only
+        out.append("edge_radius")
+    if s3.ground_offset_sigma > 0:
+        out.append("ground_offset")
+    return tuple(out)
+
+
+def solver_for_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, effects=()) -> BuiltSolver:
     """The cached solver of this structure (built on first use)."""
     import dataclasses
 
-    # the augmentations' prior sigmas are NLP parameters, not structure
+    # the effects' prior sigmas are NLP parameters, not structure
     s3 = dataclasses.replace(config.solver3d, ground_offset_sigma=0.0, edge_radius_sigma=0.0)
-    key = (shape.name, layout, repr(config.solver), repr(s3))
-    if key not in _CACHE:
-        _CACHE.clear()  # one structure at a time: a problem holds large CasADi graphs
-        _CACHE[key] = BuiltSolver(Problem3D(shape, layout, config, echo=echo), config)
-    return _CACHE[key]
+    key = (shape.name, layout, repr(config.solver), repr(s3), tuple(effects))
+    return _SOLVERS.get(key, lambda: BuiltSolver(Problem3D(shape, layout, config, effects), config))
 
 
 # ---------------------------------------------------------------------------------
@@ -130,8 +138,11 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
     DF_NAMES (F fingers; a run with fewer is padded with zero weights)."""
     T = run.n_samples
     D = np.zeros((len(D_NAMES) + len(DF_NAMES) * F, T))
+    grav = gravity_of(run)
     D[DI["dt"]] = run.dt
-    D[DI["Lam"]] = scales.m0 * GRAVITY * run.dt
+    D[DI["Lam"]] = scales.m0 * grav * run.dt
+    D[DI["grav"]] = grav
+    D[DI["gx"]: DI["gz"] + 1] = np.asarray(run.gravity, float)[:, None]
     D[DI["nx"]: DI["nz"] + 1] = np.asarray(run.up, float)[:, None]
     D[DI["h"]] = run.ground_height
     D[DI["sig_pos"]] = run.sigma_position
@@ -166,14 +177,13 @@ class Estimator3D:
     """Implicit estimator for a set of 3-D runs of one object."""
 
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 echo=None, fixed_theta=None):
+                 fixed_theta=None):
         check_runs_3d(runs)
         #: (n_theta,) scaled parameters to hold (the trajectories alone are fitted: a
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
         self.runs = runs
         self.config = config or EstimatorConfig()
-        self.echo = echo or _noop
         self.shape = make_shape_3d(shape_spec)
         self.scales: Scales = choose_scales(runs, self.config)
         self.F = max(r.n_fingers for r in runs)
@@ -186,18 +196,10 @@ class Estimator3D:
             raise TacestError(f"size bound {self.size_bound:g} m is below the length scale {self.scales.L:g} m "
                               f"times {MIN_BOUND_OVER_SCALE}: no shape fits")
         self.s0 = self.shape.initial(np.full(3, 1.0))  # a cube of the length scale
-        #: augmentation ground_offset: prior sigma (m), 0 = the ground held at /scene's height
-        self.ground_offset_sigma = float(self.config.solver3d.ground_offset_sigma)
-        #: augmentation edge_radius (box only): prior sigma (m), 0 = sharp edges
-        self.edge_radius_sigma = float(self.config.solver3d.edge_radius_sigma)
-        for k in ("ground_offset_sigma", "edge_radius_sigma"):
-            v = getattr(self, k)
-            if not (np.isfinite(v) and v >= 0):
-                raise TacestError(f"solver3d.{k} must be >= 0, got {v!r}")
-        if self.shape.name != "box":  # rounded edges are a box's augmentation only
-            self.edge_radius_sigma = 0.0
+        #: the modelled effects (effects_3d: edge_radius, ground_offset)
+        self.effects = effects_3d(self.shape, self.config)
         t0 = time.perf_counter()
-        self.built = get_solver_3d(self.shape, self.layout, self.config, self.echo)
+        self.built = solver_for_3d(self.shape, self.layout, self.config, self.effects)
         self.build_time = time.perf_counter() - t0
         self.problem: Problem3D = self.built.problem
         self.z = None
@@ -207,11 +209,13 @@ class Estimator3D:
         self.start_tracks = None
         #: one dict per solve attempt (start, status, objective, physics per sample)
         self.attempts: list[dict] = []
+        self.bounds_final = None
 
     # --------------------------------------------------------------------------------
     def params(self, eps, comp_mult, dyn_mult=1.0, ridge=None, s_ref=None):
         """Parameter vector p of the NLP."""
         cfg, sc = self.config, self.scales
+        pr3 = self.problem
         D = np.concatenate([data_matrix_3d(r, self.F, sc) for r in self.runs], axis=1)
         nz = cfg.noise
         gvals = dict(L=sc.L, m0=sc.m0, sig_proc=nz.process, sig_pen=nz.penetration, sig_gap=nz.contact_gap,
@@ -220,11 +224,8 @@ class Estimator3D:
         g = np.array([gvals[n] for n in G3_NAMES], float)
         w = np.array([getattr(cfg.weights, t) for t in TERMS3D], float)
         pr = cfg.prior
-        # augmentation priors in units of L (an augmentation that is off is held at 0)
-        go_sig = self.ground_offset_sigma / sc.L if self.ground_offset_sigma > 0 else 1.0
-        er_sig = self.edge_radius_sigma / sc.L if self.edge_radius_sigma > 0 else 1.0
         prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
-                                 pr.shape_sigma, 1.0, go_sig, er_sig], self.s0 if s_ref is None else s_ref])
+                                 pr.shape_sigma, 1.0], pr3.effect_priors(cfg, sc.L), self.s0 if s_ref is None else s_ref])
         ridge = cfg.solver3d.hessian_ridge if ridge is None else ridge
         p = np.concatenate([D.T.reshape(-1), g, w, prior, [ridge]])
         assert p.shape[0] == self.problem.n_p
@@ -251,7 +252,7 @@ class Estimator3D:
             X[:, self.layout.run_samples(i)] = np.concatenate([poses[:, :3] / sc.L, poses[:, 3:]], 1).T
             if run.n_fingers:
                 T = run.n_samples
-                Lam = sc.m0 * GRAVITY * run.dt
+                Lam = sc.m0 * sc.g * run.dt
                 on = touching(run)[2:]
                 n = np.where(np.isfinite(run.normal[2:]), run.normal[2:], 0.0)
                 imp = run.force[2:] * run.dt / Lam if run.force is not None else -0.3 * n
@@ -289,29 +290,21 @@ class Estimator3D:
         i_lm = pr.theta_index("log_mass")
         lbx[i_lm], ubx[i_lm] = LOG_MASS_BOUNDS
         if not self.has_force:  # mass is not identifiable without a force measurement
-            lbx[i_lm] = ubx[i_lm] = 0.0
+            pin(lbx, ubx, [i_lm], [0.0])
         for k, name in enumerate(PHYS_NAMES_3D[1:7]):
             j = pr.theta_index(name)
             lbx[j], ubx[j] = INERTIA_DIAG_BOUNDS if k < 3 else (-INERTIA_OFFDIAG_BOUND, INERTIA_OFFDIAG_BOUND)
         for name in ("friction_ground", "friction_finger"):
             j = pr.theta_index(name)
             lbx[j], ubx[j] = FRICTION_BOUNDS
-        j = pr.theta_index("ground_offset")
-        if self.ground_offset_sigma > 0:  # within 10 prior sigmas (and a length scale) of /scene's ground
-            lbx[j], ubx[j] = -min(10 * self.ground_offset_sigma / self.scales.L, 1.0), min(
-                10 * self.ground_offset_sigma / self.scales.L, 1.0)
-        else:
-            lbx[j] = ubx[j] = 0.0
-        j = pr.theta_index("edge_radius")
-        if self.edge_radius_sigma > 0:  # 0 .. 10 prior sigmas, and at most a quarter of the smallest extent
-            lbx[j], ubx[j] = 0.0, min(10 * self.edge_radius_sigma / self.scales.L, 0.25 * float(np.min(lbx[:ns])))
-        else:
-            lbx[j] = ubx[j] = 0.0
+        a = pr.n_shape + len(PHYS_NAMES_3D)  # the effects' parameters
+        for j, (e, par) in enumerate(pr.effect_params):
+            lbx[a + j], ubx[a + j] = e.bounds(par, self.config, self.scales.L, lbx[:ns])
         if not self.F:  # no fingertip: its friction is not in the model; hold it at the prior
             j = pr.theta_index("friction_finger")
-            lbx[j] = ubx[j] = z[j]
+            pin(lbx, ubx, [j], [z[j]])
         if self.fixed_theta is not None:
-            lbx[: pr.n_theta] = ubx[: pr.n_theta] = self.fixed_theta
+            pin(lbx, ubx, np.arange(pr.n_theta), self.fixed_theta)
         if self.F:
             for i, run in enumerate(self.runs):
                 on = np.zeros((run.n_samples - 2, self.F), bool)
@@ -405,7 +398,7 @@ class Estimator3D:
 
     # --------------------------------------------------------------------------------
     def solve(self) -> SolveOutcome:
-        """Staged solve (:meth:`_solve_from`).  Runs with pose observations (or held
+        """Staged solves (:meth:`solve_from_shape`).  Runs with pose observations (or held
         parameters, or no fingertip) solve once, from the observed poses and
         :meth:`choose_start_shape`.  Without pose observations the starts are
         initial3d.start_candidates_3d's (push-tracked boxes of a few extents and the
@@ -418,18 +411,18 @@ class Estimator3D:
         if self.has_pose or self.fixed_theta is not None or not self.F:
             t0 = time.perf_counter()
             s0 = self.choose_start_shape() if self.fixed_theta is None else self.fixed_theta[: pr.n_shape].copy()
-            self.echo(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
-            return self._solve_from(s0)
+            log.info(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
+            return self.solve_from_shape(s0)
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
-        self.echo(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
+        log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
         def solve_one(c):
             s0 = self.shape.initial(c.extents)
             self.start_tracks = c.poses
             try:
-                out = self._solve_from(s0)
+                out = self.solve_from_shape(s0)
             finally:
                 self.start_tracks = None
             return out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final)
@@ -438,7 +431,7 @@ class Estimator3D:
                     "touch_inconsistency": float(c.inconsistency)} for c in starts]
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.echo, self.attempts)
+                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts)
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
@@ -447,7 +440,7 @@ class Estimator3D:
         return out
 
     def physics_per_sample(self, z) -> float:
-        """Objective units per sample of the physics terms (problem.PHYSICS_TERMS: dynamics,
+        """Objective units per sample of the physics terms (stage2d.PHYSICS_TERMS: dynamics,
         penetration, complementarity, dissipation, cone; weights applied) at z with the
         final stage's parameters: how far a fit violates its own model."""
         _, _, w = self.problem.split_parameters(self.p_final)
@@ -460,67 +453,70 @@ class Estimator3D:
                 total += wt * 0.5 * float(np.sum(o0[t] ** 2))
         return total / self.layout.S
 
-    def _solve_from(self, s0) -> SolveOutcome:
-        """One staged solve from the starting shape s0 (scaled): the ground impulses by
-        non-negative least squares for the observed (or starting) trajectory; with
-        fingers, the contact impulses alone by IPOPT; then the homotopy stages of the
-        config with everything free (see estimator.py).  Hessian models as configured
-        (``gauss-newton-then-exact``: the exact Hessian in the last stage only)."""
+    def stages(self):
+        """The stage plan (solver.plan_stages): runs without pose observations have stages
+        of their own (the pose-observed path keeps [solver3d] homotopy and hessian); an
+        impulses stage only where fingers push."""
         cfg, cfg3 = self.config.solver, self.config.solver3d
+        hom = cfg3.homotopy if self.has_pose else cfg3.homotopy_no_pose
+        hessian = cfg3.hessian if self.has_pose else cfg3.hessian_no_pose
+        return plan_stages(hom, hessian, cfg.max_iter, cfg.stage_max_iter, impulses_first=bool(self.F))
+
+    def stage_bounds(self, stage, z):
+        lbx, ubx = self.variable_bounds(z)
+        if not stage.impulses_only:
+            return lbx, ubx
+        free = np.zeros(self.problem.n_z, bool)
+        free[self.problem.u_offset:] = True
+        return np.where(free, lbx, z), np.where(free, ubx, z)
+
+    def stage_params(self, stage, retry=False):
+        ridge = max(self.config.solver3d.hessian_ridge, 1.0) if retry else None
+        return self.params(stage.eps, stage.comp_mult, stage.dyn_mult, ridge=ridge)
+
+    def solve_from_shape(self, s0) -> SolveOutcome:
+        """One staged solve from the starting shape s0 (scaled): the ground impulses by
+        non-negative least squares for the observed (or starting) trajectory, then the
+        stages of :meth:`stages` (solver.run_stages)."""
         pr = self.problem
         self.s0 = np.asarray(s0, float)
-        self.z = self.initial_guess()
+        z = self.initial_guess()
         if self.fixed_theta is not None:
-            self.z[: pr.n_theta] = self.fixed_theta
-        # runs without pose observations have stages of their own (the pose-observed
-        # path keeps [solver3d] homotopy and hessian)
-        hom = list(cfg3.homotopy if self.has_pose else cfg3.homotopy_no_pose)
-        hessian = cfg3.hessian if self.has_pose else cfg3.hessian_no_pose
-        plan = [("impulses", *hom[0], "impulses")] if self.F else []
-        for k, (eps, w, wd) in enumerate(hom):
-            plan.append((f"homotopy {k + 1}/{len(hom)}", eps, w, wd, "all"))
-        stages, lam_x = [], None
+            z[: pr.n_theta] = self.fixed_theta
+        stages = self.stages()
         t0 = time.perf_counter()
-        self.z = self.ground_impulses_nnls(self.z, self.params(*hom[0]))
+        z = self.ground_impulses_nnls(z, self.stage_params(stages[0]))
         nnls_time = time.perf_counter() - t0
-        self.echo(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
-        stages.append(StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
-                                wall_time=nnls_time, objective=float("nan")))
-        for label, eps, w, wd, which in plan:
-            lbx, ubx = self.variable_bounds(self.z)
-            if which == "impulses":
-                lbx, ubx = self._impulse_only(lbx, ubx, self.z)
-            self.z = np.clip(self.z, lbx, ubx)
-            final = label == plan[-1][0]
-            mode = hessian
-            if mode == "gauss-newton-then-exact":
-                mode = "exact" if final and len(hom) > 1 else "gauss-newton"
-            sol, info = self.built.solve(self.z, self.params(eps, w, wd), lbx, ubx, pr.lbg, pr.ubg, lam_x, None,
-                                         label=label, echo=self.echo, hessian=mode,
-                                         max_iter=cfg.max_iter if final else cfg.stage_max_iter)
-            stages.append(info)
-            self.echo(f"stage {label}: {info.status}, {info.iterations} iterations, "
-                      f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
-            if final or which == "impulses" or info.status in FATAL_STATUSES:
-                check_success(info)
-            self.z = np.asarray(sol["x"]).reshape(-1)
-            if which == "all":
-                lam_x = np.asarray(sol["lam_x"]).reshape(-1)
-        self.p_final = self.params(*plan[-1][1:4])
+        log.info(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
+        out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds)
+        out.stages.insert(0, StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
+                                       wall_time=nnls_time, objective=float("nan")))
+        out.wall_time += nnls_time
+        self.z = out.z
+        self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(self.z)
-        last = stages[-1]
-        return SolveOutcome(z=self.z, lam_g=np.zeros(0), lam_x=lam_x, status=last.status,
-                            success=last.status in SUCCESS_STATUSES, iterations=sum(s.iterations for s in stages),
-                            wall_time=sum(s.wall_time for s in stages), objective=last.objective, stages=stages)
+        return out
 
     # --------------------------------------------------------------------------------
+    def effect_params(self, z) -> dict:
+        """{estimate /params name: physical value} of the effects' parameters at z
+        (edge_radius, ground_offset in m)."""
+        pr = self.problem
+        th = np.asarray(z, float)[: pr.n_theta]
+        u = pr.effect_values(th)
+        mu_g = float(th[pr.theta_index("friction_ground")])
+        out = {}
+        for e in pr.effect_objects:
+            out.update(e.report(u[e.name], self.scales, pr.K, mu_g))
+        return out
+
     def edge_radius(self, z) -> float:
         """Estimated radius (m) of the box's rounded edges (0 when not estimated)."""
-        return float(np.asarray(z, float)[self.problem.theta_index("edge_radius")] * self.scales.L)
+        return float(self.effect_params(z).get("edge_radius", 0.0))
 
     def ground_offset(self, z) -> float:
         """Estimated ground offset (m) above /scene's ground_height (0 when not estimated)."""
-        return float(np.asarray(z, float)[self.problem.theta_index("ground_offset")] * self.scales.L)
+        return float(self.effect_params(z).get("ground_offset", 0.0))
 
     def physical(self, z):
         """(vertices (K, 3) m, mass kg, inertia (3, 3) kg·m², mu_g, mu_f)."""
@@ -568,7 +564,7 @@ class Estimator3D:
             vel_b[0] = vel_b[1]
             w_world = np.einsum("tij,tj->ti", quat_to_matrix(q), vel_b[:, 3:])
             vel = np.concatenate([vel_b[:, :3], w_world], 1)
-            Lam = sc.m0 * GRAVITY * run.dt
+            Lam = sc.m0 * sc.g * run.dt
             lt = st["lam_t_ground"][:, iv].T.reshape(T - 2, K, 3)
             imp = {"ground_normal": np.vstack([np.zeros((2, K)), st["lam_n_ground"][:, iv].T * Lam]),
                    "ground_tangent": np.concatenate([np.zeros((2, K, 3)), lt * Lam], 0)}
@@ -591,65 +587,54 @@ class Estimator3D:
         return results
 
 
+    def result(self, out: SolveOutcome, wall_time: float, information=True) -> Estimate:
+        """The Estimate of the fit ``out`` (result.assemble, the one policy of 2-D and 3-D)."""
+        pr, sc = self.problem, self.scales
+        V, mass, inertia, mu_g, mu_f = self.physical(out.z)
+        run_ests = []
+        for run, (pose, vel, imp, res) in zip(self.runs, self.run_results(out.z)):
+            src = run.filename or ""
+            run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
+                                        source_sha256=sha256_file(src) if src else ""))
+        params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
+        params.update(self.effect_params(out.z))
+        info = (observed_information_3d(pr, out.z, self.p_final, *self.bounds_final, sc, mass)
+                if information else None)
+        th = np.asarray(out.z, float)
+        a = pr.n_shape + len(PHYS_NAMES_3D)
+        effect_sigma = {}
+        for j, (e, par) in enumerate(pr.effect_params):
+            _, sigma = e.prior(par, self.config, sc.L)
+            effect_sigma[e.info_name(par)] = float(sigma) / e.info_factor(par, float(th[a + j]), sc)
+        facts = FitFacts(has_force=self.has_force, has_fingers=self.F > 0,
+                         at_bound={"mass": ended_at_bound(np.log(mass / sc.m0), LOG_MASS_BOUNDS),
+                                   "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
+                                   "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)},
+                         effect_sigma=effect_sigma, effects=pr.effects, held=self.fixed_theta is not None)
+        notes = []
+        if not self.has_force:
+            notes.append("no force measurement: mass is not identifiable (held at the prior "
+                         f"{sc.m0:g} kg); inertia is identified only relative to it (I/m)")
+        return assemble(3, self.shape.name, V, params, run_ests, out, wall_time, info, facts, self.config.to_dict(),
+                        "implicit", extra={"length_scale": sc.L, "mass_scale": sc.m0,
+                                           "shape_params": np.asarray(out.z[: pr.n_shape] * sc.L, float)},
+                        attempts=self.attempts, notes=notes)
+
+
 #: the size bound must exceed this multiple of the length scale (the smallest extent is
 #: MIN_SIZE_FRACTION of the bound; a bound below half the scale leaves no room to start)
 MIN_BOUND_OVER_SCALE = 0.5
 
 
-def estimate_runs_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                     echo=None) -> Estimate:
+def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None) -> Estimate:
     """Estimate one object's shape, inertia, friction and every run's trajectory from 3-D
     runs.  See the module docstring."""
-    from tacest.information.observed3d import observed_information_3d
-
-    echo = echo or _noop
     t_start = time.perf_counter()
-    est = Estimator3D(runs, shape_spec, config, echo)
+    est = Estimator3D(runs, shape_spec, config)
     pr = est.problem
-    echo(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
+    log.info(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
     out = est.solve()
-    V, mass, inertia, mu_g, mu_f = est.physical(out.z)
-    run_ests = []
-    for run, (pose, vel, imp, res) in zip(runs, est.run_results(out.z)):
-        src = run.filename or ""
-        run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
-                                    source_sha256=sha256_file(src) if src else ""))
-    info, names, std = observed_information_3d(pr, out.z, est.p_final, *est.bounds_final, est.scales.L, mass)
-    params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
-    identifiable = {"mass": est.has_force, "inertia": est.has_force, "friction_ground": True,
-                    "friction_finger": est.F > 0}
-    model = []
-    if est.ground_offset_sigma > 0:  # augmentation: the ground plane's height, estimated
-        params["ground_offset"] = est.ground_offset(out.z)
-        identifiable["ground_offset"] = bool(std.get("ground_offset", np.inf) < est.ground_offset_sigma)
-        model.append("ground_offset")
-    if est.edge_radius_sigma > 0:  # augmentation: rounded edges and corners of the box
-        params["edge_radius"] = est.edge_radius(out.z)
-        identifiable["edge_radius"] = bool(std.get("edge_radius", np.inf) < est.edge_radius_sigma)
-        model.append("edge_radius")
-    # a parameter the data leave (nearly) undetermined: one sigma above half its value
-    for k in ("friction_ground", "friction_finger"):
-        if not std.get(k, np.inf) <= 0.5 * max(params[k], 1e-3):
-            identifiable[k] = False
-    for k, n in enumerate(est.shape.param_names):
-        std.setdefault(n, np.inf)
-    notes = []
-    if not est.has_force:
-        notes.append("no force measurement: mass is not identifiable (held at the prior "
-                     f"{est.scales.m0:g} kg); inertia is identified only relative to it (I/m)")
-    wall = time.perf_counter() - t_start
-    return Estimate(
-        dim=3, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=model,
-        solver_status=out.status, success=out.success, iterations=out.iterations, wall_time=wall,
-        objective=out.objective, information=info, info_names=names, std=std, identifiable=identifiable,
-        config=est.config.to_dict(), method="implicit",
-        extra_attrs={"stages": "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
-                                          for s in out.stages),
-                     "length_scale": est.scales.L, "mass_scale": est.scales.m0,
-                     "shape_params": np.asarray(out.z[: pr.n_shape] * est.scales.L, float),
-                     "notes": "; ".join(notes),
-                     **({"starts": attempts_json(est.attempts)} if est.attempts else {})},
-    )
+    return est.result(out, time.perf_counter() - t_start)
 
 
 def inertia_parameters(inertia, mass, L) -> np.ndarray:

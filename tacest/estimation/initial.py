@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacest.estimation.data import (GRAVITY, Scales, pose_observation_columns, starts_at_rest, touch_inconsistency,
-                                   touching)
-from tacest.estimation.problem import EFFECT_STARTS
+from tacest.estimation.data import Scales, pose_observation_columns, starts_at_rest, touch_inconsistency, touching
 from tacest.geometry.polygon import convex_signed_distance
 from tacest.geometry.shapes import numeric_vertices
 from tacest.io.run import Run
@@ -273,16 +271,16 @@ def _tracked_batch(run: Run, Vs: np.ndarray) -> np.ndarray:
 
 def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, trajectories=None):
     """Scaled decision vector z0 for :class:`Problem2D`: theta (shape s0, log mass 0,
-    log inertia ratio 0, friction 0.5, 0.5, effect parameters at "no effect" but those
-    of problem.EFFECT_STARTS) and, per run, the given (or push-tracker)
+    log inertia ratio 0, friction 0.5, 0.5, effect parameters at their starts: "no
+    effect" unless the parameter says otherwise, tacest.model.effect.EffectParameter)
+    and, per run, the given (or push-tracker)
     trajectory, finite-difference velocities, and impulses that hold the object up."""
     z0 = np.zeros(problem.n_z)
     ns = problem.n_shape
     z0[:ns] = s0
     z0[ns:ns + 4] = [0.0, 0.0, 0.5, 0.5]
-    for name, value in EFFECT_STARTS.items():
-        if name in problem.eff_index:
-            z0[ns + 4 + problem.eff_index[name]] = value
+    for j, (_, par) in enumerate(problem.effect_params):
+        z0[ns + 4 + j] = par.centre if par.start is None else par.start
     z0[problem.phys_offset: problem.phys_offset + problem.n_phys] = np.asarray(
         problem.phys_sx(z0[: problem.n_theta], scales.L, scales.m0)).reshape(-1)
     V = numeric_vertices(problem.shape, s0, scales.L)
@@ -306,7 +304,7 @@ def initial_guess(problem, runs: list[Run], scales: Scales, s0: np.ndarray, traj
             LG[:K, t - 1][low] = 1.0 / low.sum()
         LF = np.zeros((2 * run.n_fingers, T - 1))
         if run.n_fingers:
-            Lam = scales.m0 * GRAVITY * run.dt
+            Lam = scales.m0 * scales.g * run.dt
             on = run.contact[1:].astype(bool)
             n = np.where(np.isfinite(run.normal[1:]), run.normal[1:], 0.0)
             imp = run.force[1:] * run.dt / Lam if run.force is not None else -0.3 * n

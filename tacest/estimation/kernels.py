@@ -17,6 +17,8 @@ returned as they are (same results, slower).
 
 from __future__ import annotations
 
+import logging
+
 import hashlib
 import os
 import shutil
@@ -25,6 +27,8 @@ import tempfile
 from pathlib import Path
 
 import casadi as ca
+
+log = logging.getLogger(__name__)
 
 #: compiler flags: -O1 compiles a 15k-instruction function in ~5 s and runs within
 #: 20 % of -O2, which takes nearly twice as long to compile
@@ -48,7 +52,7 @@ def _compiler():
     return None
 
 
-def compile_functions(funs, tag: str, derivatives=(), echo=None):
+def compile_functions(funs, tag: str, derivatives=()):
     """{name: Function}: the functions ``funs`` (SX), compiled and loaded, or as given
     when compiling is not possible.
 
@@ -71,8 +75,7 @@ def compile_functions(funs, tag: str, derivatives=(), echo=None):
         key = hashlib.sha256(code + ca.__version__.encode() + " ".join(CFLAGS).encode()).hexdigest()[:16]
         target = cache_dir() / f"{tag}_{key}.so"
         if not target.exists():
-            if echo:
-                echo(f"compiling {tag} kernels (once per machine) ...")
+            log.info(f"compiling {tag} kernels (once per machine) ...")
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 part = target.with_suffix(f".{os.getpid()}.part")

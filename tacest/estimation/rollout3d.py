@@ -1,5 +1,5 @@
 """The 3-D model run forward: a time-stepping simulator built from the estimator's own
-residuals (problem3d.StageModel3D), for rollouts of an estimated (or nominal) model
+residuals (tacest.model.stage3d.StageModel3D), for rollouts of an estimated (or nominal) model
 and for synthetic test data.
 
 One step (t-1 -> t) takes the poses at t-2 and t-1 and finds the velocity over the
@@ -18,13 +18,13 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
 from tacest.dynamics.rigid3d import cholesky_from_inertia, qexp_half, qmul, quat_log_rate
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY
-from tacest.estimation.problem3d import DI, G3_NAMES, NP, StageModel3D
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d
 from tacest.geometry.transforms import quat_conjugate, quat_multiply, quat_to_matrix
+from tacest.model.stage3d import DI, G3_NAMES, NP, StageModel3D
 
 #: factor on the whitened dynamics residual in a simulation step: with the estimator's
 #: process sigma (5 % of g dt per sample) the momentum balance then holds to ~0.5 % of
@@ -59,20 +59,21 @@ class TimeStepper3D:
     shape : Shape3D or spec string (``box``, ``polytope:K``)
     shape_params : (n_s,) m, physical (box extents or polytope radii)
     mass : kg;  inertia : (3, 3) kg·m² about the COM, body frame;  friction : ground mu
-    dt : s;  up : (3,) ground normal;  ground_height : m
+    dt : s;  up : (3,) ground normal;  ground_height : m;  gravity : m/s², along -up
     edge_radius : m, radius of a box's rounded edges (the estimate's ``edge_radius``; 0: sharp)
     config : EstimatorConfig (noise levels and the final homotopy stage of [solver3d])
     """
 
     def __init__(self, shape, shape_params, mass, inertia, friction, dt, up=(0.0, 0.0, 1.0), ground_height=0.0,
-                 config: EstimatorConfig | None = None, edge_radius=0.0):
+                 config: EstimatorConfig | None = None, edge_radius=0.0, gravity=STANDARD_GRAVITY):
         self.shape = make_shape_3d(shape) if isinstance(shape, str) else shape
         self.config = config or EstimatorConfig()
         self.dt = float(dt)
         sp = np.asarray(shape_params, float).reshape(-1)
         self.L = float(np.mean(sp[: 3])) if self.shape.name == "box" else 2.0 * float(np.mean(sp))
         self.m0 = float(mass)
-        self.model = StageModel3D(self.shape, 0)
+        rounded = self.shape.name == "box" and float(edge_radius) > 0
+        self.model = StageModel3D(self.shape, 0, effects=("edge_radius",) if rounded else ())
         theta = np.zeros(self.model.n_theta)
         theta[: self.model.n_shape] = sp / self.L
         theta[self.model.theta_index("log_mass")] = 0.0
@@ -80,7 +81,8 @@ class TimeStepper3D:
             np.asarray(inertia, float) / (mass * self.L ** 2))
         theta[self.model.theta_index("friction_ground")] = float(friction)
         theta[self.model.theta_index("friction_finger")] = float(friction)
-        theta[self.model.theta_index("edge_radius")] = float(edge_radius) / self.L
+        if rounded:
+            theta[self.model.theta_index("edge_radius")] = float(edge_radius) / self.L
         self.theta = theta
         nz = self.config.noise
         eps, comp_mult, dyn_mult = self.config.solver3d.homotopy[-1]
@@ -90,9 +92,13 @@ class TimeStepper3D:
                      sig_diss=nz.dissipation, sig_rest=nz.rest)
         self.g = np.array([gvals[n] for n in G3_NAMES])
         d = np.zeros(self.model.n_d)
+        self.gravity = float(gravity)
+        up = np.asarray(up, float) / np.linalg.norm(up)
         d[DI["dt"]] = self.dt
-        d[DI["Lam"]] = self.m0 * GRAVITY * self.dt
-        d[DI["nx"]: DI["nz"] + 1] = np.asarray(up, float) / np.linalg.norm(up)
+        d[DI["Lam"]] = self.m0 * self.gravity * self.dt
+        d[DI["grav"]] = self.gravity
+        d[DI["gx"]: DI["gz"] + 1] = -self.gravity * up
+        d[DI["nx"]: DI["nz"] + 1] = up
         d[DI["h"]] = float(ground_height)
         d[DI["sig_pos"]] = d[DI["sig_ang"]] = 1.0
         d[DI["qw"]] = 1.0
@@ -179,10 +185,10 @@ class TimeStepper3D:
 
     def impulses(self, y):
         """lambda_n (K,) N·s of a solved step vector y."""
-        return np.asarray(y[6:], float) * self.m0 * GRAVITY * self.dt
+        return np.asarray(y[6:], float) * self.m0 * self.gravity * self.dt
 
 
-def initial_state(poses, dt, n_fit=4, gravity=(0.0, 0.0, -9.81)):
+def initial_state(poses, dt, n_fit=4, gravity=(0.0, 0.0, -STANDARD_GRAVITY)):
     """(pose (7,), velocity (6,) [v world, omega world]) at sample 0 of observed poses
     (T, 7), for a rollout: the position by a least-squares parabola of known gravity
     through the first n_fit samples, the rate as the mean of the first n_fit - 1 body
@@ -229,7 +235,7 @@ def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0
         dq = quat_from_axis_angle(rv / np.maximum(angle, 1e-15)[:, None], angle)
         obs[:, 3:] = quat_multiply(obs[:, 3:], dq)
     V = _vertices(sim.shape, shape_params)
-    return Run(dim=3, dt=float(dt), time=np.arange(T) * float(dt), gravity=np.array([0.0, 0.0, -GRAVITY]),
+    return Run(dim=3, dt=float(dt), time=np.arange(T) * float(dt), gravity=np.array([0.0, 0.0, -sim.gravity]),
                source="sim-rollout3d", pose_obs=obs, sigma_position=float(sigma_position),
                sigma_angle=float(sigma_angle), ground_height=0.0, ground_normal=np.array([0.0, 0.0, 1.0]),
                prior={"size_bound": float(4 * np.max(shape_params))}, extra_attrs=attrs,

@@ -60,6 +60,7 @@ estimate).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -68,18 +69,25 @@ from types import SimpleNamespace
 import casadi as ca
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
+from tacest.dynamics.laws import smooth_abs, smooth_neg, smooth_pos
 from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_matrix_diag, perp, point_velocity
-from tacest.errors import SolveFailedError, TacestError
+from tacest.errors import TacestError
+from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import GRAVITY, Scales, choose_scales, pose_observation_columns
-from tacest.estimation.estimator import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS, check_runs
+from tacest.estimation.data import Scales, choose_scales, pose_observation_columns
+from tacest.estimation.estimator import check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
-from tacest.estimation.problem import PHYS_NAMES, consecutive_slices, smooth_abs, smooth_neg, smooth_pos
-from tacest.estimation.solver import SUCCESS_STATUSES, _Progress
+from tacest.estimation.result import FitFacts, assemble
+from tacest.estimation.solver import BuiltSolver, SolverCache, Stage, run_stages
+from tacest.estimation.uncertainty import Information, std_of
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run
+from tacest.model.stage2d import PHYS_NAMES, consecutive_slices
+
+log = logging.getLogger(__name__)
 
 #: physics substeps per sample (h = dt / SUBSTEPS: 1 ms at 100 Hz)
 SUBSTEPS = 10
@@ -104,9 +112,10 @@ CONTACT_SMOOTH = 1e-4
 #: m, rest offset of the ground springs: softplus(GROUND_OFFSET) = GROUND_SINK, so that an
 #: object resting on a face under its own weight sits exactly at phi = 0
 GROUND_OFFSET = CONTACT_SMOOTH * math.log(math.expm1(GROUND_SINK / CONTACT_SMOOTH))
-#: m/s, slip speed below which Coulomb friction is regularized (linearly implicit, so
-#: it need not grow with the substep: see friction_force)
-SLIP_EPS = 2e-3
+#: m/s, slip speed below which the simulated Coulomb friction is regularized (linearly
+#: implicit, so it need not grow with the substep: see friction_force).  A law of the
+#: forward simulation, not the implicit model's smoothing of |slip| (laws.SLIP_EPS)
+FRICTION_REGULARIZATION_SPEED = 2e-3
 #: m, temperature of the soft minimum over the vertices that puts the start pose on the
 #: ground (the start is at most REST_SOFTMIN · ln K above the exact resting height)
 REST_SOFTMIN = 2e-5
@@ -130,11 +139,8 @@ TERMS = ("force", "normal", "contact", "pose")
 OUTPUT_NAMES = ("Q", "V", "F_sim", "imp_ground_n", "imp_ground_t", *TERMS, "gap", "n_model")
 #: names of the physical parameters in theta after the shape block (as in problem.py)
 
-_CACHE: dict = {}
-
-
-def _noop(*_a, **_k):
-    pass
+#: built shooting problems by structure (the problem, not its solvers: BuiltSolver per estimate)
+_CACHE = SolverCache()
 
 
 def softplus(x, w):
@@ -167,13 +173,14 @@ def phys_function(shape: Shape) -> ca.Function:
 
 def friction_force(mu, f_n, s, inv_m_t, h):
     """Magnitude (along the slip s) of the regularized Coulomb force mu f_n s / sqrt(s² + eps²),
-    eps = SLIP_EPS, applied linearly implicitly: divided by 1 + h inv_m_t d/ds(force), so
+    eps = FRICTION_REGULARIZATION_SPEED, applied linearly implicitly: divided by 1 + h inv_m_t d/ds(force), so
     that one step cannot reverse the slip however small eps is (an explicit step needs
     eps >~ h mu g (1 + lever terms), several cm/s at 1 ms, and then underestimates
     friction in slow pushes).  inv_m_t : 1/kg, inverse effective mass along the tangent."""
-    den = smooth_abs(s, SLIP_EPS)
+    eps = FRICTION_REGULARIZATION_SPEED
+    den = smooth_abs(s, eps)
     f = mu * f_n * s / den
-    slope = mu * f_n * SLIP_EPS ** 2 / den ** 3
+    slope = mu * f_n * eps ** 2 / den ** 3
     return f / (1 + h * inv_m_t * slope)
 
 
@@ -209,31 +216,32 @@ def normal_force(k, c, delta, u, inv_m_n, a_close, h, f_eps):
     return smooth_pos(num, f_eps) / (1 + h * inv_m_n * (h * f_d + f_u))
 
 
-def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_g, h, sd_fun):
+def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_g, g_vec, h, sd_fun):
     """Penalty contact forces of the model (module docstring) at state (q, v).
 
     c_f, v_f : (2, F) fingertip centres (m) and velocities (m/s), world;
-    radius : (F,) m;  n_g : (2,) ground normal (gravity along -n_g);  h_g : ground
-    height, m;  h : substep, s.
+    radius : (F,) m;  n_g : (2,) ground normal;  h_g : ground height, m;  g_vec : (2,)
+    gravity, m/s² world;  h : substep, s.  Stiffnesses are in units of the object's
+    standard weight (m·STANDARD_GRAVITY).
     Returns (generalized force (3,), finger forces on the object (2, F) N,
     ground normal forces (K,) N, ground tangential forces (K,) N).
     """
     K = V.shape[0]
     F = c_f.shape[1]
     t_g = perp(n_g)
-    k_g = mass * GRAVITY / (2 * GROUND_SINK)
+    k_g = mass * STANDARD_GRAVITY / (2 * GROUND_SINK)
     c_g = 2 * GROUND_DAMPING_RATIO * ca.sqrt(k_g * mass / 2)  # two vertices share the weight
-    k_f = mass * GRAVITY / FINGER_SINK
+    k_f = mass * STANDARD_GRAVITY / FINGER_SINK
     c_fd = 2 * FINGER_DAMPING_RATIO * ca.sqrt(k_f * mass)
-    f_eps = FORCE_SMOOTH * mass * GRAVITY
+    f_eps = FORCE_SMOOTH * mass * STANDARD_GRAVITY
     gen = ca.SX.zeros(3)
     phi, slip, levers = ground_contacts(q, v, V, n_g, h_g)
     fn_g, ft_g = [], []
     for k in range(K):
         r = levers[k]
         u = -ca.dot(n_g, point_velocity(v, r))
-        fn = normal_force(k_g, c_g, GROUND_OFFSET - phi[k], u, cross2(r, n_g) ** 2 / inertia + 1 / mass, GRAVITY,
-                          h, f_eps)
+        fn = normal_force(k_g, c_g, GROUND_OFFSET - phi[k], u, cross2(r, n_g) ** 2 / inertia + 1 / mass,
+                          -ca.dot(n_g, g_vec), h, f_eps)
         ft = -friction_force(mu_g, fn, slip[k], cross2(r, t_g) ** 2 / inertia + 1 / mass, h)
         gen += generalized_impulse(r, fn * n_g + ft * t_g)
         fn_g.append(fn)
@@ -244,7 +252,7 @@ def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_
         t_w = perp(n_w)
         rel = v_f[:, f] - point_velocity(v, lever)  # fingertip relative to the surface point
         fn = normal_force(k_f, c_fd, -phi_f, -ca.dot(n_w, rel), cross2(lever, n_w) ** 2 / inertia + 1 / mass,
-                          -GRAVITY * ca.dot(n_w, n_g), h, f_eps)
+                          ca.dot(n_w, g_vec), h, f_eps)
         s = ca.dot(t_w, rel)
         ft = friction_force(mu_f, fn, s, cross2(lever, t_w) ** 2 / inertia + 1 / mass, h)
         force = -fn * n_w + ft * t_w
@@ -256,7 +264,7 @@ def contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c_f, v_f, radius, n_g, h_
 
 #: per-run environment vector: dt, ground normal (2), ground height, fingertip radii (F)
 def env_vector(run: Run) -> np.ndarray:
-    return np.concatenate([[run.dt], run.up, [run.ground_height],
+    return np.concatenate([[run.dt], run.up, [run.ground_height], np.asarray(run.gravity, float),
                            run.finger_radius if run.n_fingers else np.zeros(0)])
 
 
@@ -264,31 +272,33 @@ def step_function(K: int, F: int, substeps: int = SUBSTEPS) -> ca.Function:
     """SX Function of one sample interval (t-1, t]:
 
     (x (6) [q, v] SI, u (6F) [c_prev (2F), c_next (2F), v_f (2F)], phys (2K+4) [vec V, m,
-    I, mu_g, mu_f], env (4+F)) -> (x_next (6), mean finger force on the object (2F) N,
+    I, mu_g, mu_f], env (6+F) [dt, ground normal (2), ground height, gravity (2), radii])
+    -> (x_next (6), mean finger force on the object (2F) N,
     ground normal impulses (K) N·s, ground tangential impulses (K) N·s).
     Substeps: semi-implicit Euler, the fingertip centre moving linearly from c_prev to c_next.
     """
     x = ca.SX.sym("x", 6)
     u = ca.SX.sym("u", 6 * F)
     phys = ca.SX.sym("phys", 2 * K + 4)
-    env = ca.SX.sym("env", 4 + F)
+    env = ca.SX.sym("env", 6 + F)
     V = ca.reshape(phys[: 2 * K], K, 2)
     mass, inertia, mu_g, mu_f = (phys[2 * K + i] for i in range(4))
-    dt, n_g, h_g, radius = env[0], env[1:3], env[3], env[4:]
+    dt, n_g, h_g, g_vec, radius = env[0], env[1:3], env[3], env[4:6], env[6:]
     h = dt / substeps
     c_prev = ca.reshape(u[0: 2 * F], 2, F)
     c_next = ca.reshape(u[2 * F: 4 * F], 2, F)
     v_f = ca.reshape(u[4 * F: 6 * F], 2, F)
     sd_fun = polygon_sd_and_normal_function(K)
     Minv = 1 / mass_matrix_diag(mass, inertia)
-    grav = ca.vertcat(-GRAVITY * n_g, 0)
+    grav = ca.vertcat(g_vec, 0)
     q, v = x[0:3], x[3:6]
     f_sum = ca.SX.zeros(2, F)
     in_sum = ca.SX.zeros(K)
     it_sum = ca.SX.zeros(K)
     for j in range(substeps):
         c = c_prev + (j + 1) / substeps * (c_next - c_prev)
-        gen, ff, fn, ft = contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c, v_f, radius, n_g, h_g, h, sd_fun)
+        gen, ff, fn, ft = contact_forces(q, v, V, mass, inertia, mu_g, mu_f, c, v_f, radius, n_g, h_g, g_vec, h,
+                                         sd_fun)
         v = v + h * (grav + Minv * gen)
         q = q + h * v
         f_sum += ff
@@ -367,9 +377,9 @@ def measurement_function(K: int, F: int) -> ca.Function:
     d = ca.SX.sym("d", data_rows(F))
     f_sim = ca.SX.sym("f_sim", 2 * F)
     sig = ca.SX.sym("sig", 5)
-    env = ca.SX.sym("env", 4 + F)
+    env = ca.SX.sym("env", 6 + F)
     V = ca.reshape(phys[: 2 * K], K, 2)
-    radius = env[4:]
+    radius = env[6:]
     take = consecutive_slices(d)
 
     c_f = ca.reshape(take(2 * F), 2, F)
@@ -463,11 +473,11 @@ class ShootingProblem:
         n_p = 2 + 5 + ns + len(TERMS)
         for i, st in enumerate(self.structures):
             T, F = st.T, st.F
-            env = ca.MX.sym("env", 4 + F)
+            env = ca.MX.sym("env", 6 + F)
             sig = ca.MX.sym("sig", 5)
             D = ca.MX.sym("D", data_rows(F), T)
             self.p_run_offsets.append(n_p)
-            n_p += 4 + F + 5 + data_rows(F) * T
+            n_p += 6 + F + 5 + data_rows(F) * T
             p_parts += [env, sig, ca.vec(D)]
             a = self.run_offset(i)
             q0 = rest_pose(z[a] * L, z[a + 1], V, env[1:3], env[3])
@@ -521,8 +531,18 @@ class ShootingProblem:
         _, _, H_theta = theta_fun(theta, prior, s_ref, lam_f, lam_g)
         H = lam_f * ca.mtimes(J.T, J)
         H = H + ca.diagcat(H_theta, ca.MX.zeros(self.n_z - self.n_theta, self.n_z - self.n_theta))
-        self.hess_lag_gn = ca.Function("nlp_hess_l", [z, p, lam_f, lam_g], [ca.triu(ca.densify(H))],
-                                       ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        self.hess_lag = {"gauss-newton": ca.Function("nlp_hess_l", [z, p, lam_f, lam_g], [ca.triu(ca.densify(H))],
+                                                     ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])}
+        #: the Hessian of the priors (scaled theta), for the posterior std
+        self.prior_hessian = ca.Function("shoot_prior_hess", [th, pr_sx, sref_sx],
+                                         [theta_fun(th, pr_sx, sref_sx, 1.0, ca.DM.zeros(g_sx.shape[0]))[2]])
+        self.g = g
+        #: IPOPT options of the shooting solve on top of solver.ipopt_options: one stage from
+        #: a start chosen by the loss itself, not a consistent point of the implicit problem,
+        #: so IPOPT's own defaults for the barrier, the bound push and the acceptable point
+        self.nlpsol_options = {"ipopt": {"mu_init": 0.1, "bound_push": 0.01, "bound_frac": 0.01,
+                                         "warm_start_init_point": "no", "acceptable_constr_viol_tol": 0.01,
+                                         "acceptable_compl_inf_tol": 0.01, "acceptable_obj_change_tol": 1e-6}}
 
     def run_outputs(self, z, p, runs):
         """Per run: dict with pose (T, 3), velocity (T, 3), finger_force (T, F, 2) N,
@@ -561,9 +581,7 @@ class ShootingProblem:
 
 def get_problem(shape: Shape, structures, substeps: int = SUBSTEPS) -> ShootingProblem:
     key = (shape.name, tuple((s.T, s.F) for s in structures), substeps)
-    if key not in _CACHE:
-        _CACHE[key] = ShootingProblem(shape, structures, substeps)
-    return _CACHE[key]
+    return _CACHE.get(key, lambda: ShootingProblem(shape, structures, substeps))
 
 
 # ------------------------------------------------------------------------------------
@@ -574,14 +592,13 @@ class ShootingEstimator:
     """Set up, start and solve the shooting problem for runs of one object."""
 
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 echo=None, substeps: int = SUBSTEPS, hessian: str = DEFAULT_HESSIAN):
+                 substeps: int = SUBSTEPS, hessian: str = DEFAULT_HESSIAN):
         check_runs(runs)
         if hessian not in HESSIAN_MODES:
             raise TacestError(f"shooting: unknown Hessian model {hessian!r}; use {' or '.join(HESSIAN_MODES)}")
         self.hessian = hessian
         self.runs = runs
         self.config = config or EstimatorConfig()
-        self.echo = echo or _noop
         self.shape = make_shape(shape_spec, dim=2)
         self.scales = choose_scales(runs, self.config)
         self.has_force = any(r.force is not None for r in runs)
@@ -591,7 +608,8 @@ class ShootingEstimator:
         self.problem = get_problem(self.shape, [Structure(r.n_samples, r.n_fingers) for r in runs], substeps)
         self.build_time = time.perf_counter() - t0
         self.z0 = self.initial_guess()
-        self.p = self.problem.parameters(runs, self.scales, self.config, self.z0[: self.shape.n_params])
+        self.p_sref = self.z0[: self.shape.n_params].copy()
+        self.p = self.problem.parameters(runs, self.scales, self.config, self.p_sref)
 
     def initial_guess(self) -> np.ndarray:
         """Start of the solve: the implicit estimator's kind of start (initial_extents,
@@ -655,47 +673,16 @@ class ShootingEstimator:
         return lbx, ubx
 
     def solve(self):
+        """One IPOPT solve (solver.run_stages, a single stage with the final budget)."""
         cfg = self.config.solver
-        pr = self.problem
         lbx, ubx = self.bounds()
-        progress = _Progress(pr.n_z, len(pr.lbg), pr.lbg, pr.ubg, cfg.print_every)
-        progress.echo = self.echo
-        progress.label = "shooting"
-        opts = {
-            "print_time": False,
-            "iteration_callback": progress,
-            "ipopt": {
-                "print_level": 0,
-                "sb": "yes",
-                "linear_solver": cfg.linear_solver,
-                "tol": cfg.tol,
-                "acceptable_tol": cfg.acceptable_tol,
-                "acceptable_iter": 5,
-                "acceptable_obj_change_tol": 1e-6,
-                "max_iter": cfg.max_iter,
-                "max_cpu_time": cfg.max_cpu_time,
-            },
-        }
-        if self.hessian == "limited-memory":
-            opts["ipopt"]["hessian_approximation"] = "limited-memory"
-        else:
-            opts["hess_lag"] = pr.hess_lag_gn
-        solver = ca.nlpsol("tacest_shooting", "ipopt", pr.nlp, opts)
-        z0 = np.clip(self.z0, lbx, ubx)
-        t0 = time.perf_counter()
-        sol = solver(x0=z0, p=self.p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
-        wall = time.perf_counter() - t0
-        st = solver.stats()
-        status = st.get("return_status", "unknown")
-        iters = int(st.get("iter_count", 0))
-        self.echo(f"shooting: {status}, {iters} iterations, objective {float(sol['f']):.6g}, {wall:.1f} s")
-        self.last = (np.asarray(sol["x"]).reshape(-1), status, iters, float(sol["f"]))
-        if status not in SUCCESS_STATUSES:
-            raise SolveFailedError(f"IPOPT failed (shooting): {status} after {iters} iterations "
-                                   "(no estimate written)")
-        self.z = np.asarray(sol["x"]).reshape(-1)
+        stage = Stage("shooting", 0.0, 0.0, 1.0, impulses_only=False, hessian=self.hessian, max_iter=cfg.max_iter,
+                      final=True)
+        out = run_stages(BuiltSolver(self.problem, self.config), np.clip(self.z0, lbx, ubx), [stage],
+                         lambda st, retry=False: self.p, lambda st, z: (lbx, ubx))
+        self.z = out.z
         self.lbx, self.ubx = lbx, ubx
-        return self.z, status, iters, float(sol["f"])
+        return out
 
     # --------------------------------------------------------------------------------
     def physical(self, z):
@@ -707,40 +694,39 @@ class ShootingEstimator:
         ground impulses (T, K) x 2 N·s, residual arrays {term: (n, T)}, gaps (T, F) m."""
         return self.problem.run_outputs(z, self.p, self.runs)
 
-    def information(self, z):
+    def information(self, z) -> Information:
         """Gauss–Newton information JᵀJ of the parameters (physical units: lengths m,
         mass kg, log inertia ratio, frictions), the start poses profiled out (Schur
-        complement); fixed variables are left out.  Returns (I, names, std)."""
-        from tacest.information.observed import information_names
+        complement); held variables get no row (uncertainty.std_of)."""
+        from tacest.estimation.uncertainty import information_names_2d, schur_information
+        import scipy.sparse as sps
 
         pr, L = self.problem, self.scales.L
         _, J = pr.residual_jacobian(z, self.p)
         J = np.asarray(J)
         free = self.lbx < self.ubx
         # d(scaled variable)/d(physical parameter)
-        scale = np.ones(pr.n_z)
+        scale = np.ones(pr.n_theta)
         scale[: pr.n_shape] = 1.0 / L
         mass = float(self.scales.m0 * np.exp(z[pr.n_shape]))
         scale[pr.n_shape] = 1.0 / mass
-        Jp = J * scale[None, :]
-        names_all = information_names(SimpleNamespace(shape=self.shape))[: pr.n_theta]
-        th = np.flatnonzero(free[: pr.n_theta])
         nu = pr.n_theta + np.flatnonzero(free[pr.n_theta:])
-        A = Jp[:, th]
-        B = Jp[:, nu]
-        I_tt = A.T @ A
-        if nu.size:
-            I_tn, I_nn = A.T @ B, B.T @ B
-            I_tt = I_tt - I_tn @ np.linalg.pinv(I_nn, rcond=INFO_RCOND) @ I_tn.T
-        I_tt = 0.5 * (I_tt + I_tt.T)
-        cov = np.linalg.pinv(I_tt, rcond=INFO_RCOND)
-        names = [names_all[j] for j in th]
-        std = {n: float(math.sqrt(max(cov[k, k], 0.0))) for k, n in enumerate(names)}
-        return I_tt, names, std
+        I_s = schur_information(sps.csc_matrix(J[:, : pr.n_theta]), sps.csc_matrix(J[:, nu]))
+        I_phys = I_s * np.outer(scale, scale)
+        held_rows = ~free[: pr.n_theta]
+        I_phys[held_rows, :] = 0.0
+        I_phys[:, held_rows] = 0.0
+        names = information_names_2d(SimpleNamespace(shape=self.shape, effect_params=()))[: pr.n_theta]
+        prior = np.array([self.config.prior.mass_log_sigma, self.config.prior.inertia_log_sigma,
+                          self.config.prior.friction, self.config.prior.friction_sigma, self.config.prior.shape_sigma])
+        H = np.asarray(pr.prior_hessian(z[: pr.n_theta], prior, self.p_sref), float)
+        std_data, _ = std_of(I_phys, free[: pr.n_theta], names)
+        std, _ = std_of(I_phys + H * np.outer(scale, scale), free[: pr.n_theta], names)
+        return Information(matrix=I_phys, names=names, std_data=std_data, std=std)
 
 
 def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                      echo=None, hessian: str = DEFAULT_HESSIAN) -> Estimate:
+                      hessian: str = DEFAULT_HESSIAN) -> Estimate:
     """Shooting-baseline estimate of one object from its runs (2-D; see the module docstring).
 
     Raises TacestError for 3-D runs or bad input, SolveFailedError when IPOPT does not
@@ -748,12 +734,12 @@ def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: Estimato
     """
     from tacest.io.h5util import sha256_file
 
-    echo = echo or _noop
     t_start = time.perf_counter()
-    est = ShootingEstimator(runs, shape_spec, config, echo, hessian=hessian)
-    echo(f"built shooting NLP: {est.problem.n_z} variables, {sum(s.T for s in est.problem.structures)} samples "
-         f"x {est.problem.substeps} substeps ({est.build_time:.1f} s)")
-    z, status, iters, objective = est.solve()
+    est = ShootingEstimator(runs, shape_spec, config, hessian=hessian)
+    log.info(f"built shooting NLP: {est.problem.n_z} variables, {sum(s.T for s in est.problem.structures)} samples "
+             f"x {est.problem.substeps} substeps ({est.build_time:.1f} s)")
+    out = est.solve()
+    z = out.z
     V, mass, inertia, mu_g, mu_f = est.physical(z)
     run_ests = []
     for run, o in zip(runs, est.run_outputs(z)):
@@ -765,23 +751,16 @@ def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: Estimato
         run_ests.append(RunEstimate(pose=o["pose"], velocity=o["velocity"], impulses=imp, residuals=res,
                                     source_file=src, source_sha256=sha256_file(src) if src else ""))
     try:
-        info, names, std = est.information(z)
+        info = est.information(z)
     except (np.linalg.LinAlgError, RuntimeError):
-        info, names, std = None, [], {}
+        info = None
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
-    identifiable = {"mass": est.has_force, "inertia": est.has_force, "friction_ground": True,
-                    "friction_finger": any(r.n_fingers for r in runs)}
-    for k in ("friction_ground", "friction_finger"):
-        if k in std and np.isfinite(std[k]) and std[k] > 0.5 * max(params[k], 1e-3):
-            identifiable[k] = False
-    return Estimate(
-        dim=2, shape=est.shape.name, vertices=V, params=params, runs=run_ests, model=[],
-        solver_status=status, success=status in SUCCESS_STATUSES, iterations=iters,
-        wall_time=time.perf_counter() - t_start, objective=objective, information=info, info_names=names,
-        std=std, identifiable=identifiable, config=est.config.to_dict(), method="shooting",
-        extra_attrs={"length_scale": est.scales.L, "mass_scale": est.scales.m0, "substeps": est.problem.substeps,
-                     "ground_sink": GROUND_SINK, "finger_sink": FINGER_SINK, "hessian": est.hessian},
-    )
+    facts = FitFacts(has_force=est.has_force, has_fingers=any(r.n_fingers for r in runs))
+    return assemble(2, est.shape.name, V, params, run_ests, out, time.perf_counter() - t_start, info, facts,
+                    est.config.to_dict(), "shooting",
+                    extra={"length_scale": est.scales.L, "mass_scale": est.scales.m0,
+                           "substeps": est.problem.substeps, "ground_sink": GROUND_SINK, "finger_sink": FINGER_SINK,
+                           "hessian": est.hessian})
 
 
 # ------------------------------------------------------------------------------------

@@ -1,17 +1,40 @@
-"""Solving the NLP with IPOPT: build once per structure, homotopy, warm starts, honest status."""
+"""The one staged solve: IPOPT on a problem built once per structure, run through a plan
+of stages (impulses alone, then the homotopy), with warm starts, pinned parameters,
+iteration budgets, one retry, restarts from other starts, and one status policy.
+
+Used by the 2-D and 3-D estimators, the shooting baseline and every diagnosis fit.
+
+Status policy (:func:`run_stages`):
+
+- an IPOPT status in :data:`SUCCESS_STATUSES` is a solution;
+- an interrupt (Ctrl-C: IPOPT returns ``User_Requested_Stop``) ends everything at once
+  (KeyboardInterrupt), never a failed stage that the caller might step over;
+- an intermediate stage (impulses alone, an early homotopy stage) only prepares the
+  next: its iterate is used whether or not IPOPT met its tolerance within the stage's
+  budget, unless its status is in :data:`FATAL_STATUSES`;
+- the final stage must succeed; with ``accept_budget`` a final stage that used up its
+  iteration or time budget keeps its last iterate and its status (success False);
+- a final stage whose step computation failed (:data:`RETRY_STATUSES`) is redone once
+  from its last iterate with the Gauss–Newton model and the ridge :data:`RETRY_RIDGE`.
+
+A failure raises SolveFailedError with IPOPT's status; nothing is reported as an
+estimate then.
+"""
 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass, field
+from typing import Callable, Optional
 
 import casadi as ca
 import numpy as np
 
 from tacest.errors import SolveFailedError
-from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import Problem2D, RunStructure
+
+log = logging.getLogger(__name__)
 
 #: IPOPT statuses that count as a solution
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -19,8 +42,28 @@ SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 FATAL_STATUSES = ("Invalid_Number_Detected", "Error_In_Step_Computation", "Insufficient_Memory",
                   "Internal_Error", "Invalid_Problem_Definition", "Invalid_Option", "Unrecoverable_Exception",
                   "NonIpopt_Exception_Thrown")
-
-_CACHE: dict = {}
+#: statuses of a solve that ran out of its iteration or time budget: with
+#: ``accept_budget`` its last iterate is used (and reported with this status)
+BUDGET_STATUSES = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded")
+#: statuses of a final stage after which the stage is redone once from its last iterate
+#: with the Gauss–Newton Hessian and ridge RETRY_RIDGE
+RETRY_STATUSES = ("Error_In_Step_Computation", "Restoration_Failed")
+#: Levenberg–Marquardt ridge (scaled units) of that retry: the 2-D estimator's default
+#: before it was lowered to 0.05 for speed; it keeps the steps local where IPOPT failed to
+#: step
+RETRY_RIDGE = 1.0
+#: IPOPT's status when its intermediate callback asked it to stop (here: an interrupt)
+INTERRUPTED_STATUS = "User_Requested_Stop"
+#: half-width (scaled units, relative to max(1, |value|)) of the interval that holds a
+#: variable fixed (:func:`pin`).  IPOPT removes variables with equal bounds; with the
+#: Gauss–Newton Hessian model some such problems failed at iteration 0
+#: (Error_In_Step_Computation), while the same problems with the parameters kept as
+#: variables in an interval of 2e-9 solve.  1e-9 of a scaled parameter (O(1)) is far
+#: below anything the data resolve.
+PIN_HALF_WIDTH = 1e-9
+#: a variable whose bounds are closer than this (scaled units) counts as held (the
+#: information matrix gives it no row)
+HELD_WIDTH = 1e-8
 
 
 @dataclass
@@ -34,11 +77,11 @@ class StageInfo:
 
 @dataclass
 class SolveOutcome:
-    """What IPOPT returned over all homotopy stages."""
+    """What IPOPT returned over all stages of one staged solve."""
 
     z: np.ndarray
-    lam_g: np.ndarray
-    lam_x: np.ndarray
+    lam_g: Optional[np.ndarray]
+    lam_x: Optional[np.ndarray]
     status: str
     success: bool
     iterations: int
@@ -47,15 +90,78 @@ class SolveOutcome:
     stages: list = field(default_factory=list)
 
 
-class _Progress(ca.Callback):
-    """IPOPT iteration callback: one progress line every ``every`` iterations."""
+@dataclass(frozen=True)
+class Stage:
+    """One IPOPT solve of a staged fit: the homotopy's settings (epsilon, complementarity
+    and dynamics multipliers), whether only the contact impulses (and states) are free,
+    the Hessian model, the iteration budget, and whether it is the final stage."""
 
-    def __init__(self, nx, ng, lbg, ubg, every):
+    label: str
+    eps: float
+    comp_mult: float
+    dyn_mult: float
+    impulses_only: bool
+    hessian: str
+    max_iter: int
+    final: bool
+
+
+def plan_stages(homotopy, hessian: str, max_iter: int, stage_max_iter: int, impulses_first: bool = True,
+                last_only: bool = False) -> list:
+    """The stages of one staged solve.
+
+    homotopy : [[epsilon, complementarity multiplier, dynamics multiplier], ...];
+    hessian : "gauss-newton", "exact" or "gauss-newton-then-exact" (the exact model in
+        the final stage when there are two or more homotopy stages);
+    impulses_first : a first stage with everything but the contact impulses held (at
+        the first homotopy stage's settings: a convex least-squares problem, so that
+        every later stage starts from a physically consistent point);
+    last_only : only the last homotopy stage (a warm start: z0 is already a solution of
+        a nearby problem).
+    """
+    hom = [tuple(float(x) for x in s) for s in homotopy]
+    if last_only:
+        hom = hom[-1:]
+    stages = []
+    if impulses_first:
+        stages.append(Stage("impulses", *hom[0], impulses_only=True,
+                            hessian="gauss-newton" if hessian == "gauss-newton-then-exact" else hessian,
+                            max_iter=stage_max_iter, final=False))
+    for k, (eps, w, wd) in enumerate(hom):
+        final = k == len(hom) - 1
+        mode = hessian
+        if mode == "gauss-newton-then-exact":
+            mode = "exact" if final and len(hom) > 1 else "gauss-newton"
+        stages.append(Stage(f"homotopy {k + 1}/{len(hom)}", eps, w, wd, impulses_only=False, hessian=mode,
+                            max_iter=max_iter if final else stage_max_iter, final=final))
+    return stages
+
+
+def pin(lbx, ubx, index, values):
+    """Hold the variables ``index`` at ``values`` (scaled) in an interval of
+    ±PIN_HALF_WIDTH·max(1, |value|), not by equal bounds (see PIN_HALF_WIDTH); lbx, ubx
+    are changed in place and returned."""
+    values = np.asarray(values, float)
+    half = PIN_HALF_WIDTH * np.maximum(1.0, np.abs(values))
+    lbx[index] = values - half
+    ubx[index] = values + half
+    return lbx, ubx
+
+
+def held(lbx, ubx) -> np.ndarray:
+    """(n,) bool: the variables held by their bounds (pinned or fixed)."""
+    return np.asarray(ubx, float) - np.asarray(lbx, float) <= HELD_WIDTH
+
+
+class _Progress(ca.Callback):
+    """IPOPT iteration callback: one progress line (log level INFO) every ``every``
+    iterations; asks IPOPT to stop when an interrupt arrived."""
+
+    def __init__(self, nx, ng, every):
         ca.Callback.__init__(self)
         self.nx, self.ng = nx, ng
-        self.lbg, self.ubg = lbg, ubg
+        self.lbg = self.ubg = np.zeros(ng)
         self.every = max(1, int(every))
-        self.echo = None
         self.label = ""
         self.it = 0
         self.construct("progress", {"enable_fd": False})
@@ -83,112 +189,124 @@ class _Progress(ca.Callback):
         return ca.Sparsity(0, 0)
 
     def eval(self, arg):
-        if self.echo is not None and self.it % self.every == 0:
+        if self.it % self.every == 0 and log.isEnabledFor(logging.INFO):
             g = np.asarray(arg[ca.nlpsol_out().index("g")]).reshape(-1)
             inf = float(np.max(np.concatenate([[0.0], self.lbg - g, g - self.ubg]))) if g.size else 0.0
             f = float(arg[ca.nlpsol_out().index("f")])
-            self.echo(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
+            log.info(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
         self.it += 1
         return [0]
 
 
-class BuiltSolver:
-    """A Problem2D and its IPOPT solver, built once per (shape, structures, options)."""
+#: IPOPT options of every staged solve (a problem may override some: nlpsol_options)
+def ipopt_options(solver_config, max_iter) -> dict:
+    """IPOPT options from the [solver] settings (tacest.estimation.config.Solver)."""
+    sc = solver_config
+    return {
+        "print_level": 0,
+        "sb": "yes",
+        "linear_solver": sc.linear_solver,
+        "tol": sc.tol,
+        "acceptable_tol": sc.acceptable_tol,
+        "acceptable_iter": 5,
+        # An acceptable point: constraints (kinematics in object lengths per second,
+        # lifted parameters relative) met to 1e-4, and the objective, a chi-square sum of
+        # thousands of whitened residuals, changing by less than 1e-3 of itself per
+        # iteration for acceptable_iter iterations.  The last iterations mostly slide
+        # along the weakly determined mass–friction valley (only mu·m·g is seen in
+        # steady sliding), which the information matrix reports; shape and trajectory
+        # have long settled by then.
+        "acceptable_constr_viol_tol": 1e-4,
+        # Complementarity of the bounds (lambda_n >= 0) is x_i z_i in objective units
+        # (unscaled: half a chi-square): with the monotone barrier held at mu_init it
+        # stays near mu / (IPOPT's objective scaling, ~1e-3..1e-2), ~3e-3.  0.1 of an
+        # objective unit is far below what the data resolve (one whitened residual of
+        # 0.45 sigma); 1e-3 kept converged fits iterating to the iteration limit.
+        "acceptable_compl_inf_tol": 0.1,
+        "acceptable_obj_change_tol": 1e-3,
+        "max_iter": int(max_iter),
+        "max_cpu_time": sc.max_cpu_time,
+        # every stage starts from a consistent point (see plan_stages): a small barrier
+        # parameter and bound push keep IPOPT from pushing contact impulses off their
+        # bounds into the interior
+        "mu_strategy": "monotone",
+        "mu_init": 1e-5,
+        "bound_push": 1e-8,
+        "bound_frac": 1e-8,
+        "warm_start_init_point": "yes",
+        "warm_start_bound_push": 1e-8,
+        "warm_start_bound_frac": 1e-8,
+        "warm_start_mult_bound_push": 1e-8,
+    }
 
-    def __init__(self, problem: Problem2D, config: EstimatorConfig):
+
+class BuiltSolver:
+    """A problem and its IPOPT solvers (one per Hessian model and budget), built once
+    per structure.  The problem supplies ``nlp`` ({x, p, f, g}), ``lbg``/``ubg``,
+    ``n_z``, ``hess_lag`` ({mode: Function}; a mode "limited-memory" needs none) and
+    optionally ``nlpsol_options`` (overrides, ``{"ipopt": {...}}`` included)."""
+
+    def __init__(self, problem, config):
         self.problem = problem
-        sc = config.solver
-        self.progress = _Progress(problem.n_z, problem.g.shape[0], problem.lbg, problem.ubg, sc.print_every)
         self.config = config
+        self.progress = _Progress(problem.n_z, problem.g.shape[0], config.solver.print_every)
         self.solvers = {}
 
-    def _make(self, problem, config, mode, max_iter=None):
-        sc = config.solver
-        opts = {
-            "expand": False,
-            "hess_lag": problem.hess_lag[mode],
-            "print_time": False,
-            "iteration_callback": self.progress,
-            "ipopt": {
-                "print_level": 0,
-                "sb": "yes",
-                "linear_solver": sc.linear_solver,
-                "tol": sc.tol,
-                "acceptable_tol": sc.acceptable_tol,
-                "acceptable_iter": 5,
-                # An acceptable point: constraints (kinematics in object lengths per
-                # second, lifted parameters relative) met to 1e-4, and the objective, a
-                # chi-square sum of thousands of whitened residuals, changing by less than
-                # 1e-3 of itself per iteration for acceptable_iter iterations.  The last
-                # iterations mostly slide along the weakly determined mass–friction
-                # valley (only mu·m·g is seen in steady sliding), which the information
-                # matrix reports; shape and trajectory have long settled by then.
-                "acceptable_constr_viol_tol": 1e-4,
-                # Complementarity of the bounds (lambda_n >= 0) is x_i z_i in objective
-                # units (unscaled: half a chi-square): with the monotone barrier held at
-                # mu_init it stays near mu / (IPOPT's objective scaling, ~1e-3..1e-2),
-                # ~3e-3.  0.1 of an objective unit is far below what the data resolve
-                # (one whitened residual of 0.45 sigma); 1e-3 kept converged fits
-                # iterating to the iteration limit.
-                "acceptable_compl_inf_tol": 0.1,
-                "acceptable_obj_change_tol": 1e-3,
-                "max_iter": sc.max_iter if max_iter is None else max_iter,
-                "max_cpu_time": sc.max_cpu_time,
-                # every stage starts from a consistent point (see estimator.solve): a small
-                # barrier parameter and bound push keep IPOPT from pushing contact impulses
-                # off their bounds into the interior
-                "mu_strategy": "monotone",
-                "mu_init": 1e-5,
-                "bound_push": 1e-8,
-                "bound_frac": 1e-8,
-                "warm_start_init_point": "yes",
-                "warm_start_bound_push": 1e-8,
-                "warm_start_bound_frac": 1e-8,
-                "warm_start_mult_bound_push": 1e-8,
-            },
-        }
-        # a problem may supply its own derivative functions (grad_f, jac_g) and IPOPT options
-        extra = dict(getattr(problem, "nlpsol_options", None) or {})
+    def _make(self, mode, max_iter):
+        opts = {"expand": False, "print_time": False, "iteration_callback": self.progress,
+                "ipopt": ipopt_options(self.config.solver, max_iter)}
+        if mode == "limited-memory":
+            opts["ipopt"]["hessian_approximation"] = "limited-memory"
+        else:
+            opts["hess_lag"] = self.problem.hess_lag[mode]
+        extra = dict(getattr(self.problem, "nlpsol_options", None) or {})
         opts["ipopt"].update(extra.pop("ipopt", {}))
         opts.update(extra)
-        return ca.nlpsol(f"tacest_nlp_{mode.replace('-', '_')}", "ipopt", problem.nlp, opts)
+        return ca.nlpsol(f"tacest_nlp_{mode.replace('-', '_')}", "ipopt", self.problem.nlp, opts)
 
-    def solve(self, z0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None, label="", echo=None,
-              hessian="gauss-newton", max_iter=None):
-        """One IPOPT solve with the given Hessian model; returns (solution dict, StageInfo)."""
+    def solve(self, z0, p, lbx, ubx, lam_x0=None, lam_g0=None, label="", hessian="gauss-newton", max_iter=None):
+        """One IPOPT solve; returns (solution dict, StageInfo).  An interrupt during the
+        solve raises KeyboardInterrupt."""
+        max_iter = self.config.solver.max_iter if max_iter is None else int(max_iter)
         key = (hessian, max_iter)
         if key not in self.solvers:
-            self.solvers[key] = self._make(self.problem, self.config, hessian, max_iter)
+            self.solvers[key] = self._make(hessian, max_iter)
         solver = self.solvers[key]
-        self.progress.echo = echo
+        pr = self.problem
         self.progress.label = label
-        self.progress.lbg, self.progress.ubg = lbg, ubg
+        self.progress.lbg, self.progress.ubg = pr.lbg, pr.ubg
         self.progress.it = 0
-        args = dict(x0=z0, p=p, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        args = dict(x0=z0, p=p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
         if lam_x0 is not None:
             args["lam_x0"] = lam_x0
-        if lam_g0 is not None:
+        if lam_g0 is not None and np.size(lam_g0) == pr.g.shape[0]:
             args["lam_g0"] = lam_g0
         t0 = time.perf_counter()
         sol = solver(**args)
         wall = time.perf_counter() - t0
         st = solver.stats()
-        return sol, StageInfo(name=label, status=st.get("return_status", "unknown"),
-                              iterations=int(st.get("iter_count", 0)), wall_time=wall,
+        status = st.get("return_status", "unknown")
+        if status == INTERRUPTED_STATUS:
+            raise KeyboardInterrupt
+        return sol, StageInfo(name=label, status=status, iterations=int(st.get("iter_count", 0)), wall_time=wall,
                               objective=float(sol["f"]))
 
 
-def get_solver(shape, structures: list[RunStructure], config: EstimatorConfig, effects=()) -> BuiltSolver:
-    """The cached solver for this structure and model (built on first use); effects:
-    the NLP augmentations (problem.NLP_EFFECTS) included as extra parameters."""
-    from tacest.estimation.problem import check_effects
+class SolverCache:
+    """Built solvers by structure key, at most ``limit`` at a time (the oldest dropped:
+    a problem holds large CasADi graphs)."""
 
-    effects = check_effects(effects)
-    key = (shape.name, tuple(structures), repr(config.solver), config.weights.occam > 0,
-           config.noise.complementarity_reach > 0) + ((effects,) if effects else ())
-    if key not in _CACHE:
-        _CACHE[key] = BuiltSolver(Problem2D(shape, structures, config, effects=effects), config)
-    return _CACHE[key]
+    def __init__(self, limit: Optional[int] = None):
+        self.limit = limit
+        self._items: dict = {}
+
+    def get(self, key, build: Callable[[], BuiltSolver]) -> BuiltSolver:
+        if key not in self._items:
+            if self.limit is not None:
+                while len(self._items) >= self.limit:
+                    self._items.pop(next(iter(self._items)))
+            self._items[key] = build()
+        return self._items[key]
 
 
 def check_success(info: StageInfo):
@@ -197,7 +315,60 @@ def check_success(info: StageInfo):
                                "iterations (no estimate written)")
 
 
-def solve_from_starts(starts: list, solve_one, restart_physics: float, echo, attempts: list) -> tuple:
+def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds_of: Callable,
+               prepare: Callable = None, accept_budget: bool = False, lam_x0=None, lam_g0=None) -> SolveOutcome:
+    """Run a plan of stages (:func:`plan_stages`) from z0 (scaled) under the status
+    policy of the module docstring.
+
+    params_of(stage, retry=False) -> p : the parameter vector of a stage (``retry``: with
+        the Levenberg–Marquardt ridge max(RETRY_RIDGE, the configured one));
+    bounds_of(stage, z) -> (lbx, ubx) : the bounds of a stage at z (an impulses-only
+        stage holds everything else at z);
+    prepare(stage, z, p) -> z : called before each stage (e.g. settle the effects'
+        states before the impulses stage), or None;
+    lam_x0, lam_g0 : multipliers that warm-start the first stage that frees everything.
+    """
+    z = np.asarray(z0, float).copy()
+    lam_x, lam_g = lam_x0, lam_g0
+    infos = []
+    for stage in stages:
+        p = params_of(stage)
+        if prepare is not None:
+            z = prepare(stage, z, p)
+        lbx, ubx = bounds_of(stage, z)
+        z = np.clip(z, lbx, ubx)
+        warm = not stage.impulses_only
+        sol, info = built.solve(z, p, lbx, ubx, lam_x if warm else None, lam_g if warm else None,
+                                label=stage.label, hessian=stage.hessian, max_iter=stage.max_iter)
+        log.info(f"stage {stage.label}: {info.status}, {info.iterations} iterations, "
+                 f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+        x_last = np.asarray(sol["x"]).reshape(-1)
+        if stage.final and info.status in RETRY_STATUSES and np.all(np.isfinite(x_last)):
+            # IPOPT could not compute a step (a KKT system it could not correct): redo the
+            # stage once from its last iterate with the Gauss–Newton model and a larger
+            # Levenberg–Marquardt ridge (shorter, safer steps), same budget
+            infos.append(info)
+            label = stage.label + " (retry)"
+            sol, info = built.solve(np.clip(x_last, lbx, ubx), params_of(stage, retry=True), lbx, ubx,
+                                    label=label, hessian="gauss-newton", max_iter=stage.max_iter)
+            info.name = label
+            log.info(f"stage {label}: {info.status}, {info.iterations} iterations, "
+                     f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
+        infos.append(info)
+        budget_hit = stage.final and accept_budget and info.status in BUDGET_STATUSES
+        if (stage.final and not budget_hit) or info.status in FATAL_STATUSES:
+            check_success(info)
+        z = np.asarray(sol["x"]).reshape(-1)
+        if warm:
+            lam_x = np.asarray(sol["lam_x"]).reshape(-1)
+            lam_g = np.asarray(sol["lam_g"]).reshape(-1)
+    last = infos[-1]
+    return SolveOutcome(z=z, lam_g=lam_g, lam_x=lam_x, status=last.status, success=last.status in SUCCESS_STATUSES,
+                        iterations=sum(s.iterations for s in infos), wall_time=sum(s.wall_time for s in infos),
+                        objective=last.objective, stages=infos)
+
+
+def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list) -> tuple:
     """Solve from each start in turn until a fit is physically consistent; keep the
     successful fit of lowest objective (the restarts of the 2-D and 3-D estimators).
 
@@ -218,9 +389,9 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, echo, att
     for k, (record, start) in enumerate(starts):
         if k:
             last = attempts[-1]
-            echo(f"restart {k}/{len(starts) - 1} from another start: the last fit "
-                 + ("failed" if last["status"] == "failed" else
-                    f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
+                     + ("failed" if last["status"] == "failed" else
+                        f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
         try:
             out, physics, saved = solve_one(start)
         except SolveFailedError as exc:

@@ -4,8 +4,8 @@ A candidate action is simulated from the current estimate with tacest's own mode
 estimated object (vertices, mass, inertia, frictions) placed at the estimated final pose
 of the last run in the pymunk world (tacest.sim.world), noiseless
 (:func:`predict_poke`).  The prediction is turned into a run of T samples and the
-estimator's own per-sample residuals (tacest.estimation.problem: the same stage and
-start functions, noise levels, weights and homotopy end point as the estimate) are
+estimator's own per-sample residuals (tacest.model.stage2d: the same stage and start
+functions, noise levels, weights and homotopy end point as the estimate) are
 linearized there.  With r the stacked whitened residuals and J = [J_θ, J_s, J_x] their
 Jacobian with respect to the parameters θ, the start pose s of the poke (the estimate's
 final pose: the poke starts where the past data left the object) and the nuisance
@@ -14,7 +14,7 @@ the Schur complement
 
     F = J_aᵀJ_a − J_aᵀJ_x (J_xᵀJ_x + δI)⁻¹ J_xᵀJ_a,     a = (θ, s),
 
-exactly as :mod:`tacest.information.observed` computes I_obs from the recorded data, so
+exactly as :mod:`tacest.estimation.uncertainty` computes I_obs from the recorded data, so
 F and I_obs are comparable entry by entry (same names, same physical units).  For
 Gaussian noise on the whitened residuals JᵀJ is the Fisher information; it is evaluated
 at the noiseless prediction (the closed form).  Where the Jacobian itself depends on the
@@ -48,14 +48,17 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
+from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.problem import SQUARED_TERMS, TERMS, Problem2D, RunStructure, stage_local_variables
+from tacest.estimation.data import Scales, data_matrix, global_vector, touching
+from tacest.estimation.uncertainty import schur_information
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
-from tacest.information.observed import (KINEMATICS_SIGMA, contact_state_function, schur_information,
-                                         stage_active_weights, stage_residual_jacobian, start_residual_jacobian)
 from tacest.io.run import Run
+from tacest.model.jacobians2d import (KINEMATICS_SIGMA, contact_state_function, stage_active_weights,
+                                      stage_residual_jacobian, start_residual_jacobian)
+from tacest.model.stage2d import SQUARED_TERMS, TERMS, StageModel2D, stage_local_variables
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
 #: physics substeps per sample of a prediction: 1 ms at 100 Hz.  The recorder uses at
@@ -224,7 +227,7 @@ class PredictedPoke:
             normal = np.stack([c * normal[..., 0] - s * normal[..., 1], s * normal[..., 0] + c * normal[..., 1]], -1)
             fp = fp + rng.normal(size=fp.shape) * s_pos
         normal = np.where(on[..., None], normal, np.nan)
-        run = Run(dim=2, dt=self.dt, time=self.dt * np.arange(T), gravity=-9.81 * model.up, source="prediction",
+        run = Run(dim=2, dt=self.dt, time=self.dt * np.arange(T), gravity=-STANDARD_GRAVITY * model.up, source="prediction",
                   finger_position=fp, finger_radius=model.finger_radius.copy(),
                   contact=on.astype(np.uint8), force=force if model.has_force else None, normal=normal,
                   ground_height=model.ground_height, ground_normal=model.up.copy())
@@ -323,7 +326,7 @@ def theta_of_model(model: ModelState, L: float, m0: float) -> np.ndarray:
 
 
 def information_names_for(shape: Shape) -> list:
-    """Row names of I_obs and F (as tacest.information.observed.information_names)."""
+    """Row names of I_obs and F (as tacest.estimation.uncertainty.information_names_2d)."""
     if shape.name == "box":
         shape_names = ["width", "height"]
     else:
@@ -402,8 +405,9 @@ class ExpectedInformation:
         self.F = int(n_fingers)
         self.config = config
         self.L, self.m0 = float(L), float(m0)
-        self.problem = Problem2D(self.shape, [RunStructure(T=2, F=self.F)], config)
-        pr = self.problem
+        # the plain model (no effects; no Occam term: predictions have no pose observations)
+        self.model = StageModel2D(self.shape, reach_on=config.noise.complementarity_reach > 0)
+        pr = self.model
         self.K = pr.K
         self.n_theta = pr.n_theta
         self.n_shape = pr.n_shape
@@ -413,10 +417,10 @@ class ExpectedInformation:
 
     # -- CasADi functions, once -----------------------------------------------------
     def _build(self):
-        pr = self.problem
-        stage, start = pr.stage_funs[0], pr.start_funs[0]
+        pr = self.model
+        stage, start = pr.stage_function(self.F), pr.start_function(self.F)
         ins = stage.sx_in()
-        qp, vp, q, v, lg, lf, phys, d, g, _, _ = ins  # the plain model: no plate state
+        qp, vp, q, v, lg, lf, phys, d, g, _, _ = ins  # the plain model: no states
         w = ca.SX.sym("w", len(TERMS))
         out = dict(zip(stage.name_out(), stage(*ins)))
         rows = {t: ca.sqrt(w[TERMS.index(t)]) * ca.vec(out[t]) for t in SQUARED_TERMS}
@@ -455,10 +459,9 @@ class ExpectedInformation:
 
     # -- data of a prediction -------------------------------------------------------
     def _data(self, run: Run):
-        from tacest.estimation.data import Scales, data_matrix, global_vector
-
         eps, comp_mult, dyn_mult = self.config.solver.homotopy[-1]
-        g = global_vector(run, Scales(L=self.L, m0=self.m0), self.config, eps, comp_mult, dyn_mult)
+        g = global_vector(run, Scales(L=self.L, m0=self.m0, g=STANDARD_GRAVITY), self.config, eps, comp_mult,
+                          dyn_mult)
         D = data_matrix(run, self.F).T  # (n_data, T)
         w = np.array([getattr(self.config.weights, t) for t in TERMS], float)
         return g, D, w
@@ -469,7 +472,7 @@ class ExpectedInformation:
         Q = (pred.pose / scale).T
         Vv = np.zeros_like(Q)
         Vv[:, 1:] = np.diff(Q, axis=1) / pred.dt
-        Lam = self.m0 * 9.81 * pred.dt
+        Lam = self.m0 * STANDARD_GRAVITY * pred.dt  # the prediction's world has standard gravity
         LF = (pred.impulse__world[1:] / Lam).reshape(pred.n_samples - 1, -1).T
         return Q, Vv, LF
 
@@ -580,8 +583,6 @@ class ExpectedInformation:
                             (np.concatenate([rr, base + i0]), np.concatenate([cc, j0]))), shape=(Ja.shape[0], n_x))
         # finger impulses are fixed at 0 where the predicted tactile flag is 0 (as the
         # estimator's bounds do): they are no variables there
-        from tacest.estimation.data import touching
-
         on = touching(run)[1:]  # (N, F)
         free = np.ones(n_x, bool)
         free[iLF:] = np.repeat(on, 2, axis=1).reshape(-1)
@@ -590,7 +591,7 @@ class ExpectedInformation:
 
     # -- information ------------------------------------------------------------------
     def to_physical(self, I_scaled: np.ndarray, model: ModelState) -> np.ndarray:
-        """Scaled (θ, s) information -> physical units (observed.py's convention):
+        """Scaled (θ, s) information -> physical units (uncertainty.py's convention):
         lengths m, mass kg, inertia log ratio, friction, pose m / rad."""
         d = np.ones(self.n_theta + 3)
         d[: self.n_shape] = 1.0 / self.L

@@ -23,6 +23,8 @@ and frictions, no observed information), and the step says so (``planned_from``
 
 from __future__ import annotations
 
+import logging
+
 import json
 import math
 import os
@@ -34,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from tacest.errors import SolveFailedError, TacestError
+
+log = logging.getLogger(__name__)
 
 POLICIES = ("eig", "random", "identity")
 #: metrics copied from tacest eval into every step of the summary
@@ -83,25 +87,21 @@ class ExploreOptions:
         return "box" if str(self.object_spec).strip().startswith("box") else "polygon:8"
 
 
-def _no_echo(*a, **k):
-    pass
-
-
 def _write_json(path: Path, obj) -> None:
     tmp = path.with_name(f".{path.name}.part")
     tmp.write_text(json.dumps(obj, indent=2, allow_nan=False) + "\n")
     os.replace(tmp, path)
 
 
-def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
+def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     """Run the closed loop (module docstring); returns the summary dict.
 
-    echo : callable for progress lines; progress : callable(n_done, n_total) after
+    Progress lines go to the module's logger; progress : callable(n_done, n_total) after
     each poke (the CLI's progress bar).  Raises TacestError for bad options or an
     output folder that is a file.
     """
     from tacest.estimation.config import load_config
-    from tacest.estimation.estimator import estimate_runs
+    from tacest.estimation.estimator import estimate_2d
     from tacest.evaluation.metrics import evaluate, to_jsonable
     from tacest.io.estimate import read_estimate, write_estimate
     from tacest.io.plan import write_plan
@@ -112,7 +112,6 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
     from tacest.sim.objects import make_shape as sim_shape
 
     opts.validate()
-    echo = echo or _no_echo
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise TacestError(f"{out}: exists and is not a folder")
@@ -144,7 +143,7 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
         t0 = time.perf_counter()
         est = None
         try:
-            est_obj = estimate_runs([run], shape, config=config)
+            est_obj = estimate_2d([run], shape, config=config)
             est_path = out / f"estimate_{n}.h5"
             write_estimate(est_obj, est_path)
             est = read_estimate(est_path)
@@ -184,7 +183,7 @@ def explore(opts: ExploreOptions, out_dir, echo=None, progress=None) -> dict:
             write_run(record_sim(sim, plan_path=plan_path, append_to=run_path), run_path)
             t_record = time.perf_counter() - t1
         steps.append(to_jsonable(step))
-        echo(msg)
+        log.info(msg)
         if progress is not None:
             progress(n, N)
         summary["wall_time"] = time.perf_counter() - t_all
@@ -207,13 +206,12 @@ def start_guess_estimate(runs, shape: str, config):
     from tacest.geometry.polygon import polygon_inertia, signed_area
     from tacest.geometry.shapes import make_shape, numeric_vertices
     from tacest.io.estimate import Estimate, RunEstimate
-
-    from tacest.estimation.problem import Problem2D, RunStructure
+    from tacest.model.stage2d import StageModel2D
 
     sh = make_shape(shape)
     scales = choose_scales(runs, config)
     w, h = initial_extents(runs, scales.L)
-    problem = Problem2D(sh, [RunStructure(T=r.n_samples, F=r.n_fingers) for r in runs], config)
+    problem = StageModel2D(sh)
     s0 = choose_start_shape(problem, runs, scales, sh.initial(w / scales.L, h / scales.L))
     trajs = start_trajectories(problem, runs, scales, s0)
     V = numeric_vertices(sh, s0, scales.L)

@@ -16,6 +16,8 @@ tacest.io.plan.Plan (candidates, scores, chosen action).
 
 from __future__ import annotations
 
+import logging
+
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -29,6 +31,8 @@ from tacest.information.scores import SCORES, score
 from tacest.io.plan import POKE_NAMES, Plan
 from tacest.planning.actions import ActionSpace
 from tacest.planning.cem import cem_maximize
+
+log = logging.getLogger(__name__)
 
 METHODS = ("eig", "random", "identity")
 
@@ -122,7 +126,7 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
                   substeps=settings.substeps, noise_samples=settings.noise_samples, noise=noise)
 
 
-def plan_next(est, runs, settings: PlanSettings | None = None, echo=None) -> Plan:
+def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     """The next poke for the object of ``est`` (an Estimate) recorded in ``runs``.
 
     Returns a Plan: candidates (N, 6) POKE_NAMES vectors with their scores, the chosen
@@ -130,7 +134,6 @@ def plan_next(est, runs, settings: PlanSettings | None = None, echo=None) -> Pla
     ``wall_time`` (s), ``evaluations``, ``target`` (the estimated centroid, m).
     """
     settings = (settings or PlanSettings()).validate()
-    echo = echo or (lambda *a, **k: None)
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
@@ -150,7 +153,7 @@ def plan_next(est, runs, settings: PlanSettings | None = None, echo=None) -> Pla
                                elite=settings.elite or max(1, settings.population // 3))
             cands += [space.action(f, u, target) for u in res.samples]
             scores += list(res.scores)
-            echo(f"finger {f}: best {settings.score} {np.max(res.scores):.4g} of {len(res.scores)} candidates")
+            log.info(f"finger {f}: best {settings.score} {np.max(res.scores):.4g} of {len(res.scores)} candidates")
     cands = np.asarray(cands, float).reshape(-1, len(POKE_NAMES))
     scores = np.asarray(scores, float)
     if not np.any(np.isfinite(scores)):

@@ -43,6 +43,8 @@ Decisions (documented for users in docs/serial_protocol.md):
 
 from __future__ import annotations
 
+import logging
+
 import json
 import math
 import time as _time
@@ -61,6 +63,8 @@ from tacest.sensors.serial_protocol import (
     parse_header,
     parse_sample,
 )
+
+log = logging.getLogger(__name__)
 
 #: Longest line accepted (bytes, before the newline).  A 3-D line with generous
 #: precision is < 150 bytes; anything past this is garbage and is dropped as
@@ -452,8 +456,7 @@ def open_port(port: str, baud: int = 115200, timeout: float = 0.05):
         raise TacestError(f"cannot open serial port {port}: {msg}") from None
 
 
-def record_serial(port, baud: int = 115200, duration: Optional[float] = None, output=None,
-                  echo: Callable = print, *, read_timeout: float = 0.05, snapshot_interval: float = 0.25,
+def record_serial(port, baud: int = 115200, duration: Optional[float] = None, output=None, *, read_timeout: float = 0.05, snapshot_interval: float = 0.25,
                   normal_tol: float = NORMAL_NORM_TOL, max_gap: float = 60.0) -> RecordSummary:
     """Record the serial protocol from ``port`` into the run file ``output``.
 
@@ -466,7 +469,7 @@ def record_serial(port, baud: int = 115200, duration: Optional[float] = None, ou
     duration : float, s of wall time, or None: until the link closes or Ctrl-C.
     output : path of the run file; it is a complete, valid run file from the moment
         2 samples are kept, updated at least every ``snapshot_interval`` s.
-    echo : callable taking one str, for progress and the final summary.
+    Progress and the final summary go to the module's logger.
 
     Returns the :class:`RecordSummary`.  Ctrl-C (KeyboardInterrupt) and a lost link end
     the recording normally.  Raises TacestError when the port cannot be opened or when
@@ -477,7 +480,7 @@ def record_serial(port, baud: int = 115200, duration: Optional[float] = None, ou
     name = port if isinstance(port, str) else getattr(port, "name", None) or repr(port)
     stream = open_port(port, baud, read_timeout) if isinstance(port, str) else port
     try:
-        return record_stream(stream, output, duration=duration, echo=echo, name=name,
+        return record_stream(stream, output, duration=duration, name=name,
                              snapshot_interval=snapshot_interval, normal_tol=normal_tol, max_gap=max_gap)
     finally:
         close = getattr(stream, "close", None)
@@ -548,7 +551,7 @@ class SnapshotWriter:
         self.check()
 
 
-def record_stream(stream, output, duration: Optional[float] = None, echo: Callable = print, name: str = "",
+def record_stream(stream, output, duration: Optional[float] = None, name: str = "",
                   snapshot_interval: float = 0.25, normal_tol: float = NORMAL_NORM_TOL,
                   max_gap: float = 60.0, clock: Callable[[], float] = _time.monotonic) -> RecordSummary:
     """The read loop of :func:`record_serial` on an open stream (see there).
@@ -573,7 +576,7 @@ def record_stream(stream, output, duration: Optional[float] = None, echo: Callab
     next_snapshot = t_start + snapshot_interval
     header_announced = None
     reason = "end of input"
-    echo(f"recording from {name}" + (f" for {duration:g} s" if duration else " (Ctrl-C to stop)"))
+    log.info(f"recording from {name}" + (f" for {duration:g} s" if duration else " (Ctrl-C to stop)"))
 
     has_in_waiting = hasattr(stream, "in_waiting")
     try:
@@ -591,7 +594,7 @@ def record_stream(stream, output, duration: Optional[float] = None, echo: Callab
             asm.feed(bytes(data))
             if asm.header is not None and asm.header_line != header_announced:
                 header_announced = asm.header_line
-                echo(f"header: {asm.header.describe()}")
+                log.info(f"header: {asm.header.describe()}")
             if asm.stopped:
                 reason = asm.stop_reason
                 break
@@ -625,9 +628,9 @@ def record_stream(stream, output, duration: Optional[float] = None, echo: Callab
     summary.output = str(output)
     summary.snapshots, summary.snapshot_time_max = writer.count, writer.max_cost
     for m in asm.messages:
-        echo(m)
-    echo(f"stopped: {reason}")
-    echo(summary.line())
-    echo(f"wrote {output}: {summary.kept_samples + summary.missing_samples} samples, "
+        log.info(m)
+    log.info(f"stopped: {reason}")
+    log.info(summary.line())
+    log.info(f"wrote {output}: {summary.kept_samples + summary.missing_samples} samples, "
          f"{asm.header.fingers} finger(s), dt = {asm.header.dt:g} s")
     return summary

@@ -29,6 +29,8 @@ is marked in ``/quality/missing`` with contact 0 and NaN normal.
 
 from __future__ import annotations
 
+import logging
+
 import csv
 import json
 import queue
@@ -43,6 +45,8 @@ import numpy as np
 from tacest.errors import TacestError
 from tacest.sensors.dome import DomeCalibration, load_calibration
 from tacest.sensors.tactile_flow import DetectSettings, FlowSettings, TactileFlow, decide_contacts
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 TIMESTAMPS_NAME = "timestamps.csv"
@@ -380,7 +384,7 @@ def analyse_frames(frame_iter, calib: DomeCalibration, options: VideoOptions, n_
     return strength, uv, tracker
 
 
-def record_video(frames, calib, finger_log, output=None, echo=print, options: Optional[VideoOptions] = None):
+def record_video(frames, calib, finger_log, output=None, options: Optional[VideoOptions] = None):
     """Make a SPEC run from tactile frames and a finger log; write it to ``output`` if given.
 
     Parameters
@@ -389,7 +393,6 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     calib : path of a dome calibration JSON, or a DomeCalibration
     finger_log : path of a finger log CSV, or a FingerLog
     output : path of the run file to write (None: do not write)
-    echo : progress printer, called with one string
     options : VideoOptions
 
     Returns
@@ -404,8 +407,8 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     if opts.fps is not None and not (np.isfinite(opts.fps) and opts.fps > 0):
         raise TacestError(f"--fps must be > 0, got {opts.fps}")
     cal = calib if isinstance(calib, DomeCalibration) else load_calibration(calib)
-    log = finger_log if isinstance(finger_log, FingerLog) else read_finger_log(finger_log)
-    if cal.rotation_world_from_finger is None and log.quat is None:
+    flog = finger_log if isinstance(finger_log, FingerLog) else read_finger_log(finger_log)
+    if cal.rotation_world_from_finger is None and flog.quat is None:
         raise TacestError("no finger orientation: put rotation_world_from_finger in the calibration "
                           "or qw,qx,qy,qz columns in the finger log")
     src = open_frames(frames, fps=opts.fps, t0=opts.t0)
@@ -420,12 +423,12 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     # the run's uniform grid, checked before any decoding
     ft = src.times
     dt = float(np.median(np.diff(ft)))
-    t_lo, t_hi = max(ft[0], log.t[0]), min(ft[-1], log.t[-1])
+    t_lo, t_hi = max(ft[0], flog.t[0]), min(ft[-1], flog.t[-1])
     eps = 1e-6 * dt
     inside = np.flatnonzero((ft >= t_lo - eps) & (ft <= t_hi + eps))
     if inside.size < 2:
-        raise TacestError(f"frames (t = {ft[0]:.6g}..{ft[-1]:.6g} s) and finger log (t = {log.t[0]:.6g}.."
-                          f"{log.t[-1]:.6g} s) overlap in {inside.size} frame(s), need 2; are they on one clock?")
+        raise TacestError(f"frames (t = {ft[0]:.6g}..{ft[-1]:.6g} s) and finger log (t = {flog.t[0]:.6g}.."
+                          f"{flog.t[-1]:.6g} s) overlap in {inside.size} frame(s), need 2; are they on one clock?")
     t_start = ft[inside[0]]
     T = int(np.floor((min(t_hi, ft[inside[-1]]) - t_start) / dt + 1e-6)) + 1
     if T < 2:
@@ -435,13 +438,13 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
 
     # (progress is reported after the analysis, so a bad frame fails with one line only)
     strength, uv, tracker = analyse_frames(src.open(), cal, opts, len(ft), src.names, ref_img)
-    echo(f"video: {src.description}; dt = {dt * 1e3:.3f} ms"
+    log.info(f"video: {src.description}; dt = {dt * 1e3:.3f} ms"
          + (f" (frame times jitter up to {jitter * 1e3:.3f} ms; resampled to a uniform grid)"
             if jitter > UNIFORM_JITTER * dt else ""))
     first_noise = 1 if ref_img is None else 0
     dec = decide_contacts(strength, opts.detect, first_noise_frame=first_noise)
     if dec.contact[first_noise:first_noise + opts.detect.noise_frames].any():
-        echo("warning: contact detected among the noise frames at the start; they should be free of contact")
+        log.warning("contact detected among the noise frames at the start; they should be free of contact")
 
     # frames -> samples: each sample takes the frames within +-dt/2 of its time
     k_of = np.floor((ft - t_start) / dt + 0.5).astype(int)
@@ -460,12 +463,12 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
     missing = ~seen
 
     # finger positions and orientations at the sample times
-    D = log.dim
-    pos = np.stack([np.interp(time, log.t, log.position[:, a]) for a in range(D)], 1)
-    if log.quat is not None:
+    D = flog.dim
+    pos = np.stack([np.interp(time, flog.t, flog.position[:, a]) for a in range(D)], 1)
+    if flog.quat is not None:
         from scipy.spatial.transform import Rotation, Slerp
 
-        rots = Slerp(log.t, Rotation.from_quat(log.quat, scalar_first=True))(np.clip(time, log.t[0], log.t[-1]))
+        rots = Slerp(flog.t, Rotation.from_quat(flog.quat, scalar_first=True))(np.clip(time, flog.t[0], flog.t[-1]))
         R = rots.as_matrix()
     else:
         R = np.broadcast_to(cal.rotation_world_from_finger, (T, 3, 3))
@@ -483,9 +486,9 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
         if D == 2 and good.any():
             tilt = np.degrees(np.arccos(np.clip(inplane[good], 0.0, 1.0)))
     if dropped:
-        echo(f"warning: {dropped} contact sample(s) dropped: their normal is nearly perpendicular to the 2-D world plane")
+        log.warning(f"{dropped} contact sample(s) dropped: their normal is nearly perpendicular to the 2-D world plane")
     if tilt is not None:
-        echo(f"2-D run: contact normals projected onto the x-y plane; their out-of-plane tilt (discarded) "
+        log.info(f"2-D run: contact normals projected onto the x-y plane; their out-of-plane tilt (discarded) "
              f"median {np.median(tilt):.2f} deg, max {np.max(tilt):.2f} deg")
 
     settings = {"flow": tracker.settings_dict(), "detect": asdict(opts.detect), "fps": opts.fps, "t0": opts.t0,
@@ -504,7 +507,7 @@ def record_video(frames, calib, finger_log, output=None, echo=print, options: Op
                          threshold_on=dec.threshold_on, threshold_off=dec.threshold_off)
     if output is not None:
         write_run(run, output)
-    echo(f"{'wrote ' + str(output) if output is not None else 'recorded'}: {T} samples, dim {D}, "
+    log.info(f"{'wrote ' + str(output) if output is not None else 'recorded'}: {T} samples, dim {D}, "
          f"contact in {int(contact.sum())}; noise level {dec.noise:.4g}, thresholds on {dec.threshold_on:.4g} / "
          f"off {dec.threshold_off:.4g}" + (f"; {int(missing.sum())} sample(s) without a frame" if missing.any() else ""))
     return run, result

@@ -5,11 +5,11 @@ Public API::
 
     SimOptions                                   recorder settings (the CLI's options)
     WorldState                                   object, its state, fingers, effects
-    initial_state(opts, echo=None) -> WorldState a new object at rest on the ground
+    initial_state(opts) -> WorldState a new object at rest on the ground
     toss_state(state, rng) -> WorldState        the object released in the air (a toss)
     state_at_rest(obj, x=0, angle=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState
-    simulate_pokes(state, actions, opts=None, echo=None, names=POKE_NAMES) -> Run
-    record_sim(opts, plan_path=None, append_to=None, echo=None) -> Run
+    simulate_pokes(state, actions, opts=None, names=POKE_NAMES) -> Run
+    record_sim(opts, plan_path=None, append_to=None) -> Run
     state_from_run(run) -> WorldState            continue from a run's last truth state
     append_run(old, new) -> Run                  concatenate a continuation
     simulate_aimed_pokes(aim, n, opts, state=None, run=None) -> Run
@@ -31,6 +31,8 @@ level) leaves the others as they were.
 
 from __future__ import annotations
 
+import logging
+
 import json
 import math
 from dataclasses import dataclass, field
@@ -47,6 +49,8 @@ from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shap
                                 uniform_object)
 from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, poke_path, random_poke
 from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, MAX_SUBSTEP, World
+
+log = logging.getLogger(__name__)
 
 #: s, unrecorded settling of a new object on the ground before sample 0
 PRE_ROLL = 0.5
@@ -86,10 +90,6 @@ _STREAM_OBJECT, _STREAM_POKES, _STREAM_NOISE, _STREAM_TOSS = 1, 2, 3, 4
 
 def _rng(seed, stream, *more) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), stream, *map(int, more)]))
-
-
-def _no_echo(*args, **kwargs):
-    pass
 
 
 @dataclass
@@ -197,7 +197,7 @@ class WorldState:
 # a new object
 
 
-def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState:
+def initial_state(opts: SimOptions) -> WorldState:
     """A new object (per ``opts.object_spec`` and ``opts.seed``) at rest on the ground,
     with its effects resolved and the fingers parked above it.
 
@@ -207,7 +207,6 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState:
     (unrecorded) so sample 0 is at rest.
     """
     opts.validate()
-    echo = echo or _no_echo
     rng = _rng(opts.seed, _STREAM_OBJECT)
     vertices, kind, preferred = make_shape(opts.object_spec, rng)
     obj = uniform_object(vertices, kind, rng)
@@ -220,7 +219,7 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState:
     angle = rest_angle(obj.vertices, rng, preferred)
     state = state_at_rest(obj, angle=angle, fingers=int(opts.fingers), finger_radius=opts.finger_radius,
                           effects=effects)
-    echo(f"object: {kind}, settling on the ground")  # no parameters: the truth may be hidden
+    log.info(f"object: {kind}, settling on the ground")  # no parameters: the truth may be hidden
     world = state.world(opts.max_finger_force)
     h = opts.dt / opts.n_substeps
     hold = world.p_control__world
@@ -315,7 +314,7 @@ def _at_rest(velocity) -> bool:
     return math.hypot(velocity[0], velocity[1]) < REST_SPEED and abs(velocity[2]) < REST_OMEGA
 
 
-def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lead_idle=False,
+def _simulate(state: WorldState, sources, opts: SimOptions, rng_pokes, lead_idle=False,
               settle_first=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (6,) POKE_NAMES vector or None for a random
     poke) from ``state``.  Every poke but the first (and the first too with
@@ -359,10 +358,10 @@ def _simulate(state: WorldState, sources, opts: SimOptions, echo, rng_pokes, lea
     segments, params = [], []
     A = len(sources)
     if settle_first:
-        echo("tossed: waiting for the object to come to rest")
+        log.info("tossed: waiting for the object to come to rest")
         hold_until_rest(TOSS_WAIT)
     for i, src in enumerate(sources):
-        echo(f"poke {i + 1}/{A}")
+        log.info(f"poke {i + 1}/{A}")
         if i > 0 or lead_idle:
             hold(1)
         start = len(cols["q"]) - 1
@@ -492,7 +491,7 @@ def _make_run(traj: _Trajectory, state0: WorldState, opts: SimOptions, rng_noise
     return run
 
 
-def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = None,
+def simulate_pokes(state, actions, opts: SimOptions = None,
                    names=POKE_NAMES, noise_key: int = 0, settle_first: bool = False) -> Run:
     """Simulate the given pokes from ``state`` and return the recorded Run (with truth).
 
@@ -509,7 +508,6 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
     Sample 0 is ``state`` itself; poke i covers /actions/segments[i].
     """
     opts = (opts or SimOptions()).validate()
-    echo = echo or _no_echo
     if isinstance(state, SimObject):
         state = state_at_rest(state, fingers=opts.fingers, finger_radius=opts.finger_radius)
     acts = np.asarray(actions, float)
@@ -518,7 +516,7 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
     if acts.ndim == 1:
         acts = acts[None, :]
     sources = [Poke.from_vector(a, state.n_fingers, names).to_vector() for a in acts]
-    traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES, noise_key), settle_first=settle_first)
+    traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES, noise_key), settle_first=settle_first)
     return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE, noise_key))
 
 
@@ -636,7 +634,7 @@ def _plan_pokes(plan_path):
     return plan
 
 
-def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable = None) -> Run:
+def record_sim(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     """Record a simulated run.
 
     Without ``plan_path``: ``opts.pokes`` random pokes.  With ``plan_path``: the plan's
@@ -644,26 +642,23 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable 
     With ``append_to`` (an existing run file with /truth): continue that run's world
     (object, effects, last truth state, fingers, dt, streams) and return the whole run,
     old samples first; otherwise a new object from ``opts``.
-    echo : callable for progress lines (stderr in the CLI).
-    ``opts.dim`` = 3 records in the 3-D MuJoCo world instead (tacest.sim3d.record).
+    Progress lines go to the module's logger.
+    The 2-D world; tacest.dims.record_sim records in the world of ``opts.dim``.
     """
     opts.validate()
-    if int(opts.dim) == 3:
-        from tacest.sim3d.record import record_sim as record_sim3
-
-        return record_sim3(opts, plan_path=plan_path, append_to=append_to, echo=echo)
-    echo = echo or _no_echo
+    if int(opts.dim) != 2:
+        raise TacestError(f"the 2-D recorder got dim {opts.dim}; tacest.dims.record_sim records in any dimension")
     plan = _plan_pokes(plan_path) if plan_path is not None else None
     if append_to is None:
-        state = initial_state(opts, echo)
+        state = initial_state(opts)
         if opts.toss:
             state = toss_state(state, _rng(opts.seed, _STREAM_TOSS))
         if plan is not None:
             sources = [Poke.from_vector(plan.chosen, state.n_fingers, plan.names).to_vector()]
-            echo(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score})")
+            log.info(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score})")
         else:
             sources = [None] * int(opts.pokes)
-        traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES), settle_first=opts.toss)
+        traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES), settle_first=opts.toss)
         return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE))
 
     from tacest.io.run import read_run
@@ -683,10 +678,10 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable 
             setattr(cont, name, float(np.asarray(old.extra_attrs[name])))
     if plan is not None:
         sources = [Poke.from_vector(plan.chosen, state.n_fingers, plan.names).to_vector()]
-        echo(f"executing the planned poke of {plan_path} after sample {old.n_samples - 1} of {append_to}")
+        log.info(f"executing the planned poke of {plan_path} after sample {old.n_samples - 1} of {append_to}")
     else:
         sources = [None] * int(opts.pokes)
     key = old.n_samples  # fresh noise and poke draws for every continuation
-    traj = _simulate(state, sources, cont, echo, _rng(opts.seed, _STREAM_POKES, key), lead_idle=True)
+    traj = _simulate(state, sources, cont, _rng(opts.seed, _STREAM_POKES, key), lead_idle=True)
     new = _make_run(traj, state, cont, _rng(opts.seed, _STREAM_NOISE, key), prior_shape=old.prior.get("shape"))
     return append_run(old, new)

@@ -4,10 +4,10 @@ world and run files per SPEC (dim = 3).
 Public API (the 3-D counterparts of tacest.sim.record; options are its SimOptions)::
 
     WorldState3                                   object, its state, fingers, effects
-    initial_state(opts, echo=None) -> WorldState3 a new object at rest on the ground
+    initial_state(opts) -> WorldState3 a new object at rest on the ground
     state_at_rest(obj, xy=(0, 0), quat=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState3
-    simulate_pokes(state, actions, opts=None, echo=None, names=POKE3_NAMES) -> Run
-    record_sim(opts, plan_path=None, append_to=None, echo=None) -> Run
+    simulate_pokes(state, actions, opts=None, names=POKE3_NAMES) -> Run
+    record_sim(opts, plan_path=None, append_to=None) -> Run
     state_from_run(run) -> WorldState3            continue from a run's last truth state
 
 Everything per sample is as in 2-D (docs/simulation.md): sample k covers (t[k-1], t[k]];
@@ -21,10 +21,12 @@ unit, out of the object into the finger; then the shared sensor model
 
 from __future__ import annotations
 
+import logging
+
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+
 
 import numpy as np
 
@@ -34,12 +36,14 @@ from tacest.geometry.transforms import (quat_conjugate, quat_from_axis_angle, qu
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE_LEVER, PRE_ROLL, REST_OMEGA,
-                               REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, SimOptions, _no_echo, _rng,
+                               REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, SimOptions, _rng,
                                _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run, sensor_streams)
 from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
                                   uniform_object)
 from tacest.sim3d.pokes import POKE3_NAMES, POKE_KIND, Poke3, poke_path, random_poke
 from tacest.sim3d.world import GRAVITY, MAX_FINGER_FORCE, World3
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -94,7 +98,7 @@ def effect_context(obj: SimObject3) -> fx.EffectContext:
                             friction_ground=obj.friction_ground, dim=3)
 
 
-def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState3:
+def initial_state(opts: SimOptions) -> WorldState3:
     """A new object (per ``opts.object_spec`` and ``opts.seed``) at rest on the ground,
     with its effects resolved and the fingers parked above it.
 
@@ -104,7 +108,6 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState3:
     the velocity is then set to zero, so sample 0 is at rest.
     """
     opts.validate()
-    echo = echo or _no_echo
     rng = _rng(opts.seed, _STREAM_OBJECT)
     vertices, kind, random_rest = make_shape(opts.object_spec, rng)
     obj = uniform_object(vertices, kind, rng)
@@ -115,7 +118,7 @@ def initial_state(opts: SimOptions, echo: Callable = None) -> WorldState3:
     quat = rest_orientation(obj.vertices, rng if random_rest else None)
     state = state_at_rest(obj, quat=quat, fingers=int(opts.fingers), finger_radius=opts.finger_radius,
                           effects=effects)
-    echo(f"object: {kind}, settling on the ground")  # no parameters: the truth may be hidden
+    log.info(f"object: {kind}, settling on the ground")  # no parameters: the truth may be hidden
     h = _substep(opts)
     world = state.world(opts.max_finger_force, h)
     hold = world.p_control__world
@@ -183,7 +186,7 @@ def _at_rest(velocity) -> bool:
     return float(np.linalg.norm(velocity[:3])) < REST_SPEED and float(np.linalg.norm(velocity[3:])) < REST_OMEGA
 
 
-def _simulate(state: WorldState3, sources, opts: SimOptions, echo, rng_pokes, lead_idle=False) -> _Trajectory:
+def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idle=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (8,) POKE3_NAMES vector or None for a random
     poke) from ``state``.  Every poke but the first (and the first too with
     ``lead_idle``) starts after one idle sample interval, so segments tile the run."""
@@ -222,7 +225,7 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, echo, rng_pokes, le
     segments, params = [], []
     A = len(sources)
     for i, src in enumerate(sources):
-        echo(f"poke {i + 1}/{A}")
+        log.info(f"poke {i + 1}/{A}")
         if i > 0 or lead_idle:
             hold(1)
         start = len(cols["q"]) - 1
@@ -306,7 +309,7 @@ def _make_run(traj: _Trajectory, state0: WorldState3, opts: SimOptions, rng_nois
     return run
 
 
-def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = None,
+def simulate_pokes(state, actions, opts: SimOptions = None,
                    names=POKE3_NAMES, noise_key: int = 0) -> Run:
     """Simulate the given 3-D pokes from ``state`` and return the recorded Run (with truth).
 
@@ -319,7 +322,6 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
     Sample 0 is ``state`` itself; poke i covers /actions/segments[i].
     """
     opts = (opts or SimOptions(dim=3)).validate()
-    echo = echo or _no_echo
     if isinstance(state, SimObject3):
         state = state_at_rest(state, fingers=opts.fingers, finger_radius=opts.finger_radius)
     acts = np.asarray(actions, float)
@@ -328,7 +330,7 @@ def simulate_pokes(state, actions, opts: SimOptions = None, echo: Callable = Non
     if acts.ndim == 1:
         acts = acts[None, :]
     sources = [Poke3.from_vector(a, state.n_fingers, names).to_vector() for a in acts]
-    traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES, noise_key))
+    traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES, noise_key))
     return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE, noise_key))
 
 
@@ -393,7 +395,7 @@ def state_from_run(run: Run) -> WorldState3:
 # the recorder
 
 
-def _plan_sources(plan_path, n_fingers, echo, where=""):
+def _plan_sources(plan_path, n_fingers, where=""):
     from tacest.io.plan import read_plan
 
     plan = read_plan(plan_path)
@@ -403,29 +405,28 @@ def _plan_sources(plan_path, n_fingers, echo, where=""):
         src = Poke3.from_vector(plan.chosen, n_fingers, plan.names).to_vector()
     except TacestError as exc:
         raise TacestError(f"{plan_path}: {exc}") from None
-    echo(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score}){where}")
+    log.info(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score}){where}")
     return [src]
 
 
-def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable = None) -> Run:
+def record_sim(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     """Record a simulated 3-D run (``opts.dim`` = 3).
 
     Without ``plan_path``: ``opts.pokes`` random pokes.  With ``plan_path``: the plan's
     ``/chosen/params`` (3-D poke names, POKE3_NAMES) as one poke, its target as given.
     With ``append_to`` (an existing 3-D run file with /truth): continue that run's world
     and return the whole run, old samples first; otherwise a new object from ``opts``.
-    echo : callable for progress lines (stderr in the CLI).
+    Progress lines go to the module's logger.
     """
     opts.validate()
-    echo = echo or _no_echo
     if append_to is None:
-        state = initial_state(opts, echo)
+        state = initial_state(opts)
         if plan_path is not None:
-            sources = _plan_sources(plan_path, state.n_fingers, echo)
+            sources = _plan_sources(plan_path, state.n_fingers)
         else:
             sources = [None] * int(opts.pokes)
-        traj = _simulate(state, sources, opts, echo, _rng(opts.seed, _STREAM_POKES))
-        echo(f"deepest contact penetration: ground {1e3 * traj.max_penetration_ground:.3f} mm, "
+        traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES))
+        log.info(f"deepest contact penetration: ground {1e3 * traj.max_penetration_ground:.3f} mm, "
              f"finger {1e3 * traj.max_penetration_finger:.3f} mm")
         return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE))
 
@@ -442,11 +443,11 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None, echo: Callable 
         if name in old.extra_attrs:
             setattr(cont, name, float(np.asarray(old.extra_attrs[name])))
     if plan_path is not None:
-        sources = _plan_sources(plan_path, state.n_fingers, echo,
+        sources = _plan_sources(plan_path, state.n_fingers,
                                 f" after sample {old.n_samples - 1} of {append_to}")
     else:
         sources = [None] * int(opts.pokes)
     key = old.n_samples  # fresh noise and poke draws for every continuation
-    traj = _simulate(state, sources, cont, echo, _rng(opts.seed, _STREAM_POKES, key), lead_idle=True)
+    traj = _simulate(state, sources, cont, _rng(opts.seed, _STREAM_POKES, key), lead_idle=True)
     new = _make_run(traj, state, cont, _rng(opts.seed, _STREAM_NOISE, key), prior_shape=old.prior.get("shape"))
     return append_run(old, new, names=POKE3_NAMES)

@@ -1,0 +1,118 @@
+"""One estimate assembly for every estimator (2-D, 3-D, shooting, diagnosis fits): the
+parameters, trajectories and solver outcome as a tacest.io.estimate.Estimate, with one
+policy for what is reported as identifiable and which std is written.
+
+Policy (:func:`identifiability`), in this order:
+
+1. what the sensors cannot tell: mass and inertia without a force stream (every impulse
+   scales with the mass; DESIGN), finger friction without a fingertip;
+2. what the data leave (nearly) undetermined: mass and the frictions whose data std
+   (tacest.estimation.uncertainty.Information.std_data) exceeds half their value;
+3. what ended at its hard bound (the bound holds it, not the data);
+4. what a penalty term put where it is (2-D pose-observed fits: the data alone would
+   move it by more than OCCAM_SHIFT_SIGMAS of its std);
+5. effect parameters: identifiable where the data's std is finite and below the
+   effect's prior sigma (the data tell more than the prior);
+6. force_scale's gain and the mass: only their product is identifiable;
+7. a fit with every parameter held: nothing was estimated.
+
+The ``std`` written is the posterior's (data and priors): what a user reads as the
+uncertainty of an estimate.  Whether the data determine a parameter is item 2 above.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from tacest.estimation.solver import SolveOutcome, attempts_json
+from tacest.estimation.uncertainty import Information
+from tacest.io.estimate import Estimate
+
+log = logging.getLogger(__name__)
+
+#: distance (log mass, or friction) from a bound within which a fitted parameter counts
+#: as ended at that bound (IPOPT's interior point stops within ~1e-8 of an active bound)
+AT_BOUND_TOLERANCE = 1e-3
+#: a mass or friction whose first-order shift without the Occam term (the data alone)
+#: exceeds this many of its std is reported as not identifiable: at 2 the data's own
+#: optimum lies outside the value's 95 % interval
+OCCAM_SHIFT_SIGMAS = 2.0
+#: a mass or friction whose data std exceeds this fraction of its value is reported as
+#: not identifiable: one sigma reaches half the value
+UNDETERMINED_FRACTION = 0.5
+
+
+@dataclass
+class FitFacts:
+    """What the identifiability policy needs besides the parameters and the information.
+
+    has_force : a force stream was measured; has_fingers : a fingertip touched;
+    at_bound : {name: True} for parameters that ended at a hard bound; effect_sigma :
+    {information row name: prior sigma in physical units} of the effect parameters;
+    effects : the modelled effects' names; held : every parameter was held fixed."""
+
+    has_force: bool
+    has_fingers: bool
+    at_bound: dict = field(default_factory=dict)
+    effect_sigma: dict = field(default_factory=dict)
+    effects: tuple = ()
+    held: bool = False
+
+
+def ended_at_bound(u: float, bounds) -> bool:
+    """Whether a scaled value u sits within AT_BOUND_TOLERANCE of either of its bounds."""
+    return not bounds[0] + AT_BOUND_TOLERANCE < u < bounds[1] - AT_BOUND_TOLERANCE
+
+
+def identifiability(params: dict, info: Optional[Information], facts: FitFacts) -> dict:
+    """{name: bool} by the module's policy; warnings (logging) say why a parameter that
+    the sensors could tell is not identifiable."""
+    ident = {"mass": facts.has_force, "inertia": facts.has_force, "friction_ground": True,
+             "friction_finger": facts.has_fingers}
+    std = info.std_data if info is not None else {}
+    for k in ("friction_ground", "friction_finger", "mass"):
+        if k in std and not std[k] <= UNDETERMINED_FRACTION * max(float(params[k]), 1e-3):
+            ident[k] = False
+    for k, hit in facts.at_bound.items():
+        if hit and ident.get(k) and not facts.held:
+            ident[k] = False
+            log.warning(f"{k} = {float(params[k]):.4g} ended at its bound: the data do not determine it")
+    shift = info.shift if info is not None else {}
+    for k in ("mass", "friction_ground", "friction_finger"):
+        if ident.get(k) and abs(shift.get(k, 0.0)) > OCCAM_SHIFT_SIGMAS * std.get(k, np.inf):
+            ident[k] = False
+            log.warning(f"{k} = {float(params[k]):.4g} is set by the Occam term, not the data (without it the "
+                        f"data would move it by {shift[k]:+.3g}, std {std[k]:.3g})")
+    for k, sigma in facts.effect_sigma.items():
+        ident[k] = bool(np.isfinite(std.get(k, np.inf)) and std.get(k, np.inf) < sigma)
+    if "force_scale" in facts.effects:
+        # every force in the model (weight, inertia, contacts) scales with the mass, the
+        # measured ones with the gain: only gain × mass is identifiable (docs/diagnosis.md)
+        ident["mass"] = ident["force_scale.gain"] = False
+    if facts.held:
+        ident = {k: False for k in ident}
+    return ident
+
+
+def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: SolveOutcome, wall_time: float,
+             info: Optional[Information], facts: FitFacts, config: dict, method: str, extra: dict = None,
+             attempts: list = None, notes: list = ()) -> Estimate:
+    """The Estimate of a fit (see the module docstring)."""
+    extra = dict(extra or {})
+    extra["stages"] = "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
+                                for s in outcome.stages)
+    if attempts:
+        extra["starts"] = attempts_json(attempts)
+    if notes:
+        extra["notes"] = "; ".join(notes)
+    return Estimate(
+        dim=dim, shape=shape, vertices=np.asarray(vertices, float), params=params, runs=runs,
+        model=list(facts.effects), solver_status=outcome.status, success=outcome.success,
+        iterations=outcome.iterations, wall_time=wall_time, objective=outcome.objective,
+        information=None if info is None else info.matrix, info_names=[] if info is None else list(info.names),
+        std={} if info is None else dict(info.std), identifiable=identifiability(params, info, facts),
+        config=config, method=method, extra_attrs=extra)
