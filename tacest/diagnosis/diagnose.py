@@ -462,34 +462,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                   "known": ctx.mass_known}
 
     # 1. the plain model on all data -------------------------------------------------
-    if estimate is not None:
-        check_estimate_matches(estimate, runs)
-        if make_shape(estimate.shape, dim=2).name != make_shape(shape, dim=2).name:
-            raise TacestError(f"{estimate.filename or 'estimate'}: shape {estimate.shape}, "
-                              f"but --shape {shape} was asked for")
-        log.info(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
-        base = FitResult(estimate=estimate, runs=list(runs))
-        base_est = estimate
-    else:
-        log.info("plain model: fitting all runs")
-        base = None
-        if backend == "warm":
-            try:
-                base = fit_estimator(runs, shape, config)
-            except SolveFailedError as exc:
-                # a plain model that cannot fit the data (a bounce it cannot make, with
-                # no ground impulses in the air to fake it) is what a diagnosis is for:
-                # its fit at the iteration budget is the baseline the candidates improve
-                log.info(f"plain model: {exc}; its fit at the iteration budget is the baseline")
-        if base is None:
-            base = fit_local(runs, shape, config, accept_budget=True)
-        base_est = base.estimate
-        log.info(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
-             f"{base.wall_time:.1f} s")
-        ctx.notes += [f"plain model, fit to all data: {n}" for n in base.notes]
-        if not base_est.success:
-            ctx.notes.append(f"the plain model's fit to all data stopped at its iteration budget "
-                             f"({base_est.solver_status}); its last iterate is used")
+    base = _plain_fit(ctx, estimate)
+    base_est = base.estimate
     base_full_obj = weighted_objective(base.estimate, config)
 
     # 2. where ---------------------------------------------------------------------
@@ -502,8 +476,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     where = flagged_windows(stats)
     table = breakdown(stats, floor)
     log.info(f"where: {len(where)} flagged window(s); largest share "
-         f"{where[0].share:.0%} ({where[0].term}, run {where[0].run}, samples {where[0].start}-{where[0].stop})"
-         if where else "where: nothing stands out from the noise floor")
+             f"{where[0].share:.0%} ({where[0].term}, run {where[0].run}, samples {where[0].start}-{where[0].stop})"
+             if where else "where: nothing stands out from the noise floor")
     screening = cands.signature_scores(stats, names)
 
     # 3. held-out design -----------------------------------------------------------
@@ -534,28 +508,9 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                 cres[i].message = (f"not refitted: screening signature {cres[i].screening:.0%} ranked "
                                    f"{rank + 1} of {len(order)} (max_candidates {options.max_candidates})")
     # 4. the plain model, held out ---------------------------------------------------
-    log.info(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
-    base_fold = {}
-    base_fold_status = {}
-    base_fold_occam = {}
-    for fold in folds:
-        try:
-            obj, st, base_fold_occam[fold.index] = ctx.fold_objective(fold, "none", None, (), base)
-            base_fold[fold.index] = obj
-            base_fold_status[fold.index] = st
-        except (SolveFailedError, CandidateUnavailable) as exc:
-            base_fold_status[fold.index] = f"failed: {exc}"
-            ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({exc}); fold dropped")
-        log.info(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
-             + (f", held-out objective {base_fold[fold.index]:.4g}" if fold.index in base_fold else ""))
-    floor_fold = {}
-    for fold in folds:
-        pieces_h = [p.cut(runs) for p in fold.heldout]
-        floor_fold[fold.index] = sum(floor.objective_floor(residual_dof(r, K), contact_state(r)) for r in pieces_h)
-    n_heldout_samples = sum(p.stop - p.start for p in pieces)
-    penalty_per_param = 0.5 * math.log(max(n_heldout_samples, 2))
-    # each fold's share of the held-out samples: its share of the penalty
-    fold_share = {f.index: sum(p.stop - p.start for p in f.heldout) / n_heldout_samples for f in folds}
+    held = _plain_heldout(ctx, folds, pieces, base, floor, heldout_info, K)
+    base_fold, floor_fold, base_fold_occam = held["objective"], held["floor"], held["occam"]
+    penalty_per_param, fold_share = held["penalty_per_param"], held["fold_share"]
 
     # 5. candidates ------------------------------------------------------------------
     for c, spec in zip(cres, results):
@@ -570,12 +525,92 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             c.status, c.message = "unavailable", str(exc)
         c.wall_time = time.perf_counter() - t0
         log.info(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
-             + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
-                + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
-                + f"), score {c.score:.3g}" if c.status == "ok" else "")
+                 + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
+                    + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
+                    + f"), score {c.score:.3g}" if c.status == "ok" else "")
              + f", {c.wall_time:.0f} s")
 
     # 6. verdict ---------------------------------------------------------------------
+    verdict, reason, ranked = _verdict(ctx, cres, held, heldout_info)
+    return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
+                     base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
+                     wall_time=time.perf_counter() - t_start, options=options, mass_prior=mass_prior)
+
+
+def _plain_fit(ctx, estimate) -> FitResult:
+    """The plain model's fit to all data: the given estimate (checked against the runs),
+    or the estimator's own fit (or, where that fails, its fit at the iteration budget:
+    what a diagnosis is for; step 1 of :func:`diagnose`)."""
+    from tacest.geometry.shapes import make_shape
+
+    runs, shape, config = ctx.runs, ctx.shape, ctx.config
+    if estimate is not None:
+        check_estimate_matches(estimate, runs)
+        if make_shape(estimate.shape, dim=2).name != make_shape(shape, dim=2).name:
+            raise TacestError(f"{estimate.filename or 'estimate'}: shape {estimate.shape}, "
+                              f"but --shape {shape} was asked for")
+        log.info(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
+        return FitResult(estimate=estimate, runs=list(runs))
+    log.info("plain model: fitting all runs")
+    base = None
+    if ctx.backend == "warm":
+        try:
+            base = fit_estimator(runs, shape, config)
+        except SolveFailedError as exc:
+            # a plain model that cannot fit the data (a bounce it cannot make, with
+            # no ground impulses in the air to fake it) is what a diagnosis is for:
+            # its fit at the iteration budget is the baseline the candidates improve
+            log.info(f"plain model: {exc}; its fit at the iteration budget is the baseline")
+    if base is None:
+        base = fit_local(runs, shape, config, accept_budget=True)
+    base_est = base.estimate
+    log.info(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
+             f"{base.wall_time:.1f} s")
+    ctx.notes += [f"plain model, fit to all data: {n}" for n in base.notes]
+    if not base_est.success:
+        ctx.notes.append(f"the plain model's fit to all data stopped at its iteration budget "
+                         f"({base_est.solver_status}); its last iterate is used")
+    return base
+
+
+def _plain_heldout(ctx, folds, pieces, base, floor, heldout_info, K) -> dict:
+    """The plain model held out: per fold its objective, status and Occam part, the noise
+    floor of the held-out pieces, the penalty per parameter and each fold's share of it
+    (step 4 of :func:`diagnose`)."""
+    runs = ctx.runs
+    log.info(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
+    base_fold = {}
+    base_fold_status = {}
+    base_fold_occam = {}
+    for fold in folds:
+        try:
+            obj, st, base_fold_occam[fold.index] = ctx.fold_objective(fold, "none", None, (), base)
+            base_fold[fold.index] = obj
+            base_fold_status[fold.index] = st
+        except (SolveFailedError, CandidateUnavailable) as exc:
+            base_fold_status[fold.index] = f"failed: {exc}"
+            ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({exc}); fold dropped")
+        log.info(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
+                 + (f", held-out objective {base_fold[fold.index]:.4g}" if fold.index in base_fold else ""))
+    floor_fold = {}
+    for fold in folds:
+        pieces_h = [p.cut(runs) for p in fold.heldout]
+        floor_fold[fold.index] = sum(floor.objective_floor(residual_dof(r, K), contact_state(r)) for r in pieces_h)
+    n_heldout_samples = sum(p.stop - p.start for p in pieces)
+    penalty_per_param = 0.5 * math.log(max(n_heldout_samples, 2))
+    # each fold's share of the held-out samples: its share of the penalty
+    fold_share = {f.index: sum(p.stop - p.start for p in f.heldout) / n_heldout_samples for f in folds}
+
+    return {"objective": base_fold, "status": base_fold_status, "occam": base_fold_occam, "floor": floor_fold,
+            "penalty_per_param": penalty_per_param, "fold_share": fold_share, "samples": n_heldout_samples}
+
+
+def _verdict(ctx, cres, held, heldout_info) -> tuple:
+    """(verdict, reason, candidates best first) by the rule of the module docstring
+    (step 6 of :func:`diagnose`); heldout_info gets the plain model's held-out figures."""
+    base_fold, base_fold_status = held["objective"], held["status"]
+    floor_fold, base_fold_occam = held["floor"], held["occam"]
+    n_heldout_samples, penalty_per_param = held["samples"], held["penalty_per_param"]
     ok = [c for c in cres if c.status == "ok" and np.isfinite(c.score)]
     ranked = sorted(ok, key=lambda c: -c.score) + [c for c in cres if c not in ok]
     winners = [c for c in ranked if c.significant]
@@ -612,7 +647,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         reason = ("no candidate improves the held-out fit by more than its parameter penalty, in total and in "
                   f"at least half of the folds, closing at least {MIN_REDUCTION:.0%} of the plain model's gap "
                   f"plus {FLOOR_SIGMAS:g} sigma of the floor" + (f" (best: {best.name}, improvement {best.improvement:.3g}, penalty "
-                                    f"{best.penalty:.3g})" if best else ""))
+                                                                     f"{best.penalty:.3g})" if best else ""))
     # candidates that would have counted but for a guard (a parameter at a hard bound or
     # below its material size): say so, a user may want to look at them
     guarded = [c for c in ranked if c.status == "ok" and (c.at_bound or c.immaterial)
@@ -628,9 +663,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
         reason += f"; not compared: {', '.join(missing)} (see their status)"
     if verdict == "none" and any(c.name == "force_scale" for c in cres) and not ctx.mass_known:
         reason += f"; {FORCE_SCALE_CAVEAT}"
-    return Diagnosis(verdict=verdict, reason=reason, effects=ranked, where=where, stats=stats, table=table, floor=floor,
-                     base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info, notes=ctx.notes,
-                     wall_time=time.perf_counter() - t_start, options=options, mass_prior=mass_prior)
+    return verdict, reason, ranked
+
 
 
 def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, base_full_obj, folds, base_fold,

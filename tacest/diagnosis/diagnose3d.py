@@ -252,7 +252,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         # (reduction < 0: the augmented model does worse on the held-out runs)
         effects.append({"name": name, "gap_before": gap_before, "gap_after": gap_after, "reduction": red,
                         "params": {k: fits[name].params[k] for k in (name, "extent_x", "extent_y", "extent_z",
-                                                                   "friction_ground")}})
+                                                                     "friction_ground")}})
     effects.sort(key=lambda e: -e["reduction"])
     blamed = [e for e in effects if gap_before > 0 and e["reduction"] >= MIN_REDUCTION]
     if blamed:

@@ -28,7 +28,7 @@ from tacest.estimation.initial import initial_extents, initial_guess, start_shap
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound
 from tacest.estimation.solver import (BuiltSolver, SolverCache, plan_stages, pin, run_stages, solve_from_starts,
-                                     SolveOutcome)
+                                      SolveOutcome)
 from tacest.estimation.uncertainty import observed_information_2d
 from tacest.geometry.shapes import make_shape, polygon_area_centroid_j
 from tacest.io.estimate import Estimate, RunEstimate

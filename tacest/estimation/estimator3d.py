@@ -35,7 +35,7 @@ from tacest.estimation.initial3d import start_candidates_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound
 from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, pin, plan_stages, run_stages,
-                                     solve_from_starts)
+                                      solve_from_starts)
 from tacest.estimation.uncertainty import observed_information_3d
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix

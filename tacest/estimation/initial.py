@@ -214,7 +214,7 @@ def start_shape_candidates(problem, runs: list[Run], scales: Scales, s_guess: np
         return [np.asarray(s_guess, float)]
     L = scales.L
     candidates = [np.asarray(s_guess, float)] + [problem.shape.initial(w, h) for w in EXTENT_GRID
-                                                   for h in EXTENT_GRID]
+     for h in EXTENT_GRID]
     Vs = np.stack([numeric_vertices(problem.shape, s, L) for s in candidates])
     cost = 0.0
     for run in runs:

@@ -324,21 +324,16 @@ class StageModel2D:
         g = ca.SX.sym("g", len(G_NAMES))
         sp = ca.SX.sym("s_prev", self.n_state)
         ss = ca.SX.sym("s", self.n_state)
-        dt, L, Lam, grav = g[G["dt"]], g[G["L"]], g[G["Lam"]], g[G["grav"]]
-        eps = g[G["eps"]]
+        dt, L, grav = g[G["dt"]], g[G["L"]], g[G["grav"]]
         V, mass, inertia, mu_g, mu_f = self.unpack_phys(phys, L, g[G["m0"]])
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose = \
-            self.unpack_data(d, F)
+        data = self.unpack_data(d, F)
+        q_obs, w_pose = data[9], data[10]
         # unscale: q = [x/L, y/L, angle], v = [vx/L, vy/L, omega] per second
         unscale = ca.vertcat(L, L, 1)
         q, q_start = qs * unscale, qp * unscale
         v, v_prev = vs * unscale, vp * unscale
         n_g = ca.vertcat(g[G["nx"]], g[G["ny"]])
-        t_g = perp(n_g)
         phi, slip, levers = ground_contacts(q, v, V, n_g, g[G["h"]])
-        gen = ca.SX.zeros(3)
-        comp, pen, cone, diss = [], [], [], []
-        eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
         u = self.effect_values(phys, 2 * K + 4)
         # a factor on every force and the mass the physics residuals see (force_scale)
         gain = 1.0
@@ -355,15 +350,67 @@ class StageModel2D:
             levers=levers, lam_ground=lg, phi_c=list(phi),
             vn_c=[ca.dot(n_g, point_velocity(v, levers[k])) for k in range(K)],
             sig_v=g[G["sig_proc"]] * grav * dt,  # m/s: process noise of a velocity change
-            mu_g=mu_g, impulse_levers=levers)
-        sig_v = ctx.sig_v
+            mu_g=mu_g, impulse_levers=levers, gain=gain, mass=mass, inertia=inertia)
         for e in self.effect_objects:
             e.ground_surface_2d(ctx)
         for e in self.effect_objects:
             e.ground_friction_2d(ctx)
         for e in self.effect_objects:
             e.impacts_2d(ctx)
+        gen, comp, pen, cone, diss = self._ground_laws(ctx, lg, slip)
+        fingers = self._finger_terms(ctx, F, lf, data, mu_f)
+        gen += fingers["gen"]
+        cone += fingers["cone"]
+        diss += fingers["diss"]
+        for e in self.effect_objects:  # forces on the body over the interval (drag, damping)
+            extra = e.body_impulse_2d(ctx)
+            if extra is not None:
+                gen += extra
+        r_dyn, occam = self._dynamics_terms(ctx, gen, data, fingers["rows"], F)
+        g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
+        r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
+        empty = ca.SX.zeros(0)
+        outs = {
+            "force": ca.vertcat(*fingers["force"]) if F else empty,
+            "normal": ca.vertcat(*fingers["normal"]) if F else empty,
+            "contact": ca.vertcat(*fingers["contact"]) if F else empty,
+            "pose": r_pose,
+            "dynamics": r_dyn,
+            "penetration": ca.vertcat(*pen),
+            "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
+            "dissipation": ca.vertcat(*diss) / g[G["sig_diss"]],
+            "cone": ca.vertcat(*cone) / g[G["sig_comp"]],
+            "occam": occam,
+            "g_kin": g_kin,
+            # diagnostics only (not in the loss): tangential ground impulses (scaled) and
+            # finger impulses on the object (N·s, world); the ground contacts' geometric
+            # gaps (m) and slip velocities (m/s), the ground friction coefficient and the
+            # object's weight in units of the reference weight (for the active-set rows
+            # of the information, tacest.estimation.uncertainty)
+            "lam_t_ground": lg[K:],
+            "imp_finger": ca.vertcat(*fingers["impulse"]) if F else empty,
+            "phi_ground": ca.vertcat(*phi),
+            "slip_ground": ca.vertcat(*slip),
+            "mu_ground": ctx.mu_g,
+            "weight": mass / g[G["m0"]],
+            **ctx.outputs,  # the effects' own (e.g. restitution's impact_target)
+        }
+        names = list(outs)
+        return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g, sp, ss],
+                           [outs[n] for n in names],
+                           ["q_prev", "v_prev", "q", "v", "lam_ground", "lam_finger", "phys", "d", "g", "s_prev", "s"],
+                           names)
+
+    def _ground_laws(self, ctx, lg, slip):
+        """The ground vertices' impulses and laws of one interval: (generalized impulse
+        (3,), complementarity, penetration, cone and dissipation residual lists)."""
+        K, g, L, gain, eps = self.K, ctx.g, ctx.L, ctx.gain, ctx.g[G["eps"]]
+        Lam, n_g, sig_v = g[G["Lam"]], ctx.n_g, ctx.sig_v
+        t_g = perp(n_g)
         mu_g, phi_c, vn_c = ctx.mu_g, ctx.phi_c, ctx.vn_c
+        eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
+        gen = ca.SX.zeros(3)
+        comp, pen, cone, diss = [], [], [], []
         for k in range(K):
             ln, lt = lg[k], lg[K + k]
             gen += generalized_impulse(ctx.impulse_levers[k], Lam * (ln * n_g + lt * t_g))
@@ -399,6 +446,18 @@ class StageModel2D:
             else:  # the plain law, expression for expression (IPOPT's path unchanged)
                 comp.append(gain * ln * (gap + sep) / (1 + gap + sep))
             pen.append(one_sided(phi_c[k], g[G["sig_pen"]]))
+        return gen, comp, pen, cone, diss
+
+    def _finger_terms(self, ctx, F, lf, data, mu_f):
+        """Each fingertip's residuals of one interval: {"gen": generalized impulse (3,),
+        "cone", "diss", "force", "normal", "contact", "impulse" (N·s on the object, world):
+        lists, "rows": (normal, lever) of each contact frame, for the Occam term}."""
+        K, g, L, gain, dt = self.K, ctx.g, ctx.L, ctx.gain, ctx.dt
+        Lam, q, q_start, v, V = g[G["Lam"]], ctx.q, ctx.q_start, ctx.v, ctx.V
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start = data[:9]
+        eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
+        gen = ca.SX.zeros(3)
+        cone, diss = [], []
         sd_fun = polygon_sd_and_normal_function(K)
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
         finger_rows = []  # (normal, lever) of each finger's contact frame, for the Occam term
@@ -431,10 +490,16 @@ class StageModel2D:
             r_force.append(w_force[f] * (self.sensor_reading(imp / dt, ctx) - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
             r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
-        for e in self.effect_objects:  # forces on the body over the interval (drag, damping)
-            extra = e.body_impulse_2d(ctx)
-            if extra is not None:
-                gen += extra
+        return {"gen": gen, "cone": cone, "diss": diss, "force": r_force, "normal": r_normal, "contact": r_contact,
+                "impulse": imp_finger, "rows": finger_rows}
+
+    def _dynamics_terms(self, ctx, gen, data, finger_rows, F):
+        """The dynamics residual (eq. D1 and the effects' own laws) and the Occam term of
+        one interval."""
+        K, g, L, gain, dt, eps = self.K, ctx.g, ctx.L, ctx.gain, ctx.dt, ctx.g[G["eps"]]
+        v, v_prev, V, n_g, levers, sig_v = ctx.v, ctx.v_prev, ctx.V, ctx.n_g, ctx.levers, ctx.sig_v
+        mass, inertia = ctx.mass, ctx.inertia
+        contact, q_obs, w_pose = data[2], data[9], data[10]
         # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
         # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, g_vec the run's gravity.
         # (Whitening the impulse form by a fixed scale would let a light object move for free.)
@@ -469,39 +534,7 @@ class StageModel2D:
             free = occam_free_weights([(n_g, levers[k]) for k in range(K)] + finger_rows,
                                       touch + [contact[f] for f in range(F)], L / 2)
             occam = w_pose * sum(free[k] * pose_occam(log_lam[k]) for k in range(3))
-        g_kin = (qs - qp) / dt - vs  # eq. D2, scaled (per second in units of L)
-        r_pose = w_pose * (q - q_obs) / ca.vertcat(g[G["sig_pos"]], g[G["sig_pos"]], g[G["sig_ang"]])
-        empty = ca.SX.zeros(0)
-        outs = {
-            "force": ca.vertcat(*r_force) if F else empty,
-            "normal": ca.vertcat(*r_normal) if F else empty,
-            "contact": ca.vertcat(*r_contact) if F else empty,
-            "pose": r_pose,
-            "dynamics": r_dyn,
-            "penetration": ca.vertcat(*pen),
-            "complementarity": ca.sqrt(g[G["comp_mult"]]) * ca.vertcat(*comp) / g[G["sig_comp"]],
-            "dissipation": ca.vertcat(*diss) / g[G["sig_diss"]],
-            "cone": ca.vertcat(*cone) / g[G["sig_comp"]],
-            "occam": occam,
-            "g_kin": g_kin,
-            # diagnostics only (not in the loss): tangential ground impulses (scaled) and
-            # finger impulses on the object (N·s, world); the ground contacts' geometric
-            # gaps (m) and slip velocities (m/s), the ground friction coefficient and the
-            # object's weight in units of the reference weight (for the active-set rows
-            # of the information, tacest.estimation.uncertainty)
-            "lam_t_ground": lg[K:],
-            "imp_finger": ca.vertcat(*imp_finger) if F else empty,
-            "phi_ground": ca.vertcat(*phi),
-            "slip_ground": ca.vertcat(*slip),
-            "mu_ground": mu_g,
-            "weight": mass / g[G["m0"]],
-            **ctx.outputs,  # the effects' own (e.g. restitution's impact_target)
-        }
-        names = list(outs)
-        return ca.Function(f"stage_K{K}_F{F}", [qp, vp, qs, vs, lg, lf, phys, d, g, sp, ss],
-                           [outs[n] for n in names],
-                           ["q_prev", "v_prev", "q", "v", "lam_ground", "lam_finger", "phys", "d", "g", "s_prev", "s"],
-                           names)
+        return r_dyn, occam
 
     def sensor_reading(self, force, ctx):
         """The force sensor's reading (2,) N of a model force (2,) N: every effect's gain,

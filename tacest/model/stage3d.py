@@ -93,8 +93,8 @@ _ASIN_COEF = [float(np.prod(np.arange(1, 2 * k + 1)) / (4 ** k * np.prod(np.aran
 #: per-sample data rows (run constants repeated on every sample, then the streams): dt
 #: s, Lam = m0·g·dt N·s, the run's gravity (its magnitude m/s² and its vector), the
 #: ground's normal and height, the pose observation's sigmas, weight and value, w_rest
-D_NAMES = ("dt", "Lam", "grav", "gx", "gy", "gz", "nx", "ny", "nz", "h", "sig_pos", "sig_ang", "w_pose", "px", "py", "pz",
-           "qw", "qx", "qy", "qz", "w_rest")
+D_NAMES = ("dt", "Lam", "grav", "gx", "gy", "gz", "nx", "ny", "nz", "h", "sig_pos", "sig_ang", "w_pose",
+           "px", "py", "pz", "qw", "qx", "qy", "qz", "w_rest")
 DI = {n: i for i, n in enumerate(D_NAMES)}
 #: per finger data rows
 DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", "fx", "fy", "fz", "w_force",

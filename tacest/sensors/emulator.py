@@ -41,6 +41,7 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
 from tacest.sensors.serial_protocol import Header, Precision, format_header, format_sample
 
 _PRINTABLE = np.frombuffer(b"0123456789.,-+eE*SABCDFXYZabcdfxyz #", np.uint8)
@@ -125,7 +126,7 @@ def builtin_run(dim: int = 2, fingers: int = 1, samples: int = 2000, dt: float =
     force = -500.0 * np.maximum(R + r - dist, 0.0)[..., None] * normal
     normal[contact == 0] = np.nan
     g = np.zeros(dim)
-    g[-1] = -9.81
+    g[-1] = -STANDARD_GRAVITY
     return Run(dim=dim, dt=dt, time=t, gravity=g, source="emulator-builtin", finger_position=pos,
                finger_radius=np.full(fingers, r), contact=contact, force=force, normal=normal)
 

@@ -28,6 +28,8 @@ from typing import Optional
 
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
+
 #: Protocol version this module reads and writes.
 PROTOCOL_VERSION = 1
 
@@ -111,7 +113,7 @@ class Header:
     dim : 2 or 3; fingers : F >= 1; radius : (F,) float, m; dt : float, s (> 0);
     force : whether the rig measures force (``force=0`` in the header: contact and normal
     only, the force fields are ignored and may be empty); gravity : (D,) m/s²
-    (default -9.81 along the last axis); extras : other ``key=value`` pairs, kept as text.
+    (default -STANDARD_GRAVITY along the last axis); extras : other ``key=value`` pairs, kept as text.
     """
 
     dim: int
@@ -250,7 +252,7 @@ def parse_header(line: bytes) -> Header:
         raise LineError("header", f"force must be 0 or 1, got {force_txt!r}")
     force = force_txt in ("1", "yes", "true")
     if gravity is None:
-        gravity = [0.0] * (dim - 1) + [-9.81]
+        gravity = [0.0] * (dim - 1) + [-STANDARD_GRAVITY]
     if len(gravity) != dim or not all(math.isfinite(g) for g in gravity):
         raise LineError("header", f"gravity needs {dim} finite numbers")
     return Header(dim=dim, fingers=fingers, radius=tuple(radius), dt=dt, force=force,
@@ -266,7 +268,7 @@ def format_header(header: Header, checksum_suffix: bool = False) -> str:
              f"radius={rad_txt}", f"dt={header.dt:.9g}"]
     if not header.force:
         parts.append("force=0")
-    default_g = tuple([0.0] * (header.dim - 1) + [-9.81])
+    default_g = tuple([0.0] * (header.dim - 1) + [-STANDARD_GRAVITY])
     if header.gravity and tuple(header.gravity) != default_g:
         parts.append("gravity=" + ";".join(f"{g:.6g}" for g in header.gravity))
     for k, v in header.extras.items():

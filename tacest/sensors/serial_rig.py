@@ -456,8 +456,8 @@ def open_port(port: str, baud: int = 115200, timeout: float = 0.05):
         raise TacestError(f"cannot open serial port {port}: {msg}") from None
 
 
-def record_serial(port, baud: int = 115200, duration: Optional[float] = None, output=None, *, read_timeout: float = 0.05, snapshot_interval: float = 0.25,
-                  normal_tol: float = NORMAL_NORM_TOL, max_gap: float = 60.0) -> RecordSummary:
+def record_serial(port, baud: int = 115200, duration: Optional[float] = None, output=None, *,
+                  read_timeout: float = 0.05, snapshot_interval: float = 0.25, normal_tol: float = NORMAL_NORM_TOL, max_gap: float = 60.0) -> RecordSummary:
     """Record the serial protocol from ``port`` into the run file ``output``.
 
     Parameters
@@ -632,5 +632,5 @@ def record_stream(stream, output, duration: Optional[float] = None, name: str = 
     log.info(f"stopped: {reason}")
     log.info(summary.line())
     log.info(f"wrote {output}: {summary.kept_samples + summary.missing_samples} samples, "
-         f"{asm.header.fingers} finger(s), dt = {asm.header.dt:g} s")
+             f"{asm.header.fingers} finger(s), dt = {asm.header.dt:g} s")
     return summary

@@ -42,6 +42,7 @@ from typing import Callable, Iterator, Optional
 
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import TacestError
 from tacest.sensors.dome import DomeCalibration, load_calibration
 from tacest.sensors.tactile_flow import DetectSettings, FlowSettings, TactileFlow, decide_contacts
@@ -63,7 +64,6 @@ QUAT_NORM_TOL = 1e-3
 #: Frames may jitter by this fraction of dt and still count as uniform in the report.
 UNIFORM_JITTER = 0.05
 
-GRAVITY = 9.81
 
 
 @dataclass
@@ -384,6 +384,61 @@ def analyse_frames(frame_iter, calib: DomeCalibration, options: VideoOptions, n_
     return strength, uv, tracker
 
 
+def _frames_to_samples(ft, t_start, dt, T, dec, strength, uv):
+    """(contact (T,) uint8, contact point uv (T, 2) px, missing (T,) bool): each sample
+    takes the frames within ±dt/2 of its time, the strongest contact frame's point."""
+    k_of = np.floor((ft - t_start) / dt + 0.5).astype(int)
+    contact = np.zeros(T, np.uint8)
+    uv_s = np.full((T, 2), np.nan)
+    best = np.full(T, -np.inf)
+    seen = np.zeros(T, bool)
+    for j in range(len(ft)):
+        k = k_of[j]
+        if 0 <= k < T:
+            seen[k] = True
+            if dec.contact[j] and strength[j] > best[k]:
+                contact[k] = 1
+                best[k] = strength[j]
+                uv_s[k] = uv[j]
+    missing = ~seen
+    return contact, uv_s, missing
+
+
+def _finger_frames(flog, cal, time, contact, uv_s):
+    """(finger positions (T, D) m, contact normals (T, D) world, 2-D out-of-plane tilt of
+    the kept normals (deg) or None) at the sample times; contact samples whose normal
+    is nearly perpendicular to a 2-D world plane are dropped from ``contact`` in place."""
+    T = len(time)
+    D = flog.dim
+    pos = np.stack([np.interp(time, flog.t, flog.position[:, a]) for a in range(D)], 1)
+    if flog.quat is not None:
+        from scipy.spatial.transform import Rotation, Slerp
+
+        rots = Slerp(flog.t, Rotation.from_quat(flog.quat, scalar_first=True))(np.clip(time, flog.t[0], flog.t[-1]))
+        R = rots.as_matrix()
+    else:
+        R = np.broadcast_to(cal.rotation_world_from_finger, (T, 3, 3))
+    normal = np.full((T, D), np.nan)
+    on = contact.astype(bool)
+    dropped = 0
+    tilt = None  # 2-D: out-of-plane tilt of the kept normals before projection, deg
+    if on.any():
+        n, inplane = cal.object_normal(uv_s[on], R[on], dim=D)
+        good = inplane >= MIN_INPLANE_NORM
+        idx = np.flatnonzero(on)
+        normal[idx[good]] = n[good]
+        contact[idx[~good]] = 0
+        dropped = int((~good).sum())
+        if D == 2 and good.any():
+            tilt = np.degrees(np.arccos(np.clip(inplane[good], 0.0, 1.0)))
+    if dropped:
+        log.warning(f"{dropped} contact sample(s) dropped: their normal is nearly perpendicular to the 2-D world plane")
+    if tilt is not None:
+        log.info(f"2-D run: contact normals projected onto the x-y plane; their out-of-plane tilt (discarded) "
+                 f"median {np.median(tilt):.2f} deg, max {np.max(tilt):.2f} deg")
+    return pos, normal, tilt
+
+
 def record_video(frames, calib, finger_log, output=None, options: Optional[VideoOptions] = None):
     """Make a SPEC run from tactile frames and a finger log; write it to ``output`` if given.
 
@@ -439,57 +494,16 @@ def record_video(frames, calib, finger_log, output=None, options: Optional[Video
     # (progress is reported after the analysis, so a bad frame fails with one line only)
     strength, uv, tracker = analyse_frames(src.open(), cal, opts, len(ft), src.names, ref_img)
     log.info(f"video: {src.description}; dt = {dt * 1e3:.3f} ms"
-         + (f" (frame times jitter up to {jitter * 1e3:.3f} ms; resampled to a uniform grid)"
-            if jitter > UNIFORM_JITTER * dt else ""))
+             + (f" (frame times jitter up to {jitter * 1e3:.3f} ms; resampled to a uniform grid)"
+                if jitter > UNIFORM_JITTER * dt else ""))
     first_noise = 1 if ref_img is None else 0
     dec = decide_contacts(strength, opts.detect, first_noise_frame=first_noise)
     if dec.contact[first_noise:first_noise + opts.detect.noise_frames].any():
         log.warning("contact detected among the noise frames at the start; they should be free of contact")
 
-    # frames -> samples: each sample takes the frames within +-dt/2 of its time
-    k_of = np.floor((ft - t_start) / dt + 0.5).astype(int)
-    contact = np.zeros(T, np.uint8)
-    uv_s = np.full((T, 2), np.nan)
-    best = np.full(T, -np.inf)
-    seen = np.zeros(T, bool)
-    for j in range(len(ft)):
-        k = k_of[j]
-        if 0 <= k < T:
-            seen[k] = True
-            if dec.contact[j] and strength[j] > best[k]:
-                contact[k] = 1
-                best[k] = strength[j]
-                uv_s[k] = uv[j]
-    missing = ~seen
-
-    # finger positions and orientations at the sample times
+    contact, uv_s, missing = _frames_to_samples(ft, t_start, dt, T, dec, strength, uv)
+    pos, normal, tilt = _finger_frames(flog, cal, time, contact, uv_s)
     D = flog.dim
-    pos = np.stack([np.interp(time, flog.t, flog.position[:, a]) for a in range(D)], 1)
-    if flog.quat is not None:
-        from scipy.spatial.transform import Rotation, Slerp
-
-        rots = Slerp(flog.t, Rotation.from_quat(flog.quat, scalar_first=True))(np.clip(time, flog.t[0], flog.t[-1]))
-        R = rots.as_matrix()
-    else:
-        R = np.broadcast_to(cal.rotation_world_from_finger, (T, 3, 3))
-    normal = np.full((T, D), np.nan)
-    on = contact.astype(bool)
-    dropped = 0
-    tilt = None  # 2-D: out-of-plane tilt of the kept normals before projection, deg
-    if on.any():
-        n, inplane = cal.object_normal(uv_s[on], R[on], dim=D)
-        good = inplane >= MIN_INPLANE_NORM
-        idx = np.flatnonzero(on)
-        normal[idx[good]] = n[good]
-        contact[idx[~good]] = 0
-        dropped = int((~good).sum())
-        if D == 2 and good.any():
-            tilt = np.degrees(np.arccos(np.clip(inplane[good], 0.0, 1.0)))
-    if dropped:
-        log.warning(f"{dropped} contact sample(s) dropped: their normal is nearly perpendicular to the 2-D world plane")
-    if tilt is not None:
-        log.info(f"2-D run: contact normals projected onto the x-y plane; their out-of-plane tilt (discarded) "
-             f"median {np.median(tilt):.2f} deg, max {np.max(tilt):.2f} deg")
 
     settings = {"flow": tracker.settings_dict(), "detect": asdict(opts.detect), "fps": opts.fps, "t0": opts.t0,
                 "reference": opts.reference or "first frame", "noise_level": dec.noise,
@@ -497,7 +511,7 @@ def record_video(frames, calib, finger_log, output=None, options: Optional[Video
                 "frames": str(frames), "n_frames": int(len(ft)), "frame_jitter_s": jitter}
     if tilt is not None:
         settings["normal_out_of_plane_deg"] = {"median": float(np.median(tilt)), "max": float(np.max(tilt))}
-    run = Run(dim=D, dt=dt, time=time, gravity=np.r_[np.zeros(D - 1), -GRAVITY], source="video",
+    run = Run(dim=D, dt=dt, time=time, gravity=np.r_[np.zeros(D - 1), -STANDARD_GRAVITY], source="video",
               finger_position=pos[:, None, :], finger_radius=np.array([cal.finger_radius]),
               contact=contact[:, None], normal=normal[:, None, :],
               missing=missing.astype(np.uint8) if missing.any() else None,
@@ -508,6 +522,7 @@ def record_video(frames, calib, finger_log, output=None, options: Optional[Video
     if output is not None:
         write_run(run, output)
     log.info(f"{'wrote ' + str(output) if output is not None else 'recorded'}: {T} samples, dim {D}, "
-         f"contact in {int(contact.sum())}; noise level {dec.noise:.4g}, thresholds on {dec.threshold_on:.4g} / "
-         f"off {dec.threshold_off:.4g}" + (f"; {int(missing.sum())} sample(s) without a frame" if missing.any() else ""))
+             f"contact in {int(contact.sum())}; noise level {dec.noise:.4g}, thresholds on {dec.threshold_on:.4g} / "
+             f"off {dec.threshold_off:.4g}"
+             + (f"; {int(missing.sum())} sample(s) without a frame" if missing.any() else ""))
     return run, result

@@ -32,12 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import TacestError
 from tacest.sim.effects import find
 from tacest.geometry.transforms import rot2
 from tacest.sim.objects import SimObject
 
-GRAVITY = 9.81  # m/s², along -y
+GRAVITY = STANDARD_GRAVITY  # m/s², along -y (the simulated world's)
 #: kg, mass of each fingertip body (small next to the 0.1-1 kg objects)
 FINGER_MASS = 0.05
 #: N, force limit of the finger drive (a small robot arm pushes this hard at most)

@@ -427,7 +427,7 @@ def record_sim(opts: SimOptions, plan_path=None, append_to=None) -> Run:
             sources = [None] * int(opts.pokes)
         traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES))
         log.info(f"deepest contact penetration: ground {1e3 * traj.max_penetration_ground:.3f} mm, "
-             f"finger {1e3 * traj.max_penetration_finger:.3f} mm")
+                 f"finger {1e3 * traj.max_penetration_finger:.3f} mm")
         return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE))
 
     from tacest.io.run import read_run
