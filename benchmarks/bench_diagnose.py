@@ -128,7 +128,7 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     config = EstimatorConfig()
     if known_mass:
         mass, log_sigma = (float(x) for x in known_mass.split(","))
-        config.prior.mass, config.prior.mass_log_sigma = mass, log_sigma
+        config = config.updated({"prior": {"mass": mass, "mass_log_sigma": log_sigma}})
 
     runs = [read_run(p) for p in run_paths.split(RUN_SEPARATOR)]
     assert all(r.truth is None for r in runs), "the diagnosed copies must not carry /truth"

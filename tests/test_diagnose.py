@@ -379,8 +379,7 @@ def test_none_verdict_says_force_scale_cannot_be_excluded(recordings, stand_in, 
     assert d.verdict == "none", d.reason
     assert diag_mod.FORCE_SCALE_CAVEAT in d.reason
     # ... unless the object was weighed: then force_scale could have been blamed
-    cfg = EstimatorConfig()
-    cfg.prior.mass, cfg.prior.mass_log_sigma = 0.3, 0.02
+    cfg = EstimatorConfig().updated({"prior": {"mass": 0.3, "mass_log_sigma": 0.02}})
     d = diag_mod.diagnose([run], "box", config=cfg,
                           options=diag_mod.DiagnoseOptions(effects=("latency", "force_scale")))
     assert d.verdict == "none", d.reason
@@ -797,8 +796,7 @@ def test_force_scale_gain_is_recovered_with_a_weighed_mass():
 
     run = _tipping_pokes(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4,
                                     effects=["force_scale:gain=1.3"]))
-    cfg = EstimatorConfig()
-    cfg.prior.mass, cfg.prior.mass_log_sigma = float(run.truth.mass), 0.02
+    cfg = EstimatorConfig().updated({"prior": {"mass": float(run.truth.mass), "mass_log_sigma": 0.02}})
     est = estimate_runs([run], "box", config=cfg, effects=("force_scale",))
     # 10 %: the tolerance of the other single-parameter sensor effect checks above
     assert abs(est.params["force_scale.gain"] - 1.3) <= 0.1 * 1.3, est.params
@@ -887,9 +885,8 @@ def test_restitution_is_recovered_from_tumbling_landings():
 
     runs = _tosses(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4, effects=["restitution"]), n=3)
     truth = effects_from_json(runs[0].truth.effects)[0].params["e"]
-    cfg = EstimatorConfig()
     # weighed: unweighed, the fit settles on a light object (0.41 kg for 0.82, e 0.52)
-    cfg.prior.mass, cfg.prior.mass_log_sigma = float(runs[0].truth.mass), 0.02
+    cfg = EstimatorConfig().updated({"prior": {"mass": float(runs[0].truth.mass), "mass_log_sigma": 0.02}})
     plain = estimate_runs(runs, "box", config=cfg)
     est = estimate_runs(runs, "box", config=cfg, effects=("restitution",))
     assert abs(est.params["restitution.e"] - truth) <= 0.3 * truth, est.params

@@ -275,10 +275,8 @@ def test_typical_start_holds_the_parameters_first_then_frees_them():
 def test_a_mass_counts_as_known_only_with_a_tight_prior():
     cfg = EstimatorConfig()
     assert not diag_mod.mass_is_known(cfg)  # the default prior: log sigma 1.5
-    cfg.prior.mass_log_sigma = diag_mod.KNOWN_MASS_LOG_SIGMA
-    assert diag_mod.mass_is_known(cfg)
-    cfg.prior.mass_log_sigma = 2 * diag_mod.KNOWN_MASS_LOG_SIGMA
-    assert not diag_mod.mass_is_known(cfg)
+    assert diag_mod.mass_is_known(cfg.updated({"prior": {"mass_log_sigma": diag_mod.KNOWN_MASS_LOG_SIGMA}}))
+    assert not diag_mod.mass_is_known(cfg.updated({"prior": {"mass_log_sigma": 2 * diag_mod.KNOWN_MASS_LOG_SIGMA}}))
 
 
 def test_the_reason_names_the_other_candidates_that_count(clean_run, monkeypatch):

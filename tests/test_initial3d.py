@@ -111,9 +111,7 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
     ``outcomes`` in turn (None: the solve fails)."""
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
-    cfg = EstimatorConfig()
-    cfg.solver3d.restart_physics = restart_physics
-    cfg.solver3d.restarts = restarts
+    cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts}})
     est.config, est.problem = cfg, _FakeProblem()
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import logging
 
-import copy
 import dataclasses
 import math
 import time
@@ -348,10 +347,9 @@ class _Context:
         self.options = options
         self.backend = backend
         # the fit budget: the same for every candidate and held-out fit
-        self.budget_config = copy.deepcopy(config)
-        self.budget_config.solver.max_iter = min(int(config.solver.max_iter), int(options.fit_iterations))
-        self.budget_config.solver.stage_max_iter = min(int(config.solver.stage_max_iter),
-                                                       int(options.fit_iterations))
+        self.budget_config = config.updated({"solver": {
+            "max_iter": min(int(config.solver.max_iter), int(options.fit_iterations)),
+            "stage_max_iter": min(int(config.solver.stage_max_iter), int(options.fit_iterations))}})
         self.mass_known = mass_is_known(config)
         self.notes = []
 

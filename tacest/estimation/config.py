@@ -1,23 +1,26 @@
 """Typed estimator settings, read from a TOML file (``configs/estimate.toml`` shows every
 key with its default and meaning).  Unknown keys are an error; the resolved settings
 are written into every estimate file (attr ``config``).
+
+The settings are frozen and validated where they are built (each section's
+``__post_init__``): a configuration that exists is a valid one.  Change one with
+:meth:`EstimatorConfig.updated` (a new, validated configuration).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from tacest.errors import TacestError
 
 
-#: keys of a section that may be 0 (off) where the section's others must be > 0
-NONNEGATIVE = {"Noise": ("complementarity_reach",)}
-
-
-@dataclass
+@dataclass(frozen=True)
 class Noise:
     """Noise levels that whiten the residuals (one sigma)."""
 
@@ -42,8 +45,11 @@ class Noise:
     #: lambda_n·psi(phi); 0 (the default) leaves the saturating law alone
     complementarity_reach: float = 0.0
 
+    def __post_init__(self):
+        _positive(self, "noise", nonnegative=("complementarity_reach",))
 
-@dataclass
+
+@dataclass(frozen=True)
 class Weights:
     """Multipliers of the whitened loss terms (1 = trust the noise model as is)."""
 
@@ -59,7 +65,7 @@ class Weights:
     occam: float = 1.0  #: Occam term of pose-observed trajectories (problem.pose_occam; 1 = as derived, 0 drops it)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Prior:
     """Weak priors; they decide only what the data cannot."""
 
@@ -72,8 +78,11 @@ class Prior:
     size_bound: float = 0.5  #: m, largest extent when the run has no /prior size_bound
     shape_sigma: float = 1.0  #: weak pull of the shape toward its start, in units of L
 
+    def __post_init__(self):
+        _positive(self, "prior", nonnegative=("friction",))
 
-@dataclass
+
+@dataclass(frozen=True)
 class Solver:
     """IPOPT settings and the complementarity homotopy."""
 
@@ -100,7 +109,7 @@ class Solver:
     #: epsilon smooths max(phi, 0) (in contact-gap sigmas) and |slip|; the last stage is
     #: the model as configured.  (Weakening the dynamics early lets the object float
     #: off: touches alone do not pin shape and trajectory apart.)
-    homotopy: list = field(default_factory=lambda: [[1.0, 0.1, 1.0], [0.3, 1.0, 1.0]])
+    homotopy: tuple = ((1.0, 0.1, 1.0), (0.3, 1.0, 1.0))
     print_every: int = 10  #: iterations between progress lines
     #: further starting shapes tried when a fit fails or violates its own physics by more
     #: than restart_physics (estimator.ImplicitEstimator.solve)
@@ -112,8 +121,14 @@ class Solver:
     #: a wrong shape (Chamfer 10-30 mm) 0.2-1.1
     restart_physics: float = 0.1
 
+    def __post_init__(self):
+        _check_stages(self, "solver", "")
+        _check_restarts(self, "solver")
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise _InvalidSetting(f"solver.linear_solver: unknown {self.linear_solver!r}; one of {', '.join(LINEAR_SOLVERS)}")
 
-@dataclass
+
+@dataclass(frozen=True)
 class Solver3D:
     """Stages of the 3-D estimator (estimator3d.py); IPOPT's other settings are [solver]'s."""
 
@@ -123,7 +138,7 @@ class Solver3D:
     #: relaxation stages [epsilon, complementarity multiplier, dynamics multiplier], as
     #: solver.homotopy; pose observations and a data-driven starting scale give a start
     #: close enough for one stage at the final model
-    homotopy: list = field(default_factory=lambda: [[0.3, 1.0, 1.0]])
+    homotopy: tuple = ((0.3, 1.0, 1.0),)
     #: Levenberg–Marquardt ridge of the Hessian model (scaled units), as
     #: solver.hessian_ridge; smaller ridges let the first Gauss–Newton steps jump to a
     #: poorer local minimum of the contact assignment (3 % shape error on the tests' tosses)
@@ -145,7 +160,7 @@ class Solver3D:
     #: against ground friction, untouched extents) and stops at max_iter (simulated pokes,
     #: seed 3: objective 199 -> 193 over 340 iterations); the exact Hessian then converges
     #: in ~70 (docs/estimation3d.md)
-    homotopy_no_pose: list = field(default_factory=lambda: [[0.3, 1.0, 1.0], [0.3, 1.0, 1.0]])
+    homotopy_no_pose: tuple = ((0.3, 1.0, 1.0), (0.3, 1.0, 1.0))
     #: runs without pose observations: Hessian model, as hessian
     hessian_no_pose: str = "gauss-newton-then-exact"
     #: runs without pose observations only: further starts tried when a fit fails or
@@ -159,8 +174,17 @@ class Solver3D:
     #: 6-26 mm off 0.12-3.5; the truth 0.054-0.098 (docs/estimation3d.md)
     restart_physics: float = 0.1
 
+    def __post_init__(self):
+        _check_stages(self, "solver3d", "")
+        _check_stages(self, "solver3d", "_no_pose")
+        _check_restarts(self, "solver3d")
+        for k in ("ground_offset_sigma", "edge_radius_sigma"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise _InvalidSetting(f"solver3d.{k} must be >= 0, got {v!r}")
 
-@dataclass
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     noise: Noise = field(default_factory=Noise)
     weights: Weights = field(default_factory=Weights)
@@ -173,7 +197,55 @@ class EstimatorConfig:
 
     def with_reach(self, reach: float) -> "EstimatorConfig":
         """A copy with noise.complementarity_reach = ``reach`` (m; 0: off)."""
-        return dataclasses.replace(self, noise=dataclasses.replace(self.noise, complementarity_reach=float(reach)))
+        return self.updated({"noise": {"complementarity_reach": float(reach)}})
+
+    def updated(self, overrides: dict) -> "EstimatorConfig":
+        """A new configuration: this one with ``overrides`` ({section: {key: value}}),
+        checked as a TOML file's values are (unknown keys and wrong types are errors)."""
+        data = self.to_dict()
+        for section, values in overrides.items():
+            if not isinstance(values, dict) or section not in data:
+                raise TacestError(f"config: unknown section {section!r}")
+            data[section].update(values)
+        return _build(data, "config")
+
+
+#: IPOPT linear solvers tacest accepts (MUMPS ships with CasADi; the HSL ones need HSL)
+LINEAR_SOLVERS = ("mumps", "spral", "ma27", "ma57", "ma86", "ma97")
+#: Hessian models of a staged solve (tacest.estimation.solver.plan_stages)
+HESSIAN_CHOICES = ("gauss-newton", "exact", "gauss-newton-then-exact")
+
+
+def _positive(section, name, nonnegative=()):
+    """Every float of a section > 0 (the names in ``nonnegative``: >= 0), finite."""
+    for f in dataclasses.fields(section):
+        v = getattr(section, f.name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        ok = v >= 0 if f.name in nonnegative else v > 0
+        if not (math.isfinite(v) and ok):
+            raise _InvalidSetting(f"{name}.{f.name}: must be {'>= 0' if f.name in nonnegative else '> 0'}, got {v!r}")
+
+
+def _check_stages(section, name, suffix):
+    """Validate and normalise (to a tuple of triples) a section's homotopy{suffix} and
+    its hessian{suffix}."""
+    hom, hessian = getattr(section, "homotopy" + suffix), getattr(section, "hessian" + suffix)
+    if not isinstance(hom, (list, tuple)) or not hom or not all(
+            isinstance(st, (list, tuple)) and len(st) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0 for x in st) for st in hom):
+        raise _InvalidSetting(f"{name}.homotopy{suffix}: expected a list of [epsilon, complementarity, dynamics] "
+                          "triples of positive numbers")
+    object.__setattr__(section, "homotopy" + suffix, tuple(tuple(float(x) for x in st) for st in hom))
+    if hessian not in HESSIAN_CHOICES:
+        raise _InvalidSetting(f"{name}.hessian{suffix}: expected gauss-newton, exact or gauss-newton-then-exact, "
+                          f"got {hessian!r}")
+
+
+def _check_restarts(section, name):
+    if section.restarts < 0 or not section.restart_physics > 0:
+        raise _InvalidSetting(f"{name}.restarts must be >= 0 and {name}.restart_physics > 0, got "
+                          f"{section.restarts} and {section.restart_physics}")
 
 
 def _fill(cls, data: dict, where: str):
@@ -199,15 +271,22 @@ def _fill(cls, data: dict, where: str):
         elif isinstance(default, float):
             if not isinstance(v, (int, float)) or isinstance(v, bool):
                 raise TacestError(f"{where}.{k}: expected a number, got {v!r}")
-            if k in NONNEGATIVE.get(cls.__name__, ()):
-                if not v >= 0:
-                    raise TacestError(f"{where}.{k}: must be >= 0, got {v!r}")
-            elif cls in (Noise, Prior) and not v > 0 and k != "friction":
-                raise TacestError(f"{where}.{k}: must be > 0, got {v!r}")
             kwargs[k] = float(v)
         else:
             kwargs[k] = v
     return cls(**kwargs)
+
+
+class _InvalidSetting(TacestError):
+    """A section's own check failed (its message names the setting, not the source)."""
+
+
+def _build(data: dict, source: str) -> "EstimatorConfig":
+    """The configuration of ``data`` ({section: {key: value}}); errors name ``source``."""
+    try:
+        return _fill(EstimatorConfig, data, source)
+    except _InvalidSetting as exc:
+        raise TacestError(f"{source}: {exc}") from None
 
 
 def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
@@ -223,24 +302,4 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
             raise TacestError(f"{p}: not valid TOML ({exc})") from None
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
-    cfg = _fill(EstimatorConfig, data, str(path) if path else "config")
-    for name, suffix, sec in (("solver", "", cfg.solver), ("solver3d", "", cfg.solver3d),
-                              ("solver3d", "_no_pose", cfg.solver3d)):
-        hom, hessian = getattr(sec, "homotopy" + suffix), getattr(sec, "hessian" + suffix)
-        if not isinstance(hom, list) or not hom or not all(
-                isinstance(s, (list, tuple)) and len(s) == 3
-                and all(isinstance(x, (int, float)) and not isinstance(x, bool) and x > 0 for x in s) for s in hom):
-            raise TacestError(f"{name}.homotopy{suffix}: expected a list of [epsilon, complementarity, dynamics] "
-                              "triples of positive numbers")
-        if hessian not in ("gauss-newton", "exact", "gauss-newton-then-exact"):
-            raise TacestError(f"{name}.hessian{suffix}: expected gauss-newton, exact or gauss-newton-then-exact, "
-                              f"got {hessian!r}")
-    if cfg.solver.restarts < 0 or not cfg.solver.restart_physics > 0:
-        raise TacestError(f"solver.restarts must be >= 0 and solver.restart_physics > 0, got "
-                          f"{cfg.solver.restarts} and {cfg.solver.restart_physics}")
-    if cfg.solver3d.restarts < 0 or not cfg.solver3d.restart_physics > 0:
-        raise TacestError(f"solver3d.restarts must be >= 0 and solver3d.restart_physics > 0, got "
-                          f"{cfg.solver3d.restarts} and {cfg.solver3d.restart_physics}")
-    if cfg.solver.linear_solver not in ("mumps", "spral", "ma27", "ma57", "ma86", "ma97"):
-        raise TacestError(f"solver.linear_solver: unknown {cfg.solver.linear_solver!r}")
-    return cfg
+    return _build(data, str(path) if path else "config")
