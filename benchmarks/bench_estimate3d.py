@@ -1,4 +1,4 @@
-"""Benchmark the 3-D estimator (``estimate_runs_3d``) on simulated finger pokes of a box.
+"""Benchmark the 3-D estimator (``estimate_3d``) on simulated finger pokes of a box.
 
     .venv/bin/python benchmarks/bench_estimate3d.py [--seeds 10] [--first 0] [--pokes 6]
                                                     [--timeout 900] [--quiet] [--json OUT.json]
@@ -9,7 +9,7 @@ contact flag, normal and force, NO pose observations), estimated as ``box`` with
 default config (starts of tacest/estimation/initial3d.py, restarts of ``[solver3d]``).
 
 Every estimate runs in its own subprocess (bench_estimate.py's worker, which hands a 3-D
-run to ``estimate_runs_3d``) with a time limit; a SolveFailedError, any other error and a
+run to ``estimate_3d``) with a time limit; a SolveFailedError, any other error and a
 timeout count as failures and are reported with their reason.  Wall time is measured in
 the worker around the estimate (NLP construction and every restart included; Python
 start-up and imports not).
@@ -42,7 +42,8 @@ def record(seed: int, pokes: int, directory: Path) -> Path:
     """Record the 3-D poke run of ``seed`` (as ``tacest record --source sim --dim 3
     --object box --pokes N --seed S``)."""
     from tacest.io.run import write_run
-    from tacest.sim.record import SimOptions, record_sim
+    from tacest.dims import record_sim
+    from tacest.sim.record import SimOptions
 
     path = directory / f"pokes3d_{seed}.h5"
     write_run(record_sim(SimOptions(dim=3, object_spec="box", pokes=pokes, seed=seed)), path)

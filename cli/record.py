@@ -22,6 +22,11 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
                    "x y z rows (docs/simulation.md).")
 @click.option("--seed", type=int, default=0, show_default=True, help="[sim] random seed.")
 @click.option("--pokes", type=click.IntRange(0, 1000), default=6, show_default=True, help="[sim] number of pokes.")
+@click.option("--poke-style", type=click.Choice(["gentle", "fast", "high", "flick", "dynamic", "mixed"]),
+              default="gentle", show_default=True,
+              help="[sim] random pokes: gentle (slow, at the centroid: the object slides), fast (0.1-0.6 m/s at any "
+                   "height), high (near the top: it tips and topples), flick (low and fast: it slides and spins "
+                   "free), dynamic (each poke fast, high or flick), mixed (any of the four). docs/simulation.md.")
 @click.option("--fingers", type=click.IntRange(1, 3), default=1, show_default=True, help="[sim] fingertips.")
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:key=value,...]",
               help="[sim] inject an unmodelled effect (repeatable): " + ", ".join(EFFECT_NAMES)
@@ -113,7 +118,7 @@ def _record_sim(output, quiet, **kw):
         dim=int(kw["dim"]), object_spec=kw["object_spec"], seed=kw["seed"], pokes=kw["pokes"],
         fingers=kw["fingers"], effects=list(kw["effects"]), noise_force=kw["noise_force"],
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
-        observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"],
+        observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"], poke_style=kw["poke_style"],
     )
     run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None)
     write_run(run, output, include_truth=not kw["no_truth"])

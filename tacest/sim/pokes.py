@@ -57,8 +57,74 @@ RANDOM_ANGLE_RANGE = (math.radians(10.0), math.radians(65.0))
 RANDOM_DEPTH_RANGE = (0.01, 0.03)
 #: accepted speeds, m/s (slower than 1 mm/s would take minutes; faster than 1 m/s is a hit)
 SPEED_LIMITS = (1e-3, 1.0)
-#: accepted depths, m
-DEPTH_LIMITS = (0.0, 0.1)
+#: accepted depths, m: up to the largest object (SIZE_BOUND of the recorder, 0.3 m) and
+#: more: a fast poke overshoots the first touch by 1.5 object sizes, like a robot that
+#: aims at a point behind the object
+DEPTH_LIMITS = (0.0, 0.5)
+
+
+@dataclass(frozen=True)
+class PokeStyle:
+    """How a style draws its random pokes (2-D and 3-D alike; docs/simulation.md).
+
+    elevation : (lo, hi) deg, approach direction above the horizontal (2-D: mirrored
+    from the left with probability 1/2; 3-D: any azimuth); speed : (lo, hi) m/s along
+    the approach; depth : (lo, hi) past the first touch, in object sizes (the largest
+    extent); height : (lo, hi) target height above the ground as a fraction of the
+    object's top (0.5: a box's centre; near 1: a high poke that tips it over); offset :
+    (lo, hi) of the 3-D target's sideways offset from the centroid across the approach,
+    in object sizes, either side (spin about the vertical)."""
+
+    name: str
+    elevation: tuple
+    speed: tuple
+    depth: tuple
+    height: tuple
+    offset: tuple = (0.0, 0.0)
+    doc: str = ""
+
+
+#: the styles of random pokes beside ``gentle`` (the default: random_poke's own draws,
+#: slow pokes at the centroid that slide the object and hardly tip it).  The dynamic
+#: ones: ``fast`` pokes at any height, ``high`` pokes near the top that tip and topple,
+#: ``flick`` pokes low and fast after which the object slides and spins free
+POKE_STYLES = {
+    "fast": PokeStyle("fast", elevation=(5.0, 40.0), speed=(0.1, 0.6), depth=(0.3, 1.5), height=(0.3, 0.75),
+                      offset=(0.0, 0.2), doc="0.1-0.6 m/s at any height, overshooting up to 1.5 object sizes"),
+    "high": PokeStyle("high", elevation=(0.0, 25.0), speed=(0.1, 0.4), depth=(0.6, 1.5), height=(0.75, 0.95),
+                      offset=(0.0, 0.1), doc="near the top, overshooting: the object tips over and topples"),
+    "flick": PokeStyle("flick", elevation=(0.0, 20.0), speed=(0.4, 0.6), depth=(0.15, 0.5), height=(0.1, 0.35),
+                       offset=(0.15, 0.4), doc="low and fast, off centre: the object slides and spins free"),
+}
+#: what ``--poke-style`` accepts: one style, or a mix whose pokes draw their style in turn
+POKE_MIXES = {"gentle": ("gentle",), "fast": ("fast",), "high": ("high",), "flick": ("flick",),
+              "dynamic": ("fast", "high", "flick"), "mixed": ("gentle", "fast", "high", "flick")}
+
+
+def check_poke_style(name: str) -> str:
+    """The name of a poke style or mix (POKE_MIXES); a TacestError otherwise."""
+    if name not in POKE_MIXES:
+        raise TacestError(f"unknown poke style {name!r}; one of {', '.join(POKE_MIXES)}")
+    return name
+
+
+def style_of_poke(mix: str, rng: np.random.Generator, index: int) -> str:
+    """The style of poke ``index`` of a recording in ``mix``: a single style always; a
+    mix draws one per poke (uniformly; no draw for a single style, so the gentle
+    recordings keep their random streams)."""
+    styles = POKE_MIXES[check_poke_style(mix)]
+    return styles[0] if len(styles) == 1 else styles[int(rng.integers(len(styles)))]
+
+
+def draw_style(style: PokeStyle, rng: np.random.Generator, size: float) -> dict:
+    """One draw of a style's parameters: elevation (rad), speed (m/s), depth (m, within
+    DEPTH_LIMITS), height (fraction), offset (in sizes, with a random sign)."""
+    elevation = math.radians(float(rng.uniform(*style.elevation)))
+    speed = float(rng.uniform(*style.speed))
+    depth = float(np.clip(rng.uniform(*style.depth) * size, *DEPTH_LIMITS))
+    height = float(rng.uniform(*style.height))
+    offset = float(rng.choice([-1.0, 1.0]) * rng.uniform(*style.offset))
+    return {"elevation": elevation, "speed": speed, "depth": depth, "height": height, "offset": offset}
 
 
 @dataclass
@@ -86,7 +152,7 @@ class Poke:
         """A poke from a parameter vector whose entries are named ``names``.
 
         Checks every value (TacestError naming the bad one): finger index in range,
-        angle in [0, π], finite target, depth in [0, 0.1] m, speed in [1e-3, 1] m/s.
+        angle in [0, π], finite target, depth in DEPTH_LIMITS, speed in SPEED_LIMITS.
         """
         names = [str(n) for n in names]
         vec = np.asarray(vec, float).reshape(-1)
@@ -116,10 +182,24 @@ class Poke:
                    target__world=np.array([p["target_x"], p["target_y"]]), depth=p["depth"], speed=p["speed"])
 
 
-def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int) -> Poke:
-    """A random poke at the object's centroid (2,) m: random finger, angle U(10°, 65°)
-    from the right or its mirror from the left, depth U(1, 3) cm, and the speed that
-    makes the approach last APPROACH_TIME."""
+def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int, style: str = "gentle",
+                vertices__world=None, ground_height: float = 0.0) -> Poke:
+    """A random poke of ``style`` (POKE_STYLES or ``gentle``).
+
+    gentle: at the object's centroid (2,) m, random finger, angle U(10°, 65°) from the
+    right or its mirror from the left, depth U(1, 3) cm, and the speed that makes the
+    approach last APPROACH_TIME.  The other styles draw their elevation, speed, depth
+    (in sizes of the object whose vertices__world (K, 2) m are given) and target height
+    above ``ground_height`` (m) from their PokeStyle, from the right or the left."""
+    if style != "gentle":
+        V = np.asarray(vertices__world, float)
+        size = float(np.max(np.ptp(V, axis=0)))
+        finger = int(rng.integers(n_fingers))
+        d = draw_style(POKE_STYLES[style], rng, size)
+        angle = d["elevation"] if rng.random() < 0.5 else math.pi - d["elevation"]
+        top = float(np.max(V[:, 1]))
+        target = np.array([float(centroid__world[0]), ground_height + d["height"] * (top - ground_height)])
+        return Poke(finger, angle, target, d["depth"], d["speed"])
     finger = int(rng.integers(n_fingers))
     angle = float(rng.uniform(*RANDOM_ANGLE_RANGE))
     if rng.random() < 0.5:

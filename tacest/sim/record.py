@@ -47,7 +47,7 @@ from tacest.geometry.polygon import signed_area
 from tacest.geometry.transforms import rot2
 from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, rest_angle, resting_pose,
                                 uniform_object)
-from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, poke_path, random_poke
+from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, check_poke_style, poke_path, random_poke, style_of_poke
 from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, MAX_SUBSTEP, World
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,9 @@ class SimOptions:
     observe_pose : m, write /observations/pose with this position sigma (None: don't);
     toss : start with the object tossed (:func:`toss_state`) instead of at rest;
     dt : s, sample period; finger_radius : m; substeps : minimum physics substeps per
-    sample (more when dt / substeps > MAX_SUBSTEP); max_finger_force : N, finger drive limit.
+    sample (more when dt / substeps > MAX_SUBSTEP); max_finger_force : N, finger drive limit;
+    poke_style : how random pokes are drawn (tacest.sim.pokes.POKE_MIXES: ``gentle``, the
+    dynamic ``fast``, ``high``, ``flick``, their mix ``dynamic``, or ``mixed``).
     """
 
     dim: int = 2
@@ -124,6 +126,7 @@ class SimOptions:
     finger_radius: float = 0.01
     substeps: int = 20
     max_finger_force: float = MAX_FINGER_FORCE
+    poke_style: str = "gentle"
 
     def validate(self) -> "SimOptions":
         """Raise TacestError for any value the simulator cannot use."""
@@ -133,6 +136,7 @@ class SimOptions:
             raise TacestError(f"--seed must be >= 0, got {self.seed}")
         if int(self.pokes) < 0:
             raise TacestError(f"--pokes must be >= 0, got {self.pokes}")
+        check_poke_style(self.poke_style)
         if int(self.fingers) < 1:
             raise TacestError(f"--fingers must be >= 1, got {self.fingers}")
         for name in ("noise_force", "noise_position", "noise_normal"):
@@ -366,7 +370,8 @@ def _simulate(state: WorldState, sources, opts: SimOptions, rng_pokes, lead_idle
             hold(1)
         start = len(cols["q"]) - 1
         if src is None:
-            poke = random_poke(rng_pokes, world.centroid__world(), F)
+            poke = random_poke(rng_pokes, world.centroid__world(), F, style_of_poke(opts.poke_style, rng_pokes, i),
+                               world.vertices__world())
         else:
             poke = Poke.from_vector(src, F)
         reach = SIZE_BOUND + float(np.max(world.finger_radius))

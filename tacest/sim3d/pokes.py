@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.sim.pokes import (APPROACH_TIME, CLEARANCE, DEPTH_LIMITS, POKE_KIND, RANDOM_ANGLE_RANGE,
-                              RANDOM_DEPTH_RANGE, RETREAT_TIME, SAFE_MARGIN, SPEED_LIMITS, Path, _PathBuilder)
+from tacest.sim.pokes import (APPROACH_TIME, CLEARANCE, DEPTH_LIMITS, POKE_KIND, POKE_STYLES, RANDOM_ANGLE_RANGE,
+                              RANDOM_DEPTH_RANGE, RETREAT_TIME, SAFE_MARGIN, SPEED_LIMITS, Path, _PathBuilder,
+                              draw_style)
 
 __all__ = ["POKE3_NAMES", "POKE_KIND", "Poke3", "random_poke", "poke_path", "Path"]
 
@@ -71,7 +72,7 @@ class Poke3:
         """A poke from a parameter vector whose entries are named ``names``.
 
         Checks every value (TacestError naming the bad one): finger index in range,
-        elevation in [0, π/2], finite azimuth and target, depth in [0, 0.1] m, speed in
+        elevation in [0, π/2], finite azimuth and target, depth in DEPTH_LIMITS, speed in
         [1e-3, 1] m/s.
         """
         names = [str(n) for n in names]
@@ -103,10 +104,27 @@ class Poke3:
                    speed=p["speed"])
 
 
-def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int) -> Poke3:
-    """A random poke at the object's centroid (3,) m: random finger, azimuth U(0, 2π),
-    elevation U(10°, 65°), depth U(1, 3) cm, and the speed that makes the approach
-    last APPROACH_TIME (1 s)."""
+def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int, style: str = "gentle",
+                vertices__world=None, ground_height: float = 0.0) -> Poke3:
+    """A random poke of ``style`` (tacest.sim.pokes.POKE_STYLES or ``gentle``).
+
+    gentle: at the object's centroid (3,) m, random finger, azimuth U(0, 2π), elevation
+    U(10°, 65°), depth U(1, 3) cm, and the speed that makes the approach last
+    APPROACH_TIME (1 s).  The other styles draw elevation, speed, depth (in sizes of the
+    object whose vertices__world (K, 3) m are given), the target's height above
+    ``ground_height`` (m) and its sideways offset across the approach from their
+    PokeStyle, from any azimuth."""
+    if style != "gentle":
+        V = np.asarray(vertices__world, float)
+        size = float(np.max(np.ptp(V, axis=0)))
+        finger = int(rng.integers(n_fingers))
+        azimuth = float(rng.uniform(0.0, 2.0 * math.pi))
+        d = draw_style(POKE_STYLES[style], rng, size)
+        top = float(np.max(V[:, 2]))
+        side = np.array([-math.sin(azimuth), math.cos(azimuth), 0.0])  # horizontal, across the approach
+        c = np.asarray(centroid__world, float)
+        target = np.array([c[0], c[1], ground_height + d["height"] * (top - ground_height)]) + d["offset"] * size * side
+        return Poke3(finger, azimuth, d["elevation"], target, d["depth"], d["speed"])
     finger = int(rng.integers(n_fingers))
     azimuth = float(rng.uniform(0.0, 2.0 * math.pi))
     elevation = float(rng.uniform(*RANDOM_ELEVATION_RANGE))

@@ -40,6 +40,7 @@ from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE
                                _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run, sensor_streams)
 from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
                                   uniform_object)
+from tacest.sim.pokes import style_of_poke
 from tacest.sim3d.pokes import POKE3_NAMES, POKE_KIND, Poke3, poke_path, random_poke
 from tacest.sim3d.world import GRAVITY, MAX_FINGER_FORCE, World3
 
@@ -229,7 +230,11 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
         if i > 0 or lead_idle:
             hold(1)
         start = len(cols["q"]) - 1
-        poke = random_poke(rng_pokes, world.centroid__world(), F) if src is None else Poke3.from_vector(src, F)
+        if src is None:
+            poke = random_poke(rng_pokes, world.centroid__world(), F, style_of_poke(opts.poke_style, rng_pokes, i),
+                               world.vertices__world())
+        else:
+            poke = Poke3.from_vector(src, F)
         reach = SIZE_BOUND + float(np.max(world.finger_radius))
         s_touch = world.touch_distance(poke.target__world, poke.direction__world,
                                        world.finger_radius[poke.finger], s_min=-reach, s_max=reach)
