@@ -4,12 +4,13 @@ network, no JavaScript library (a small canvas renderer is inlined, ~150 lines).
 What it shows: the estimated shape (filled, shaded), the true shape (green edges), the
 ground grid, the fingertips (spheres seen as discs) with the path they have travelled,
 and at each contact the contact point and the measured normal (red).  A slider and a
-play button step through the frames; drag to orbit, the wheel zooms.
+play button step through the frames; drag to orbit, the wheel zooms; ``FILE.html#frame=N``
+opens at frame N.
 
 The data are a JSON document in ``<script type="application/json" id="tacest-data">``:
 ``{"title", "dim", "frames": [{"k", "t", "est": pose|null, "truth": pose|null,
 "fingers": [[x, y, z], ...], "contacts": [[px, py, pz, nx, ny, nz], ...]}],
-"est_shape": {"vertices", "faces"}|null, "true_shape": ...|null, "finger_radius",
+"est_shape": {"vertices", "faces", "edges"}|null, "true_shape": ...|null, "finger_radius",
 "finger_path": [[[x, y, z], ...] per finger]}`` (m, poses ``[x, y, z, qw, qx, qy, qz]``),
 so a script can read a view back (tests/test_view.py does).
 """
@@ -29,13 +30,19 @@ log = logging.getLogger(__name__)
 
 #: m, drawn normal length
 NORMAL_LENGTH = 0.03
+#: rad, two hull triangles meeting at more than this angle share a drawn edge (1e-6:
+#: coplanar triangles of one face meet at 0 up to rounding)
+FEATURE_ANGLE = 1e-6
 
 
 def _shape(vertices):
     from tacest.geometry.polytope import convex_hull_mesh
 
     mesh = convex_hull_mesh(vertices)
-    return {"vertices": np.round(np.asarray(mesh.vertices), 6).tolist(), "faces": np.asarray(mesh.faces).tolist()}
+    # the polytope's edges: hull triangle edges between faces that are not coplanar
+    edges = mesh.face_adjacency_edges[mesh.face_adjacency_angles > FEATURE_ANGLE]
+    return {"vertices": np.round(np.asarray(mesh.vertices), 6).tolist(), "faces": np.asarray(mesh.faces).tolist(),
+            "edges": np.asarray(edges).tolist()}
 
 
 def scene_json(sc: Scene, fps: float = 20.0, max_frames: int = 600) -> dict:
@@ -102,15 +109,16 @@ for(const f of D.frames){for(const [s,p] of [[D.est_shape,f.est],[D.true_shape,f
 grow([lo[0],lo[1],0]);
 const ctr=[(lo[0]+hi[0])/2,(lo[1]+hi[1])/2,(lo[2]+hi[2])/2];
 const size=Math.max(hi[0]-lo[0],hi[1]-lo[1],hi[2]-lo[2],0.05);
-let az=-0.9,el=0.45,dist=2.4*size;
+let az=-0.9,el=0.45,dist=2.0*size;
 function view(v){const x=v[0]-ctr[0],y=v[1]-ctr[1],z=v[2]-ctr[2];
  const ca=Math.cos(az),sa=Math.sin(az),ce=Math.cos(el),se=Math.sin(el);
  const xr=ca*x-sa*y,yr=sa*x+ca*y;              // about z
  const right=xr,depth=yr*ce+z*se,up=-yr*se+z*ce; // tilt
  return [right,up,dist-depth];}
-function proj(v){const c=view(v),f=0.9*Math.min(cv.width,cv.height)/(size*1.2)*dist/Math.max(c[2],1e-6)/2.4;
- return [cv.width/2+f*c[0]*1.2,cv.height/2-f*c[1]*1.2,c[2],f];}
-const light=[0.3,-0.5,0.8];
+const dist0=dist,px=0.5*Math.min(cv.width,cv.height)/size; // pixels per m at the start distance
+function proj(v){const c=view(v),f=px*dist0/Math.max(c[2],1e-6);
+ return [cv.width/2+f*c[0],cv.height/2-f*c[1],c[2],f];}
+const light=[0.4,-0.7,0.9];
 function shade(n){const l=Math.hypot(...light);return 0.35+0.65*Math.max(0,(n[0]*light[0]+n[1]*light[1]+n[2]*light[2])/l);}
 function tris(shape,pose){const W=shape.vertices.map(v=>place(pose,v));
  return shape.faces.map(f=>{const a=W[f[0]],b=W[f[1]],c=W[f[2]];
@@ -129,13 +137,13 @@ function draw(i){const f=D.frames[i];g.clearRect(0,0,cv.width,cv.height);
   for(let j=0;j<=i;j++){const p=proj(path[j]);j?g.lineTo(p[0],p[1]):g.moveTo(p[0],p[1]);}g.stroke();});
  const items=[];
  if(D.est_shape&&f.est)for(const t of tris(D.est_shape,f.est)){
-  const s=shade(t.n);items.push({z:(t.p[0][2]+t.p[1][2]+t.p[2][2])/3,fn:()=>{g.fillStyle=`rgba(${217*s|0},${121*s|0},${43*s|0},0.85)`;
+  const s=shade(t.n);items.push({z:(t.p[0][2]+t.p[1][2]+t.p[2][2])/3,fn:()=>{g.fillStyle=`rgba(${217*s|0},${121*s|0},${43*s|0},0.55)`;
   g.beginPath();g.moveTo(t.p[0][0],t.p[0][1]);g.lineTo(t.p[1][0],t.p[1][1]);g.lineTo(t.p[2][0],t.p[2][1]);g.closePath();g.fill();}});}
  f.fingers.forEach((q,k)=>{const p=proj(q);items.push({z:p[2],fn:()=>{g.fillStyle="rgba(47,95,179,0.75)";g.beginPath();
-  g.arc(p[0],p[1],Math.max(2,D.finger_radius[k]*p[3]*1.2),0,2*Math.PI);g.fill();}});});
+  g.arc(p[0],p[1],Math.max(2,D.finger_radius[k]*p[3]),0,2*Math.PI);g.fill();}});});
  items.sort((a,b)=>b.z-a.z).forEach(it=>it.fn());
- if(D.true_shape&&f.truth)for(const t of tris(D.true_shape,f.truth)){g.strokeStyle="#2a7f2a";g.lineWidth=1.5;g.beginPath();
-  g.moveTo(t.p[0][0],t.p[0][1]);g.lineTo(t.p[1][0],t.p[1][1]);g.lineTo(t.p[2][0],t.p[2][1]);g.closePath();g.stroke();}
+ if(D.true_shape&&f.truth){const W=D.true_shape.vertices.map(v=>place(f.truth,v));
+  for(const e of D.true_shape.edges)line(W[e[0]],W[e[1]],"#2a7f2a",2);}
  for(const c of f.contacts){const p=c.slice(0,3),e=[p[0]+c[3]*D.normal_length,p[1]+c[4]*D.normal_length,p[2]+c[5]*D.normal_length];
   line(p,e,"#c0392b",2.5);const q=proj(p);g.fillStyle="#c0392b";g.beginPath();g.arc(q[0],q[1],4,0,2*Math.PI);g.fill();}
  document.getElementById("when").textContent=(D.time_known?`t = ${f.t.toFixed(2)} s`:`sample ${f.k}`)+`  (frame ${i+1}/${D.frames.length}, ${f.contacts.length} contact(s))`;}
@@ -148,7 +156,7 @@ let drag=null;cv.onmousedown=e=>{drag=[e.clientX,e.clientY];};window.onmouseup=(
 window.onmousemove=e=>{if(!drag)return;az-=(e.clientX-drag[0])*0.01;el=Math.max(-1.5,Math.min(1.5,el+(e.clientY-drag[1])*0.01));
  drag=[e.clientX,e.clientY];draw(cur);};
 cv.onwheel=e=>{e.preventDefault();dist*=Math.exp(e.deltaY*0.001);draw(cur);};
-show(0);
+const h=/frame=(\d+)/.exec(location.hash);show(h?Math.min(+h[1],D.frames.length-1):0);
 </script></body></html>
 """
 
