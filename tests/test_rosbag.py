@@ -263,3 +263,11 @@ def test_errors_name_the_bag_and_topic(sim_run, tmp_path):
     res = subprocess.run([TACEST, "record", "--source", "rosbag", str(tmp_path / "missing.bag"), "--mapping",
                           str(_mapping(tmp_path)), "-o", str(tmp_path / "x.h5")], capture_output=True, text=True)
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "missing.bag" in res.stderr
+
+
+def test_the_example_mapping_reads():
+    """configs/rosbag_mapping.toml, the documented example, is a valid mapping."""
+    from tacest.sensors.rosbag import read_mapping
+
+    m = read_mapping(Path(__file__).resolve().parents[1] / "configs" / "rosbag_mapping.toml")
+    assert m.dt == 0.01 and len(m.fingers) == 1 and m.fingers[0].force.scale == -1.0
