@@ -209,7 +209,7 @@ def test_cli_writes_a_run_that_reads_back(sim_run, tmp_path):
     res = subprocess.run([TACEST, "record", "--source", "rosbag", str(bag), "--mapping", str(_mapping(tmp_path)),
                           "-o", str(out)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    assert "samples kept, 0 missing" in res.stderr
+    assert f"{sim_run.n_samples} samples, 0 missing (finger 0: 0)" in res.stderr
     back = read_run(out)
     assert back.source == "rosbag" and back.n_samples == sim_run.n_samples
 

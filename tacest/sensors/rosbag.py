@@ -494,7 +494,7 @@ class RosbagSummary:
 
     def line(self) -> str:
         per = ", ".join(f"finger {f}: {n}" for f, n in enumerate(self.missing_per_finger))
-        return f"{self.samples} samples kept, {self.missing} missing ({per})"
+        return f"{self.samples} samples, {self.missing} missing ({per})"
 
 
 def _to_world(bag: _Bag, msgs: _Messages, world: str, rotate_only: bool, gap_ns) -> tuple:
