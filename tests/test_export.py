@@ -179,6 +179,7 @@ def test_mjcf_keyframes_are_subsampled_and_trajectory_csv(est3_file, tmp_path):
 # URDF, SDF, meshes
 
 
+@pytest.mark.filterwarnings("ignore:.*Scene.dump:DeprecationWarning")  # inside yourdfpy
 def test_urdf_loads_in_yourdfpy_with_mass_inertia_and_mesh(est3_file, tmp_path):
     yourdfpy = pytest.importorskip("yourdfpy")
     out = tmp_path / "model" / "box.urdf"
