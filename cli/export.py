@@ -26,7 +26,7 @@ FORMAT_CHOICES = ("mjcf", "urdf", "sdf", "obj", "stl", "glb")
 @click.option("--trajectory", "trajectory_path", type=click.Path(dir_okay=False), default=None,
               help="Also write the estimated pose trajectory to this CSV (sample, time, x, y, z, qw, qx, qy, qz).")
 @click.option("--keyframes", default="1000", show_default=True, metavar="N|all",
-              help="[mjcf] at most N keyframes of the trajectory (evenly subsampled), or all samples.")
+              help="[mjcf] at most N keyframes of the trajectory (evenly subsampled; 0: none), or all samples.")
 @click.option("--name", default="tacest_object", show_default=True, help="Model name in the file.")
 def export(estimate, output, fmt, depth, run_index, run_path, trajectory_path, keyframes, name):
     """Export the object estimated in ESTIMATE (an estimate file) as a model file.
@@ -73,6 +73,7 @@ def export(estimate, output, fmt, depth, run_index, run_path, trajectory_path, k
 def _run_time(est, estimate, run_index, run_path):
     """(T,) s of the exported run's samples: from --run, else the estimate's source_file
     (as given, or next to the estimate) when it exists and matches; else None."""
+    from tacest.errors import TacestError
     from tacest.io.run import read_run
 
     if run_path:
@@ -86,7 +87,7 @@ def _run_time(est, estimate, run_index, run_path):
         if cand.is_file():
             try:
                 t = read_run(cand).time
-            except Exception:  # a stale or replaced file: times are optional
+            except TacestError:  # a stale or replaced file: times are optional
                 continue
             if len(t) == len(est.runs[run_index].pose):
                 return t

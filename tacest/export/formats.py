@@ -100,7 +100,7 @@ def _expressed(body: ExportBody, fmt: str) -> list:
 def subsample_indices(n: int, max_keys) -> np.ndarray:
     """Indices of at most ``max_keys`` samples out of n, evenly spread, first and last
     included (all of them when max_keys is None or >= n)."""
-    if n == 0:
+    if n == 0 or max_keys == 0:
         return np.zeros(0, int)
     if max_keys is None or max_keys >= n:
         return np.arange(n)
@@ -124,18 +124,18 @@ def mjcf_string(body: ExportBody, max_keys=MAX_KEYFRAMES, notes_extra=()) -> str
         solref = f"{CONTACT_TIMECONST!r} 1"
     solimp = _nums(CONTACT_SOLIMP)
     margin = f' margin="{_num(body.edge_radius)}"' if body.edge_radius > 0 else ""
+    idx = subsample_indices(len(body.pose__world), max_keys)
     notes = list(body.notes) + _expressed(body, "mjcf") + [
         "Contacts: the object geom has friction_ground and priority 1, so its contact with any geom of lower "
         "priority (a ground) uses friction_ground; give your fingertip geoms class=\"tacest_finger\" "
         "(friction_finger, priority 2) and their contacts with the object use friction_finger.",
         "Options (timestep, elliptic cones, impratio, solref/solimp) are those of tacest's 3-D simulator; "
-        "the keyframes are the estimated trajectory" + (f" ({min(len(body.pose__world), max_keys or 10**9)} of "
-                                                        f"{len(body.pose__world)} samples)" if len(body.pose__world)
+        "the keyframes are the estimated trajectory" + (f" ({len(idx)} of {len(body.pose__world)} samples)"
+                                                        if len(body.pose__world)
                                                         else " (none: the estimate has no run)") + ".",
         *notes_extra,
     ]
     keys = []
-    idx = subsample_indices(len(body.pose__world), max_keys)
     for i in idx:
         t = f' time="{_num(body.time[i])}"' if body.time is not None else ""
         keys.append(f'    <key name="s{int(i)}"{t} qpos="{_nums(body.pose__world[i])}"/>')
