@@ -21,6 +21,8 @@ COMMANDS = {
     "explore": ("tacest.cli.explore", "explore", "Closed loop in simulation: poke, estimate, plan, repeat."),
     "eval": ("tacest.cli.evaluate", "eval_cmd", "Score an estimate against a run's truth (Chamfer, pose, params)."),
     "diagnose": ("tacest.cli.diagnose", "diagnose", "Where and why the model disagrees with recordings."),
+    "export": ("tacest.cli.export", "export", "Export the estimated object: MJCF, URDF, SDF, OBJ, STL, GLB."),
+    "view": ("tacest.cli.view", "view", "Animate a run or an estimate: GIF/MP4 (2-D), interactive HTML (3-D)."),
     "demo": ("tacest.cli.demo", "demo", "Run the whole pipeline on a built-in simulated example."),
 }
 

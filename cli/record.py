@@ -10,7 +10,8 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
 
 
 @click.command()
-@click.option("--source", type=click.Choice(["sim", "serial", "video"]), default="sim", show_default=True,
+@click.argument("bag", required=False, type=click.Path())
+@click.option("--source", type=click.Choice(["sim", "serial", "video", "rosbag"]), default="sim", show_default=True,
               help="Where the data comes from.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), required=True, help="Run file to write (HDF5).")
 # --- sim -------------------------------------------------------------------------
@@ -74,15 +75,35 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
               help="[video] contact-free frames after the reference used to measure the noise level.")
 @click.option("--contact-k", type=click.FloatRange(min=0, min_open=True), default=3.0, show_default=True,
               help="[video] contact starts above this many times the noise level (ends below 2/3 of it).")
+# --- rosbag ----------------------------------------------------------------------
+@click.option("--mapping", type=click.Path(dir_okay=False), default=None,
+              help="[rosbag] TOML mapping of topics and frames to the run file's fields (docs/rosbag.md).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def record(source, output, **kw):
-    """Record a run file (SPEC run format) from SOURCE."""
+def record(bag, source, output, **kw):
+    """Record a run file (SPEC run format) from SOURCE.
+
+    With --source rosbag, BAG is a ROS 1 bag (.bag), a ROS 2 bag folder, or an .mcap or
+    .db3 file, read with the mapping given by --mapping.
+    """
     from tacest.cli.logs import setup_logging
 
     output = Path(output)
     quiet = kw.pop("quiet")
     setup_logging(quiet)
-    if source == "sim":
+    mapping = kw.pop("mapping")
+    if source != "rosbag" and bag is not None:
+        raise click.UsageError(f"unexpected argument {bag!r}: a BAG is read with --source rosbag")
+    if source == "rosbag":
+        if bag is None or mapping is None:
+            raise click.UsageError("--source rosbag needs BAG and --mapping MAP.toml")
+        from tacest.io.run import write_run
+        from tacest.sensors.rosbag import record_rosbag
+
+        run = record_rosbag(bag, mapping)
+        write_run(run, output)
+        if not quiet:
+            _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s)")
+    elif source == "sim":
         _record_sim(output, quiet=quiet, **kw)
     elif source == "serial":
         if not kw["port"]:

@@ -94,6 +94,8 @@ class Diagnosis3D:
     reason: str
     floor: float
     extra: dict = field(default_factory=dict)
+    #: s, sample period of each training run (the residual figure's time axis)
+    dts: list = field(default_factory=list)
 
     def to_json(self) -> dict:
         def num(v):
@@ -266,6 +268,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     reason += "; not compared (no 3-D model): " + ", ".join(NOT_MODELLED_3D)
     return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
+                       dts=[float(r.dt) for r in runs[:n_train]],
                        extra={"floor_flight_samples": n_flight,
                               "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values())})
 
@@ -278,21 +281,25 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
     import matplotlib.pyplot as plt
 
     from tacest.diagnosis.report import atomic_dir
+    from tacest.evaluation.plots import plain_log_axis
 
     obj = json_obj if json_obj is not None else diag.to_json()
     with atomic_dir(folder) as tmp:
         n = len(diag.residuals)
         fig, axes = plt.subplots(n, 1, figsize=(8, 1.6 * n + 0.6), sharex=False, squeeze=False)
         for i, (ax, r, f) in enumerate(zip(axes[:, 0], diag.residuals, diag.flags)):
-            t = np.arange(len(r["pose"]))
+            dt = diag.dts[i] if i < len(diag.dts) else 1.0
+            t = dt * np.arange(len(r["pose"]))  # s
             for term in TERMS:
                 ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term)
             ax.axhline(diag.floor, color="k", ls="--", lw=0.8, label="floor")
             for a in np.flatnonzero(f):
-                ax.axvspan(a - 0.5, a + 0.5, color="r", alpha=0.12, lw=0)
-            ax.set_ylabel(str(diag.runs[i]).split("/")[-1], fontsize=7)
+                ax.axvspan((a - 0.5) * dt, (a + 0.5) * dt, color="r", alpha=0.12, lw=0)
+            ax.set_ylabel("loss per sample", fontsize=7)
+            ax.set_title(str(diag.runs[i]).split("/")[-1], fontsize=7, loc="left")
+            plain_log_axis(ax)
         axes[0, 0].legend(fontsize=6, ncol=5)
-        axes[-1, 0].set_xlabel("sample")
+        axes[-1, 0].set_xlabel("time (s)" if diag.dts else "sample")
         fig.suptitle("plain model: per-sample loss by term (flagged windows shaded)", fontsize=9)
         fig.tight_layout()
         fig.savefig(tmp / "residuals_3d.png", dpi=90)

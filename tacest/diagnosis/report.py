@@ -70,8 +70,9 @@ def write_report(diag, folder, json_obj: dict = None) -> list:
             name = f"residuals_run{i}.png"
             plot_residuals(diag, i, tmp / name)
             names.append(name)
-        plot_heldout(diag, tmp / "heldout_gap.png")
-        names.append("heldout_gap.png")
+        if heldout_compared(diag):  # no figure of empty bars when no candidate could be compared
+            plot_heldout(diag, tmp / "heldout_gap.png")
+            names.append("heldout_gap.png")
         obj = json_obj if json_obj is not None else diag.to_json()
         (tmp / "diagnosis.json").write_text(json.dumps(obj, indent=1) + "\n")
         names.append("diagnosis.json")
@@ -140,7 +141,11 @@ def markdown(diag, figures: list) -> str:
     msgs = [f"- {c.name}: {c.message}" for c in diag.effects if c.message]
     if msgs:
         L += msgs + [""]
-    L.append("![held-out gap per candidate](heldout_gap.png)")
+    if "heldout_gap.png" in figures:
+        L.append("![held-out gap per candidate](heldout_gap.png)")
+    else:
+        L.append("No held-out comparison: no candidate's held-out fit succeeded ("
+                 + ", ".join(f"{c.name}: {c.status}" for c in diag.effects) + "), so there is no figure.")
     L.append("")
     L.append("## Where (fit of the plain model to all data)")
     L.append("")
@@ -239,6 +244,11 @@ def plot_residuals(diag, i: int, path):
     plt.close(fig)
 
 
+def heldout_compared(diag) -> bool:
+    """True when at least one candidate has a held-out gap to draw (its fit succeeded)."""
+    return any(c.status == "ok" and np.isfinite(c.gap_after) for c in diag.effects)
+
+
 def plot_heldout(diag, path):
     """Bar chart of the held-out gap per candidate (see module doc)."""
     plt = _plt()
@@ -258,7 +268,7 @@ def plot_heldout(diag, path):
     fig, ax = plt.subplots(figsize=(8, 0.42 * len(rows) + 1.6))
     y = np.arange(len(rows))[::-1]
     ax.barh(y, vals, color=colors, edgecolor="k", lw=0.5)
-    title = f"verdict: {diag.verdict}"
+    title = f"held-out gap per candidate; verdict: {diag.verdict}"
     if gap_plain is not None and np.isfinite(gap_plain):
         ax.axvline(gap_plain, color="tab:red", lw=1.2)
         title += f"   (red line: the plain model's gap, {gap_plain:.3g})"

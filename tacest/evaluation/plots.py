@@ -151,3 +151,60 @@ def plot_evaluation(path, report: dict, series: dict, est, run, run_index: int =
         raise TacestError(f"{path}: cannot write the figure ({exc})") from None
     finally:
         plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------
+# axis helpers for readable figures (shared by the learning curve and the diagnosis)
+
+#: a panel whose data span less than this fraction of their size gets a fixed range
+#: around the value instead of matplotlib's autoscale (which would stretch a 0.002 %
+#: wobble over the whole panel, with an offset label)
+FLAT_REL_SPAN = 0.01
+#: half-width of that fixed range, as a fraction of the value (and at least
+#: FLAT_MIN_HALF_WIDTH in the panel's units)
+FLAT_HALF_WIDTH = 0.2
+FLAT_MIN_HALF_WIDTH = 1.0
+
+
+def plain_log_axis(ax, axis: str = "y") -> None:
+    """Label a log axis (after ``set_yscale("log")``) with plain numbers ("5", "0.2",
+    "30") instead of "5×10⁰", on the ticks matplotlib's own formatters would label."""
+    from matplotlib.ticker import Formatter
+
+    class _Plain(Formatter):
+        def __init__(self, inner):
+            self.inner = inner
+
+        def set_axis(self, a):
+            super().set_axis(a)
+            self.inner.set_axis(a)
+
+        def set_locs(self, locs):
+            self.inner.set_locs(locs)
+
+        def __call__(self, v, pos=None):
+            return f"{v:g}" if self.inner(v, pos) else ""
+
+    a = ax.yaxis if axis == "y" else ax.xaxis
+    a.set_major_formatter(_Plain(a.get_major_formatter()))
+    a.set_minor_formatter(_Plain(a.get_minor_formatter()))
+
+
+def readable_linear_axis(ax, values, axis: str = "y") -> None:
+    """No offset/scientific tick labels, and for nearly constant ``values`` (finite
+    ones; span below FLAT_REL_SPAN of their size) a fixed range of ± FLAT_HALF_WIDTH of
+    the value (at least FLAT_MIN_HALF_WIDTH) around their mean, kept >= 0 for
+    non-negative data."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    ax.ticklabel_format(axis=axis, useOffset=False, style="plain")
+    if v.size == 0:
+        return
+    centre, span = float(np.mean(v)), float(np.ptp(v))
+    if span > FLAT_REL_SPAN * max(abs(centre), 1e-12):
+        return
+    half = max(FLAT_HALF_WIDTH * abs(centre), FLAT_MIN_HALF_WIDTH)
+    lo, hi = centre - half, centre + half
+    if np.all(v >= 0):
+        lo = max(lo, 0.0)
+    (ax.set_ylim if axis == "y" else ax.set_xlim)(lo, hi)

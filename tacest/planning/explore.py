@@ -245,6 +245,9 @@ def plot_learning_curve(path, summaries: list, labels=None) -> None:
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    from tacest.evaluation.plots import plain_log_axis, readable_linear_axis
 
     labels = labels or [s["policy"] for s in summaries]
     groups = {}
@@ -255,6 +258,7 @@ def plot_learning_curve(path, summaries: list, labels=None) -> None:
             ("friction_finger_rel", "finger friction error (%)", 100.0)]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6))
     for ax, (key, title, scale) in zip(axes, keys):
+        drawn = []
         for lab, group in groups.items():
             n_max = max(len(s["steps"]) for s in group)
             x = np.arange(1, n_max + 1)
@@ -269,13 +273,18 @@ def plot_learning_curve(path, summaries: list, labels=None) -> None:
                 med = np.nanmedian(vals, 0)
                 lo, hi = np.nanpercentile(vals, 25, 0), np.nanpercentile(vals, 75, 0)
             line, = ax.plot(x, med, marker="o", ms=3, label=f"{lab} (n={len(group)})" if len(group) > 1 else lab)
+            drawn += [med, lo, hi] if len(group) > 1 else [med]
             if len(group) > 1:
                 ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, lw=0)
         ax.set_xlabel("pokes")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # a poke count is a whole number
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
         if key == "chamfer":
             ax.set_yscale("log")
+            plain_log_axis(ax)
+        else:
+            readable_linear_axis(ax, np.concatenate(drawn) if drawn else [])
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     path = Path(path)

@@ -1,0 +1,268 @@
+"""Sequential Monte Carlo start of the 2-D estimator: object hypotheses simulated forward
+under the measured fingertip motion, weighted by the tactile measurements, resampled
+through time.
+
+Why.  A gradient-based NLP started from a sliding guess cannot find a trajectory that
+tipped or toppled: it converges to a wrong basin (a short box that slid, heavy friction,
+a light mass) whose objective looks fine.  Something must first follow the object through
+its tips and topples: here N hypotheses (shape extents, mass, ground and finger friction,
+and the pose and velocity of the object) are moved by a fast forward model
+(tacest.model.forward2d: penalty contacts, the measured fingertip motion; the measured
+force where the run has a force stream) and weighted at every sample by how well they
+explain the contact flags (the fingertip on the surface where it touched, outside where it
+did not) and the contact normals.  When the weights concentrate (effective sample size
+below ESS_FRACTION · N) the hypotheses are resampled (systematic resampling) and jittered
+(small random changes of the parameters and the state: the filter keeps exploring around
+what explains the data).  The lineage of the best hypothesis (highest accumulated log
+likelihood) gives the NLP its start: shape, parameters and every run's trajectory
+(tacest.estimation.estimator.ImplicitEstimator.smc_start).
+
+The sampler is seeded (:class:`SMCSettings` seed): the same runs and seed give the same
+start.  Samples where no fingertip is near any hypothesis and every hypothesis is at rest
+are skipped (nothing moves, nothing is measured).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacest.estimation.data import finger_velocity, gravity_of, touching
+from tacest.estimation.initial import initial_extents, initial_pose
+from tacest.io.run import Run
+from tacest.model.forward2d import MAX_STEP, World2D, box_hypotheses, finger_geometry
+
+log = logging.getLogger(__name__)
+
+#: resample when the effective sample size falls below this fraction of the particles
+ESS_FRACTION = 0.5
+#: m, sigma of the fingertip's gap to the surface in the sampler's likelihood: looser
+#: than the NLP's contact sigma (0.5 mm), for the forward model's penalty contacts sink
+#: a fingertip ~1 mm into a hypothesis that pushes it
+SIGMA_GAP = 2e-3
+#: rad, sigma of the contact normal in the sampler's likelihood (looser than the NLP's
+#: 0.05: a hypothesis a few degrees off in the middle of a topple is still the right one)
+SIGMA_NORMAL = 0.15
+#: jitter of a resampled hypothesis: log-extents, log-mass, frictions, position (m),
+#: angle (rad), velocity (m/s, rad/s)
+JITTER = {"log_extent": 0.01, "log_mass": 0.03, "friction": 0.02, "position": 3e-4, "angle": 5e-3,
+          "velocity": 5e-3, "omega": 0.05}
+#: range of the starting extents, as factors of the length scale L (log-uniform), and of
+#: the frictions
+EXTENT_RANGE = (0.4, 2.5)
+FRICTION_RANGE = (0.1, 1.0)
+#: m/s, rad/s: speed below which a hypothesis counts as at rest (samples with every
+#: hypothesis at rest and no fingertip near are skipped)
+REST_SPEED = 1e-4
+REST_OMEGA = 1e-3
+
+
+@dataclass(frozen=True)
+class SMCSettings:
+    """particles : hypotheses; seed : of every random draw; sigma_gap (m), sigma_normal
+    (rad) : the likelihood's sigmas."""
+
+    particles: int = 256
+    seed: int = 0
+    sigma_gap: float = SIGMA_GAP
+    sigma_normal: float = SIGMA_NORMAL
+
+
+@dataclass
+class SMCResult:
+    """The best hypothesis: extents (2,) m of its box, mass kg, inertia kg·m², mu_ground,
+    mu_finger, poses [(T_i, 3)] per run (its lineage), its accumulated log likelihood;
+    resamples, skipped samples, wall time s."""
+
+    extents: np.ndarray
+    mass: float
+    inertia: float
+    mu_ground: float
+    mu_finger: float
+    poses: list
+    log_likelihood: float
+    resamples: int = 0
+    skipped: int = 0
+    wall_time: float = 0.0
+    history: dict = field(default_factory=dict)
+
+
+class _Particles:
+    """The hypotheses' parameters (as box extents), states, lineage and weights."""
+
+    def __init__(self, n, rng, L, m0, has_force, extents0):
+        self.rng = rng
+        lo, hi = np.log(EXTENT_RANGE[0] * L), np.log(EXTENT_RANGE[1] * L)
+        # half the hypotheses log-uniform over the range, half around the push-tracker's
+        # start (initial_extents): where the touches already tell the extents, there
+        k = n // 2
+        self.extents = np.exp(np.concatenate([rng.uniform(lo, hi, size=(n - k, 2)),
+                                              np.log(extents0)[None] + rng.normal(0, 0.25, size=(k, 2))]))
+        self.extents = np.clip(self.extents, EXTENT_RANGE[0] * L, EXTENT_RANGE[1] * L)
+        self.mass = m0 * (np.exp(rng.normal(0.0, 0.7, size=n)) if has_force else np.ones(n))
+        self.mu_g = rng.uniform(*FRICTION_RANGE, size=n)
+        self.mu_f = rng.uniform(*FRICTION_RANGE, size=n)
+        self.has_force = has_force
+        self.log_w = np.zeros(n)
+        self.log_lik = np.zeros(n)
+
+    @property
+    def n(self):
+        return len(self.mass)
+
+    def hypotheses(self):
+        return box_hypotheses(self.extents[:, 0], self.extents[:, 1], self.mass, self.mu_g, self.mu_f)
+
+    def resample(self, pose, vel, hist):
+        """Systematic resampling, then jitter; pose, vel (N, 3) and the lineage history
+        (T, N, 3) are reordered with the hypotheses."""
+        w = np.exp(self.log_w - self.log_w.max())
+        w /= w.sum()
+        u = (self.rng.random() + np.arange(self.n)) / self.n
+        idx = np.minimum(np.searchsorted(np.cumsum(w), u), self.n - 1)
+        j = JITTER
+        self.extents = self.extents[idx] * np.exp(self.rng.normal(0, j["log_extent"], size=(self.n, 2)))
+        if self.has_force:
+            self.mass = self.mass[idx] * np.exp(self.rng.normal(0, j["log_mass"], size=self.n))
+        else:
+            self.mass = self.mass[idx]
+        self.mu_g = np.clip(self.mu_g[idx] + self.rng.normal(0, j["friction"], size=self.n), 0.02, 2.0)
+        self.mu_f = np.clip(self.mu_f[idx] + self.rng.normal(0, j["friction"], size=self.n), 0.02, 2.0)
+        self.log_lik = self.log_lik[idx]
+        self.log_w = np.zeros(self.n)
+        pose = pose[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["position"], j["position"], j["angle"]]
+        vel = vel[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["velocity"], j["velocity"], j["omega"]]
+        return pose, vel, hist[:, idx]
+
+    def ess(self):
+        w = np.exp(self.log_w - self.log_w.max())
+        w /= w.sum()
+        return 1.0 / float(np.sum(w * w))
+
+
+def _log_likelihood(run: Run, t, on, hyp, pose, world, settings) -> np.ndarray:
+    """(N,) log likelihood of sample t's contact flags and normals."""
+    ll = np.zeros(pose.shape[0])
+    valid = ~run.finger_missing_mask[t]
+    for f in range(run.n_fingers):
+        if not valid[f]:
+            continue
+        sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
+        gap = sd - world.radius[f]
+        if on[t, f]:
+            ll -= 0.5 * (gap / settings.sigma_gap) ** 2
+            n_meas = run.normal[t, f]
+            if np.all(np.isfinite(n_meas)):
+                ll -= 0.5 * np.sum((n_w - n_meas) ** 2, axis=1) / settings.sigma_normal ** 2
+        else:
+            ll -= 0.5 * (np.minimum(gap, 0.0) / settings.sigma_gap) ** 2
+    return ll
+
+
+def _near(run: Run, t, hyp, pose, world) -> list:
+    """Fingers within reach of any hypothesis at samples t-1 or t."""
+    reach = float(np.max(np.linalg.norm(hyp.vertices, axis=-1))) + float(np.max(world.radius)) + 0.01
+    out = []
+    for f in range(run.n_fingers):
+        c = run.finger_position[[max(t - 1, 0), t], f]
+        d = np.min(np.linalg.norm(pose[None, :, :2] - c[:, None], axis=-1))
+        if d <= reach:
+            out.append(f)
+    return out
+
+
+def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
+    """Filter one run (its object starts at rest); returns the lineage history (T, N, 3)."""
+    world = World2D(run.up, run.ground_height, run.gravity, run.finger_radius)
+    T = run.n_samples
+    hyp = parts.hypotheses()
+    ext = parts.extents
+    x0 = np.array([initial_pose(run, w, h)[:2] @ world.t_g for w, h in ext])
+    pose = world.rest_pose(hyp.vertices, x0)
+    vel = np.zeros_like(pose)
+    hist = np.zeros((T, parts.n, 3))
+    hist[0] = pose
+    on = touching(run)
+    v_f = finger_velocity(run) if run.n_fingers else None
+    n_sub = max(1, int(math.ceil(run.dt / MAX_STEP - 1e-9)))
+    h = run.dt / n_sub
+    force_driven = run.force is not None
+    resting = True
+    for t in range(1, T):
+        near = _near(run, t, hyp, pose, world) if run.n_fingers else []
+        if not near and resting:
+            hist[t] = pose
+            stats["skipped"] += 1
+            continue
+        fingers_t = [f for f in near if not (force_driven and on[t, f])]
+        pushes = [(f, on[t, f]) for f in near if force_driven and on[t, f]]
+        for j in range(n_sub):
+            a = (j + 1) / n_sub
+            kin = [(f, (1 - a) * run.finger_position[t - 1, f] + a * run.finger_position[t, f], v_f[t, f])
+                   for f in fingers_t]
+            forces = []
+            for f, _ in pushes:
+                n_meas = run.normal[t, f]
+                point = run.finger_position[t, f] - world.radius[f] * np.nan_to_num(n_meas)
+                forces.append((point, run.force[t, f]))
+            pose, vel, _ = world.step(hyp, pose, vel, h, fingers=kin, forces=forces)
+        hist[t] = pose
+        resting = bool(np.all(np.hypot(vel[:, 0], vel[:, 1]) < REST_SPEED) and np.all(np.abs(vel[:, 2]) < REST_OMEGA))
+        ll = _log_likelihood(run, t, on, hyp, pose, world, settings)
+        ll = np.where(np.isfinite(ll), ll, -1e12)
+        parts.log_w += ll
+        parts.log_lik += ll
+        if parts.ess() < ESS_FRACTION * parts.n:
+            pose, vel, hist = parts.resample(pose, vel, hist)
+            hyp = parts.hypotheses()
+            stats["resamples"] += 1
+    return hist
+
+
+def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCSettings()) -> SMCResult:
+    """Filter every run in turn (the hypotheses' parameters carry over from run to run;
+    each run's object starts at rest) and return the best hypothesis and its lineage.
+
+    L, m0 : the estimator's length (m) and mass (kg) scales (the hypotheses' ranges)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(settings.seed)
+    w0, h0 = initial_extents(runs, L)
+    parts = _Particles(int(settings.particles), rng, L, m0, any(r.force is not None for r in runs),
+                       np.array([w0, h0]))
+    stats = {"resamples": 0, "skipped": 0}
+    histories = []
+    for i, run in enumerate(runs):
+        hist = _run_filter(run, parts, settings, stats)
+        # the lineage of earlier runs follows the resampling of later ones: the hypotheses
+        # keep their parameters, so earlier histories are reindexed with them (below, by
+        # re-running the choice on the last run's population)
+        histories.append(hist)
+    best = int(np.argmax(parts.log_lik))
+    # earlier runs' histories were reindexed only while they were filtered; the final
+    # population's ancestry into them is not tracked, so their trajectories are taken
+    # from the hypothesis with the same parameters' best lineage: the last run's best
+    # carries its own, the earlier ones are re-filtered with it alone
+    poses = []
+    for i, run in enumerate(runs):
+        if i == len(runs) - 1:
+            poses.append(histories[i][:, best].copy())
+        else:
+            single = _Particles.__new__(_Particles)
+            single.__dict__.update({k: (v[[best]] if isinstance(v, np.ndarray) and v.shape[:1] == (parts.n,) else v)
+                                    for k, v in parts.__dict__.items()})
+            single.rng = np.random.default_rng(settings.seed + 1 + i)
+            poses.append(_run_filter(run, single, settings, {"resamples": 0, "skipped": 0})[:, 0].copy())
+    ext = parts.extents[best]
+    mass = float(parts.mass[best])
+    result = SMCResult(extents=ext.copy(), mass=mass, inertia=mass * float(ext[0] ** 2 + ext[1] ** 2) / 12,
+                       mu_ground=float(parts.mu_g[best]), mu_finger=float(parts.mu_f[best]), poses=poses,
+                       log_likelihood=float(parts.log_lik[best]), resamples=stats["resamples"],
+                       skipped=stats["skipped"], wall_time=time.perf_counter() - t0)
+    log.info(f"sampled start: {parts.n} hypotheses, {stats['resamples']} resamples, {stats['skipped']} idle samples "
+             f"skipped, best box {np.round(ext * 1e3, 1)} mm, log likelihood {result.log_likelihood:.4g} "
+             f"({result.wall_time:.1f} s)")
+    return result
