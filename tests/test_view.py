@@ -24,7 +24,8 @@ def _tacest(*args):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """A short 2-D and a short 3-D simulated run with truth (one poke each)."""
-    from tacest.sim.record import SimOptions, record_sim
+    from tacest.dims import record_sim
+    from tacest.sim.record import SimOptions
 
     d = tmp_path_factory.mktemp("view")
     out = {}
