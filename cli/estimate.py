@@ -34,9 +34,13 @@ def estimate(runs, output, shape, method, config_path, quiet):
     if not quiet:
         p = est.params
 
+        def fit_mark(e):  # the goodness-of-fit test (warning above says where)
+            return "" if e.consistent in (True, None) else "; fit NOT consistent with the data (see warning)"
+
         def note(name):  # without a force stream, at a bound, or set by the Occam term (warnings above)
             return "" if est.identifiable.get(name, True) else " (not identifiable)"
 
         click.echo(f"wrote {output}: {est.solver_status} ({est.iterations} iterations, {est.wall_time:.1f} s); "
                    f"mass {p['mass']:.4g} kg{note('mass')}, friction ground {p['friction_ground']:.3g}"
-                   f"{note('friction_ground')}, finger {p['friction_finger']:.3g}{note('friction_finger')}", err=True)
+                   f"{note('friction_ground')}, finger {p['friction_finger']:.3g}{note('friction_finger')}"
+                   f"{fit_mark(est)}", err=True)

@@ -23,7 +23,7 @@ import pytest
 from tacest.diagnosis import diagnose as diag_mod
 from tacest.diagnosis.candidates import candidate, latency_mismatch, parse_effect_list
 from tacest.diagnosis.fitting import FitResult, occam_objective
-from tacest.diagnosis.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
+from tacest.estimation.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
                                     residual_dof, window_tests)
 from tacest.diagnosis.heldout import make_folds, make_pieces
 from tacest.diagnosis.slicing import join_runs, slice_run, slice_run_estimate, split_at_actions

@@ -14,7 +14,7 @@ import pytest
 
 from tacest.diagnosis import diagnose as diag_mod
 from tacest.diagnosis.fitting import FitResult
-from tacest.diagnosis.floor import TERMS, residual_dof
+from tacest.estimation.floor import TERMS, residual_dof
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.sim.record import SimOptions, record_sim

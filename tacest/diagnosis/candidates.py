@@ -118,7 +118,7 @@ def parse_effect_list(text) -> tuple:
 
 def signature_scores(stats: list, names) -> dict:
     """{effect: share of the flagged excess on its signature terms} from window tests
-    (tacest.diagnosis.floor.window_tests)."""
+    (tacest.estimation.floor.window_tests)."""
     flagged = [s for s in stats if s.flagged]
     total = sum(max(s.excess, 0.0) for s in flagged)
     out = {}

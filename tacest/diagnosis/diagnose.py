@@ -2,7 +2,7 @@
 
 1. Where.  Fit the model as it is to all runs (or take a given estimate of them) and
    test its residuals per term, run, window and contact state against the noise floor
-   (tacest.diagnosis.floor): the flagged windows with their share of the excess.
+   (tacest.estimation.floor): the flagged windows with their share of the excess.
 2. Which.  Every candidate effect (tacest.diagnosis.candidates) is fitted to all data
    (its parameters: a few grid values for a data transform, the NLP's own parameters
    otherwise), then compared with the plain model on held-out data
@@ -52,8 +52,8 @@ from tacest.diagnosis import candidates as cands
 from tacest.diagnosis.fitting import (CandidateUnavailable, FitResult, fit_estimator,
                                       fit_local, observed_warm_runs, occam_objective,
                                       weighted_objective)
-from tacest.diagnosis.floor import TERMS as FLOOR_TERMS
-from tacest.diagnosis.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
+from tacest.estimation.floor import TERMS as FLOOR_TERMS
+from tacest.estimation.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
 from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_folds, make_pieces
 from tacest.diagnosis.transforms import apply_transform
@@ -131,7 +131,7 @@ class DiagnoseOptions:
     and held-out fit; fits_per_candidate : fits to all data per candidate;
     max_candidates : refit only this many candidates, ranked by their screening
     signature (None: all); floor : ``calibrated`` or ``nominal`` noise floor
-    (tacest.diagnosis.floor); reach : m, noise.complementarity_reach of every fit
+    (tacest.estimation.floor); reach : m, noise.complementarity_reach of every fit
     (DIAGNOSIS_REACH; 0 off; None: the configuration's).
     """
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tacest.diagnosis.floor import TERMS
+from tacest.estimation.floor import TERMS
 from tacest.errors import TacestError
 
 #: smallest value drawn on the log-scale residual panels (0.5·‖r‖² per sample)
@@ -205,7 +205,7 @@ def _plt():
 
 def plot_residuals(diag, i: int, path):
     """Residual per term over time for run i (see module doc)."""
-    from tacest.diagnosis.floor import contact_state, contact_windows, residual_dof
+    from tacest.estimation.floor import contact_state, contact_windows, residual_dof
 
     plt = _plt()
     run = diag.runs[i]

@@ -120,9 +120,17 @@ class Solver:
     #: 0.001-0.03 per sample; fits that float or sink the object to follow the touches of
     #: a wrong shape (Chamfer 10-30 mm) 0.2-1.1
     restart_physics: float = 0.1
+    #: hypotheses of the sequential Monte Carlo start (estimation/smc2d.py) of 2-D runs
+    #: without pose observations: the first start follows the object through its tips and
+    #: topples; 0 turns it off (push-tracked starts only)
+    sampler_particles: int = 256
+    #: seed of the sampler's random draws (the same runs and seed give the same start)
+    sampler_seed: int = 0
 
     def __post_init__(self):
         _check_stages(self, "solver", "")
+        if self.sampler_particles < 0 or self.sampler_particles == 1:
+            raise _InvalidSetting(f"solver.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
         _check_restarts(self, "solver")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise _InvalidSetting(f"solver.linear_solver: unknown {self.linear_solver!r}; one of {', '.join(LINEAR_SOLVERS)}")

@@ -27,6 +27,7 @@ from tacest.estimation.data import Scales, choose_scales, parameter_vector, touc
 from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound
+from tacest.estimation.smc2d import SMCSettings, smc_start
 from tacest.estimation.solver import (BuiltSolver, SolverCache, plan_stages, pin, run_stages, solve_from_starts,
                                       SolveOutcome)
 from tacest.estimation.uncertainty import observed_information_2d
@@ -226,29 +227,63 @@ class ImplicitEstimator:
         return out
 
     def solve(self, accept_budget=False) -> SolveOutcome:
-        """Staged solves from the best starting shape; when that fit fails, or violates its
-        own physics by more than ``solver.restart_physics`` objective units per sample
-        (a local minimum where the object floats, sinks or slides against friction to
-        follow the touches), again from up to ``solver.restarts`` other starting shapes
-        (initial.start_shape_candidates), keeping the successful fit of lowest objective.
-        A pinned shape is the only start."""
+        """Staged solves from the best start; when that fit fails, or violates its own
+        physics by more than ``solver.restart_physics`` objective units per sample (a
+        local minimum where the object floats, sinks or slides against friction to follow
+        the touches), again from up to ``solver.restarts`` other starts, keeping the
+        successful fit of lowest objective.
+
+        The starts: the sampler's (smc2d.py: the lineage of the best of
+        ``solver.sampler_particles`` hypotheses followed through the runs) where every
+        run is without pose observations and touched, then push-tracked starting shapes
+        (initial.start_shape_candidates).  A pinned shape is the only start."""
         pr = self.problem
         if self.pinned_theta is not None and self.pin in ("all", "shape"):
-            starts = [self.pinned_theta[: pr.n_shape].copy()]
+            starts = [({"start_shape": self.pinned_theta[: pr.n_shape].copy()}, ("shape", self.pinned_theta[: pr.n_shape]))]
         else:
-            starts = start_shape_candidates(pr, self.runs, self.scales, self.s0, 1 + int(self.config.solver.restarts))
+            n = 1 + int(self.config.solver.restarts)
+            starts = []
+            sampled = self.sampled_start()
+            if sampled is not None:
+                starts.append(({"start": "sampler", "start_extents": np.asarray(sampled.extents, float),
+                                "log_likelihood": sampled.log_likelihood}, ("sampler", sampled)))
+            starts += [({"start_shape": np.asarray(s0, float)}, ("shape", s0))
+                       for s0 in start_shape_candidates(pr, self.runs, self.scales, self.s0, n - len(starts))]
 
-        def solve_one(s0):
-            self.s0 = np.asarray(s0, float)
-            out = self.solve_from(self.own_start(s0), accept_budget=accept_budget)
+        def solve_one(start):
+            kind, value = start
+            z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
+            out = self.solve_from(z0, accept_budget=accept_budget)
             return out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final)
 
         self.attempts = []
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-            [({"start_shape": np.asarray(s0, float)}, s0) for s0 in starts], solve_one,
-            self.config.solver.restart_physics, self.attempts)
+            starts, solve_one, self.config.solver.restart_physics, self.attempts)
         self.z = out.z
         return out
+
+    def sampled_start(self):
+        """The sampler's start (smc2d.SMCResult), or None where it does not apply (off,
+        pose observations, or no fingertip data)."""
+        n = int(self.config.solver.sampler_particles)
+        if n < 2 or any(r.pose_obs is not None for r in self.runs) or not any(r.n_fingers for r in self.runs):
+            return None
+        return smc_start(self.runs, self.scales.L, self.scales.m0,
+                         SMCSettings(particles=n, seed=int(self.config.solver.sampler_seed)))
+
+    def sampler_z(self, sampled) -> np.ndarray:
+        """Scaled z0 from the sampler's best hypothesis: its box as the starting shape
+        (the shape's own initial(w, h)), its mass (held at the prior without a force
+        stream), frictions and trajectories; impulses that hold the object up
+        (initial.initial_guess)."""
+        pr, sc = self.problem, self.scales
+        self.s0 = np.asarray(self.shape.initial(sampled.extents[0] / sc.L, sampled.extents[1] / sc.L), float)
+        z = initial_guess(pr, self.runs, sc, self.s0, trajectories=sampled.poses)
+        ns = pr.n_shape
+        log_mass = float(np.clip(np.log(sampled.mass / sc.m0), *LOG_MASS_BOUNDS)) if self.has_force else 0.0
+        z[ns:ns + 4] = [log_mass, 0.0, *np.clip([sampled.mu_ground, sampled.mu_finger], *FRICTION_BOUNDS)]
+        z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z[: pr.n_theta], sc.L, sc.m0)).reshape(-1)
+        return self.with_pins(z)
 
     def physics_per_sample(self, z) -> float:
         """Objective units per sample of the physics terms (:data:`PHYSICS_TERMS`) at z
@@ -372,7 +407,7 @@ class ImplicitEstimator:
         return assemble(2, self.shape.name, V, params, self.run_estimates(z), out, wall_time, info, facts,
                         self.config.to_dict(), "implicit",
                         extra={"length_scale": self.scales.L, "mass_scale": self.scales.m0, "gravity": self.scales.g},
-                        attempts=self.attempts, notes=notes)
+                        attempts=self.attempts, notes=notes, data=self.runs)
 
     def information(self, z, penalty_shift=False):
         """The observed information of the fit at z (uncertainty.observed_information_2d)

@@ -618,7 +618,7 @@ class Estimator3D:
         return assemble(3, self.shape.name, V, params, run_ests, out, wall_time, info, facts, self.config.to_dict(),
                         "implicit", extra={"length_scale": sc.L, "mass_scale": sc.m0,
                                            "shape_params": np.asarray(out.z[: pr.n_shape] * sc.L, float)},
-                        attempts=self.attempts, notes=notes)
+                        attempts=self.attempts, notes=notes, data=self.runs)
 
 
 #: the size bound must exceed this multiple of the length scale (the smallest extent is

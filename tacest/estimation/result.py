@@ -18,6 +18,13 @@ Policy (:func:`identifiability`), in this order:
 
 The ``std`` written is the posterior's (data and priors): what a user reads as the
 uncertainty of an estimate.  Whether the data determine a parameter is item 2 above.
+
+Every estimate carries its goodness-of-fit test (tacest.estimation.fitquality): a fit
+whose residuals exceed the stated noise floor is marked inconsistent (a warning says
+where), and its std is widened by the excess it shows there (the square root of the
+flagged windows' ‖r‖² per degree of freedom: the noise level those data show, as if it
+held everywhere; ``std_scale`` in its fit_quality).  The widened std is no calibrated
+error bar either: the mark says so.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from typing import Optional
 
 import numpy as np
 
+from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.solver import SolveOutcome, attempts_json
 from tacest.estimation.uncertainty import Information
 from tacest.io.estimate import Estimate
@@ -100,8 +108,21 @@ def identifiability(params: dict, info: Optional[Information], facts: FitFacts) 
 
 def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: SolveOutcome, wall_time: float,
              info: Optional[Information], facts: FitFacts, config: dict, method: str, extra: dict = None,
-             attempts: list = None, notes: list = ()) -> Estimate:
-    """The Estimate of a fit (see the module docstring)."""
+             attempts: list = None, notes: list = (), data: list = None) -> Estimate:
+    """The Estimate of a fit (see the module docstring); ``data``: the runs fitted (for
+    the goodness-of-fit test; without them the estimate is untested)."""
+    quality = None
+    std = {} if info is None else dict(info.std)
+    if data is not None:
+        weights = (config or {}).get("weights", {})
+        q = goodness_of_fit([r.residuals for r in runs], data, len(np.asarray(vertices)), weights=weights)
+        quality = q.to_json()
+        scale = 1.0
+        if not q.consistent:
+            log.warning(q.summary())
+            scale = q.std_scale
+            std = {k: v * scale for k, v in std.items()}
+        quality["std_scale"] = scale
     extra = dict(extra or {})
     extra["stages"] = "; ".join(f"{s.name}: {s.status} ({s.iterations} it, {s.wall_time:.2f} s)"
                                 for s in outcome.stages)
@@ -114,5 +135,5 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         model=list(facts.effects), solver_status=outcome.status, success=outcome.success,
         iterations=outcome.iterations, wall_time=wall_time, objective=outcome.objective,
         information=None if info is None else info.matrix, info_names=[] if info is None else list(info.names),
-        std={} if info is None else dict(info.std), identifiable=identifiability(params, info, facts),
-        config=config, method=method, extra_attrs=extra)
+        std=std, identifiable=identifiability(params, info, facts),
+        config=config, method=method, extra_attrs=extra, fit_quality=quality)

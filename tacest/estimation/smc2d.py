@@ -7,10 +7,11 @@ tipped or toppled: it converges to a wrong basin (a short box that slid, heavy f
 a light mass) whose objective looks fine.  Something must first follow the object through
 its tips and topples: here N hypotheses (shape extents, mass, ground and finger friction,
 and the pose and velocity of the object) are moved by a fast forward model
-(tacest.model.forward2d: penalty contacts, the measured fingertip motion; the measured
-force where the run has a force stream) and weighted at every sample by how well they
-explain the contact flags (the fingertip on the surface where it touched, outside where it
-did not) and the contact normals.  When the weights concentrate (effective sample size
+(tacest.model.forward2d: penalty contacts; where the run measures forces, the measured
+force acts at the measured contact point and each hypothesis is moved onto the touching
+fingertip; without forces the fingertips push by penetration) and weighted at every
+sample by how well they explain the contact flags (the fingertip on the surface where
+it touched, outside where it did not) and the contact normals.  When the weights concentrate (effective sample size
 below ESS_FRACTION · N) the hypotheses are resampled (systematic resampling) and jittered
 (small random changes of the parameters and the state: the filter keeps exploring around
 what explains the data).  The lineage of the best hypothesis (highest accumulated log
@@ -31,10 +32,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tacest.estimation.data import finger_velocity, gravity_of, touching
+from tacest.estimation.data import finger_velocity, touching
 from tacest.estimation.initial import initial_extents, initial_pose
 from tacest.io.run import Run
-from tacest.model.forward2d import MAX_STEP, World2D, box_hypotheses, finger_geometry
+from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypotheses, finger_geometry
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,10 @@ SIGMA_GAP = 2e-3
 #: rad, sigma of the contact normal in the sampler's likelihood (looser than the NLP's
 #: 0.05: a hypothesis a few degrees off in the middle of a topple is still the right one)
 SIGMA_NORMAL = 0.15
+#: N, and fraction of the measured force: sigma of a fingertip's force in the sampler's
+#: likelihood (the forward model's penalty forces ring over a substep or two)
+SIGMA_FORCE = 1.0
+SIGMA_FORCE_FRACTION = 0.2
 #: jitter of a resampled hypothesis: log-extents, log-mass, frictions, position (m),
 #: angle (rad), velocity (m/s, rad/s)
 JITTER = {"log_extent": 0.01, "log_mass": 0.03, "friction": 0.02, "position": 3e-4, "angle": 5e-3,
@@ -144,13 +149,19 @@ class _Particles:
         return 1.0 / float(np.sum(w * w))
 
 
-def _log_likelihood(run: Run, t, on, hyp, pose, world, settings) -> np.ndarray:
-    """(N,) log likelihood of sample t's contact flags and normals."""
+def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None) -> np.ndarray:
+    """(N,) log likelihood of sample t's contact flags, normals and (where measured)
+    forces; force_model {finger: (N, 2) N} the fingers' mean forces on the object over
+    the interval in the forward model."""
     ll = np.zeros(pose.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
         if not valid[f]:
             continue
+        if run.force is not None and force_model is not None and f in force_model:
+            F_meas = run.force[t, f]
+            sig = SIGMA_FORCE + SIGMA_FORCE_FRACTION * float(np.linalg.norm(F_meas))
+            ll -= 0.5 * np.sum((force_model[f] - F_meas) ** 2, axis=1) / sig ** 2
         sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
         gap = sd - world.radius[f]
         if on[t, f]:
@@ -161,6 +172,19 @@ def _log_likelihood(run: Run, t, on, hyp, pose, world, settings) -> np.ndarray:
         else:
             ll -= 0.5 * (np.minimum(gap, 0.0) / settings.sigma_gap) ** 2
     return ll
+
+
+def _snap(run: Run, t, pushing, hyp, pose, world) -> np.ndarray:
+    """Poses moved along each touching fingertip's normal until it sits on the surface:
+    a force-driven hypothesis is tied to the fingertip only by the measurements, and a
+    slightly wrong friction or mass would let it drift away from a long push (the
+    proposal follows the contact; the weights judge the rest)."""
+    for f in pushing:
+        sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
+        gap = sd - world.radius[f]
+        pose = pose.copy()
+        pose[:, :2] += gap[:, None] * n_w
+    return pose
 
 
 def _near(run: Run, t, hyp, pose, world) -> list:
@@ -190,7 +214,6 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     v_f = finger_velocity(run) if run.n_fingers else None
     n_sub = max(1, int(math.ceil(run.dt / MAX_STEP - 1e-9)))
     h = run.dt / n_sub
-    force_driven = run.force is not None
     resting = True
     for t in range(1, T):
         near = _near(run, t, hyp, pose, world) if run.n_fingers else []
@@ -198,22 +221,30 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             hist[t] = pose
             stats["skipped"] += 1
             continue
-        fingers_t = [f for f in near if not (force_driven and on[t, f])]
-        pushes = [(f, on[t, f]) for f in near if force_driven and on[t, f]]
+        force_driven = run.force is not None
+        pushing = [f for f in near if on[t, f]]
+        force_sum = {f: np.zeros((parts.n, 2)) for f in near}
         for j in range(n_sub):
             a = (j + 1) / n_sub
-            kin = [(f, (1 - a) * run.finger_position[t - 1, f] + a * run.finger_position[t, f], v_f[t, f])
-                   for f in fingers_t]
-            forces = []
-            for f, _ in pushes:
-                n_meas = run.normal[t, f]
-                point = run.finger_position[t, f] - world.radius[f] * np.nan_to_num(n_meas)
-                forces.append((point, run.force[t, f]))
-            pose, vel, _ = world.step(hyp, pose, vel, h, fingers=kin, forces=forces)
+            if force_driven:  # the measured force at the measured contact point
+                forces = [(run.finger_position[t, f] - world.radius[f] * np.nan_to_num(run.normal[t, f]),
+                           run.force[t, f]) for f in pushing]
+                pose, vel, _ = world.step(hyp, pose, vel, h, forces=forces)
+            else:  # kinematic fingertips push by penetration
+                kin = [(f, (1 - a) * run.finger_position[t - 1, f] + a * run.finger_position[t, f], v_f[t, f])
+                       for f in near]
+                pose, vel, F = world.step(hyp, pose, vel, h, fingers=kin)
+                for f, Ff in zip(near, F):
+                    force_sum[f] += Ff
+        # weighed where the hypothesis' own dynamics put it, then (force-driven) moved
+        # onto the touching fingertips for the samples to come
+        ll = _log_likelihood(run, t, on, hyp, pose, world, settings,
+                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()})
+        ll = np.where(np.isfinite(ll), ll, -1e12)
+        if force_driven:
+            pose = _snap(run, t, pushing, hyp, pose, world)
         hist[t] = pose
         resting = bool(np.all(np.hypot(vel[:, 0], vel[:, 1]) < REST_SPEED) and np.all(np.abs(vel[:, 2]) < REST_OMEGA))
-        ll = _log_likelihood(run, t, on, hyp, pose, world, settings)
-        ll = np.where(np.isfinite(ll), ll, -1e12)
         parts.log_w += ll
         parts.log_lik += ll
         if parts.ess() < ESS_FRACTION * parts.n:
@@ -221,6 +252,26 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             hyp = parts.hypotheses()
             stats["resamples"] += 1
     return hist
+
+
+#: s, window of the local quadratic that smooths a lineage for the NLP's start: the
+#: force-driven hypotheses are moved onto the fingertip in small steps, whose differences
+#: would be velocity spikes (as observed poses' noise would: initial.OBSERVED_SMOOTHING_S)
+SMOOTHING_S = 0.07
+
+
+def _as_start(run: Run, poses) -> np.ndarray:
+    """(T, 3) a lineage as a start: lifted out of the forward model's ground sink (the
+    estimator's ground is rigid) and smoothed by a local quadratic over SMOOTHING_S."""
+    from scipy.signal import savgol_filter
+
+    P = np.array(poses, float)
+    P[:, :2] += GROUND_SINK * np.asarray(run.up, float)[None]
+    P[:, 2] = np.unwrap(P[:, 2])
+    window = 2 * int(round(SMOOTHING_S / run.dt / 2)) + 1
+    if window >= 5 and len(P) >= window:
+        P = savgol_filter(P, window, 2, axis=0, mode="interp")
+    return P
 
 
 def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCSettings()) -> SMCResult:
@@ -256,6 +307,7 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
                                     for k, v in parts.__dict__.items()})
             single.rng = np.random.default_rng(settings.seed + 1 + i)
             poses.append(_run_filter(run, single, settings, {"resamples": 0, "skipped": 0})[:, 0].copy())
+    poses = [_as_start(run, P) for run, P in zip(runs, poses)]
     ext = parts.extents[best]
     mass = float(parts.mass[best])
     result = SMCResult(extents=ext.copy(), mass=mass, inertia=mass * float(ext[0] ** 2 + ext[1] ** 2) / 12,

@@ -126,7 +126,8 @@ def evaluate(est, truth_run, run_index: int = 0, n_samples=None, max_frames: int
         rel = _inertia_rel(e, t, D) if k == "inertia" else _rel(e, t)
         ident = est.identifiable.get(k) if isinstance(est.identifiable, dict) else None
         params[k] = {"estimate": _plain(e), "truth": _plain(t), "rel": rel,
-                     "identifiable": None if ident is None else bool(ident)}
+                     "identifiable": None if ident is None else bool(ident),
+                     "sigmas": _sigmas(e, t, est.std.get(k))}
     report = {
         "chamfer": float(np.mean(ch)),
         "chamfer_max": float(np.max(ch)),
@@ -141,6 +142,7 @@ def evaluate(est, truth_run, run_index: int = 0, n_samples=None, max_frames: int
         "n_frames": int(len(frames)),
         "solver_status": str(est.solver_status),
         "success": bool(est.success),
+        "fit_consistent": est.consistent,
         "dim": int(D),
         "shape": str(est.shape),
         "run_index": int(run_index),
@@ -190,6 +192,16 @@ def _finite_scalar(v):
     if a.size != 1 or not np.isfinite(a).all():
         return None
     return float(a.reshape(()))
+
+
+def _sigmas(est, true, std):
+    """|est - true| / std of a scalar parameter (its error in units of its stated
+    one-sigma uncertainty: ~68 % of calibrated estimates are within 1); None where
+    either value or the std is missing, not finite or not positive."""
+    e, t, s = _finite_scalar(est), _finite_scalar(true), _finite_scalar(std)
+    if e is None or t is None or s is None or s <= 0:
+        return None
+    return abs(e - t) / s
 
 
 def _rel(est, true) -> float:
@@ -280,8 +292,10 @@ def format_report(report: dict) -> str:
     lines.append(f"truth     {truth_name}  ({report['dim']}-D, {report['n_samples']} samples"
                  + (f", effects: {', '.join(report['truth_effects'])}" if report.get("truth_effects") else "")
                  + ")")
+    fit = {True: ";  fit consistent with its data", False: ";  fit NOT consistent with its data (error bars "
+           "not to be trusted)"}.get(report.get("fit_consistent"), "")
     lines.append(f"solver    {report['solver_status']}" + ("" if report.get("success") else "  (not a success)")
-                 + f";  shape {report['shape']}")
+                 + f";  shape {report['shape']}{fit}")
     lines.append("")
     rows = [
         ("chamfer", _mm(report["chamfer"]), f"placed shapes, mean over {report['n_frames']} frames"),
@@ -297,7 +311,8 @@ def format_report(report: dict) -> str:
     lines.append("")
     units = {"mass": "kg", "inertia": "kg m2", "friction_ground": "", "friction_finger": ""}
     prow = [(k, _val(p["estimate"], units[k]), _val(p["truth"], units[k]),
-             _pct(p["rel"]) + ("  (not identifiable: the prior's value)" if p.get("identifiable") is False else ""))
+             _pct(p["rel"]) + (f"  ({p['sigmas']:.1f} sigma)" if p.get("sigmas") is not None else "")
+             + ("  (not identifiable: the prior's value)" if p.get("identifiable") is False else ""))
             for k, p in ((k, report["params"][k]) for k in PARAM_KEYS)]
     we = max(12, *(len(r[1]) for r in prow))
     wt = max(12, *(len(r[2]) for r in prow))

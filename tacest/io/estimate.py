@@ -49,7 +49,10 @@ class Estimate:
         (3, 3) in 3-D), friction_ground, friction_finger, effect parameters);
     model : list of effect names included in the model;
     identifiable : dict name -> bool, False where the data cannot tell the value
-        (it is then the prior's);  std : dict name -> one-sigma uncertainty.
+        (it is then the prior's);  std : dict name -> one-sigma uncertainty;
+    fit_quality : the goodness-of-fit test of the residuals (tacest.estimation.fitquality:
+        ``consistent``, ``worst`` windows, flagged ``terms``, ...), or None (an estimate
+        written by another program, or before the test existed).
     """
 
     dim: int
@@ -71,6 +74,12 @@ class Estimate:
     method: str = "implicit"
     filename: Optional[str] = None
     extra_attrs: dict = field(default_factory=dict)
+    fit_quality: Optional[dict] = None
+
+    @property
+    def consistent(self) -> Optional[bool]:
+        """True / False: the fit passed / failed its goodness-of-fit test; None: untested."""
+        return None if self.fit_quality is None else bool(self.fit_quality.get("consistent"))
 
 
 def write_estimate(est: Estimate, path) -> None:
@@ -90,6 +99,9 @@ def write_estimate(est: Estimate, path) -> None:
         f.attrs["config"] = json.dumps(est.config, sort_keys=True, default=_jsonable)
         for k, v in est.extra_attrs.items():
             f.attrs[k] = v
+        if est.fit_quality is not None:
+            f.attrs["fit_consistent"] = "yes" if est.fit_quality.get("consistent") else "no"
+            f.attrs["fit_quality"] = json.dumps(est.fit_quality, default=_jsonable)
         g = f.create_group("params")
         g.create_dataset("vertices", data=np.asarray(est.vertices, float))
         for k, v in est.params.items():
@@ -177,6 +189,14 @@ def read_estimate(path) -> Estimate:
             names = [attr_str(n) for n in f["information/names"][()]]
             info = r.dataset("/information/observed", (len(names), len(names)), allow_nan=True)
         a = f.attrs
+        fit_quality = None
+        if "fit_quality" in a:
+            try:
+                fit_quality = json.loads(attr_str(a["fit_quality"]))
+            except json.JSONDecodeError:
+                r.fail("attrs fit_quality", "not JSON")
+            if not isinstance(fit_quality, dict) or not isinstance(fit_quality.get("consistent"), bool):
+                r.fail("attrs fit_quality", "expected a JSON object with a boolean 'consistent'")
         est = Estimate(
             dim=dim, shape=shape, vertices=vertices, params=params, runs=runs, model=model,
             solver_status=attr_str(a.get("solver_status", "unknown")),
@@ -184,6 +204,6 @@ def read_estimate(path) -> Estimate:
             wall_time=float(a.get("wall_time", 0.0)), objective=float(a.get("objective", np.nan)),
             information=info, info_names=names, std=std, identifiable=identifiable,
             config=json.loads(attr_str(a.get("config", "{}"))), method=attr_str(a.get("method", "implicit")),
-            filename=str(path),
+            filename=str(path), fit_quality=fit_quality,
         )
     return est

@@ -5,19 +5,20 @@ level), stored per sample as 0.5·‖r‖² (``RunEstimate.residuals``).  If the
 the noise levels were right, ‖r‖² summed over a set of samples would be a chi-square
 variable with as many degrees of freedom as it has components: its *noise floor*.
 
-Degrees of freedom (:func:`residual_dof`), per sample and term:
+Degrees of freedom (:func:`residual_dof`), per sample and term (2-D; in 3-D the stage
+terms start a sample later, see the function):
 
 =================  ==========================================================
-force              2 per finger with a force reading (D components)
-normal             1 per finger in contact (a unit vector: one angle)
+force              D per finger with a force reading (D = 2 or 3 components)
+normal             D-1 per finger in contact (a unit vector: its angles)
 contact            1 per finger (gap where the flag is 1, overlap where 0)
-pose               3 where a pose was observed
-dynamics           3 (sample 0: the 3 components of the rest residual; 0 for a run that
+pose               3 (2-D) or 6 (3-D) where a pose was observed
+dynamics           3 (2-D) or 6 (3-D) (the first: the rest residual, 0 for a run that
                    starts free, pose-observed: estimation.data.starts_at_rest)
 penetration        1 per shape vertex (one-sided penalty)
 complementarity    1 per shape vertex (sample 0: none)
 dissipation        1 per finger (sample 0: none)
-cone               2 per finger (sample 0: none)
+cone               2 per finger in 2-D (both edges), 1 in 3-D (sample 0: none)
 =================  ==========================================================
 
 Windows.  Each run is cut into windows of one contact state (some finger touching, or
@@ -80,27 +81,33 @@ TERMS = ("force", "normal", "contact", "pose", "dynamics", "penetration", "compl
 def residual_dof(run, n_vertices: int) -> dict:
     """{term: (T,) float} degrees of freedom per sample (see the module table).
 
-    run : tacest.io.run.Run (2-D); n_vertices : K of the fitted shape.
+    run : tacest.io.run.Run (2-D or 3-D); n_vertices : K of the fitted shape.  The
+    stage terms start at the first dynamic interval: sample 1 in 2-D (one interval per
+    sample pair), sample 2 in 3-D (velocities from two intervals; its rest term sits at
+    sample 1).
     """
     T, F = run.n_samples, run.n_fingers
     D = run.dim
+    first = 1 if D == 2 else 2  # first sample with stage (interval) terms
+    n_pose = 3 if D == 2 else 6  # pose residual and body velocity components
     dof = {t: np.zeros(T) for t in TERMS}
     if F:
         valid = ~run.finger_missing_mask  # (T, F)
         on = run.contact.astype(bool) & valid
         if run.force is not None:
-            dof["force"][1:] = D * valid[1:].sum(axis=1)
-        dof["normal"][1:] = on[1:].sum(axis=1)
+            dof["force"][first:] = D * valid[first:].sum(axis=1)
+        dof["normal"][first:] = (D - 1) * on[first:].sum(axis=1)  # a unit vector's angles
         dof["contact"][:] = valid.sum(axis=1)
-        dof["dissipation"][1:] = F
-        dof["cone"][1:] = 2 * F
+        dof["dissipation"][first:] = F
+        dof["cone"][first:] = (2 if D == 2 else 1) * F  # 2-D: both edges of the cone
     if run.pose_obs is not None:
-        dof["pose"][:] = 3 * np.all(np.isfinite(run.pose_obs), axis=1)
-    dof["dynamics"][:] = 3
-    if not starts_at_rest(run):  # sample 0's dynamics term is the rest prior, off here
+        dof["pose"][:] = n_pose * np.all(np.isfinite(run.pose_obs), axis=1)
+    dof["dynamics"][first:] = n_pose
+    dof["dynamics"][first - 1] = n_pose if starts_at_rest(run) else 0  # the rest prior
+    if D == 3:
         dof["dynamics"][0] = 0
     dof["penetration"][:] = n_vertices
-    dof["complementarity"][1:] = n_vertices
+    dof["complementarity"][first:] = n_vertices
     return dof
 
 

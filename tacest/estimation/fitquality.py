@@ -1,0 +1,100 @@
+"""Goodness of fit: is an estimate's misfit within the noise the configuration states?
+
+A converged fit is not a right fit: a fit in a wrong basin (a short box that slid where
+the real one toppled) converges too, and its objective looks fine to the solver.  Its
+whitened residuals do not: where the model cannot follow the data, they exceed the noise
+floor.  This module tests every fit's per-sample residuals against the configured
+(``nominal``) noise floor of tacest.estimation.floor, the implementation the diagnosis
+uses too: every loss term in every window of one contact state (at most WINDOW samples),
+and every term's total over the fit, each a chi-square test, flagged with Bonferroni's
+correction over all of them at the family-wise rate ALPHA.
+
+A fit is *consistent* when nothing is flagged: the residuals could be the noise of the
+configured levels (which are generous: the fitted residuals of a right fit sit well below
+them).  The chance that a fit whose residuals are such noise is marked inconsistent is at
+most ALPHA (the stated false-alarm rate).  An inconsistent fit keeps its estimate, but
+its error bars are not to be trusted: the misfit says the model, the basin or the noise
+levels are wrong somewhere, and the worst windows say where.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacest.estimation.floor import (WINDOW, breakdown, contact_state, fit_floor, flagged_windows, residual_dof,
+                                     window_tests)
+
+#: family-wise false-alarm rate of the test: the chance that a fit whose residuals are
+#: noise at the configured levels is marked inconsistent
+ALPHA = 0.01
+#: how many of the worst windows an estimate file keeps
+N_WORST = 5
+
+
+@dataclass
+class FitQuality:
+    """consistent : nothing flagged; alpha; n_tests : windows and totals tested; worst :
+    the flagged windows, largest excess first [{run, start, stop, term, p, excess}]; terms
+    : the flagged terms' totals [{run, term, contact, p, excess}]; flagged_samples : how
+    many samples the flagged windows cover."""
+
+    consistent: bool
+    alpha: float
+    n_tests: int
+    worst: list = field(default_factory=list)
+    terms: list = field(default_factory=list)
+    flagged_samples: int = 0
+    #: the factor on the std of an inconsistent fit: sqrt of the flagged windows' ‖r‖²
+    #: per degree of freedom (1 for a consistent one)
+    std_scale: float = 1.0
+
+    def summary(self) -> str:
+        """One line: consistent, or where it is not."""
+        if self.consistent:
+            return f"consistent with the noise floor ({self.n_tests} tests at {self.alpha:g})"
+        where = "; ".join(f"{w['term']} in run {w['run']} samples {w['start']}-{w['stop']} (p {w['p']:.1e})"
+                          for w in self.worst[:3])
+        terms = ", ".join(f"{t['term']} (p {t['p']:.1e})" for t in self.terms[:3])
+        return ("NOT consistent with the noise floor: " + (where or "")
+                + (f"; term totals {terms}" if terms else "")
+                + ": the fit does not explain these data within the stated noise (a wrong basin, an unmodelled "
+                  "effect, or noise levels set too low); its error bars are not to be trusted")
+
+    def to_json(self) -> dict:
+        return {"consistent": self.consistent, "alpha": self.alpha, "n_tests": self.n_tests,
+                "flagged_samples": self.flagged_samples, "worst": self.worst, "terms": self.terms}
+
+
+def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict = None, alpha: float = ALPHA,
+                    window: int = WINDOW) -> FitQuality:
+    """The test of the module docstring.  residuals : per run {term: (T,) 0.5·‖r‖² per
+    sample} (RunEstimate.residuals); runs : the runs (degrees of freedom, contact
+    states); n_vertices : K of the fitted shape; weights : {term: loss weight} (for the
+    excess in objective units)."""
+    dofs = [residual_dof(r, n_vertices) for r in runs]
+    states = [contact_state(r) for r in runs]
+    floor = fit_floor(residuals, dofs, states, weights=weights, window=window, mode="nominal")
+    stats = window_tests(residuals, dofs, states, floor, alpha=alpha)
+    totals = breakdown(stats, floor)
+    n_tests = len(stats) + len(totals)
+    # one family: windows and totals, Bonferroni over both (window_tests divided alpha
+    # by the windows alone)
+    threshold = alpha / max(n_tests, 1)
+    flagged = [s for s in stats if s.p < threshold and s.excess > 0]
+    for s in stats:
+        s.flagged = s in flagged
+    merged = flagged_windows(flagged, merge=True) if flagged else []
+    worst = sorted(merged, key=lambda s: -s.excess)
+    bad_terms = [r for r in totals if r["p"] < threshold and r["excess"] > 0]
+    return FitQuality(
+        consistent=not flagged and not bad_terms, alpha=alpha, n_tests=n_tests,
+        worst=[{"run": int(s.run), "start": int(s.start), "stop": int(s.stop), "term": s.term, "p": float(s.p),
+                "excess": float(s.excess)} for s in worst[:N_WORST]],
+        terms=[{"run": int(r["run"]), "term": r["term"], "contact": bool(r["contact"]), "p": float(r["p"]),
+                "excess": float(r["excess"])} for r in sorted(bad_terms, key=lambda r: r["p"])],
+        flagged_samples=int(sum(s.stop - s.start for s in merged)),
+        std_scale=float(np.sqrt(max(1.0, sum(s.S for s in flagged) / max(sum(s.n for s in flagged), 1e-12))))
+        if flagged else 1.0)
+

@@ -1,0 +1,106 @@
+"""The goodness-of-fit test every estimate carries (tacest.estimation.fitquality).
+
+It must (1) stay quiet on residuals that are noise at the configured levels, at no more
+than its stated false-alarm rate, (2) flag and locate a misfit, (3) count degrees of
+freedom where the estimators put residuals (2-D and 3-D), and (4) mark a fit in a wrong
+basin, written to and read back from the estimate file.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tacest.estimation.fitquality import ALPHA, goodness_of_fit
+from tacest.estimation.floor import TERMS, residual_dof
+from tests.test_estimator import pushed_box_run
+from tests.test_estimator3d import tosses  # noqa: F401  (the fixture)
+
+
+def _noise_residuals(run, K, rng, inflate=None):
+    """Per-sample 0.5·‖r‖² of whitened Gaussian noise at the configured level (a
+    chi-square draw of each sample's degrees of freedom), optionally times ``inflate``
+    = (term, start, stop, factor) on one stretch."""
+    dof = residual_dof(run, K)
+    res = {t: 0.5 * rng.chisquare(np.maximum(d, 1e-9)) * (d > 0) for t, d in dof.items()}
+    if inflate:
+        term, a, b, f = inflate
+        res[term][a:b] *= f
+    return res
+
+
+def test_noise_at_the_configured_level_is_rarely_flagged():
+    """200 draws of pure noise: the test's family-wise false-alarm rate is at most ALPHA
+    (1 %); flagging more than 8 of 200 has probability < 1e-3 at that rate (binomial),
+    so a failure here means the test is miscalibrated, not unlucky."""
+    run = pushed_box_run(T=120, k0=30)
+    rng = np.random.default_rng(0)
+    alarms = sum(not goodness_of_fit([_noise_residuals(run, 4, rng)], [run], 4).consistent for _ in range(200))
+    assert alarms <= 8, alarms
+
+
+def test_a_misfit_stretch_is_flagged_where_it_is():
+    """Contact residuals ten times the noise on samples 40-55 (the contact phase): the
+    fit is inconsistent, its worst window lies there, and its std scale exceeds 1."""
+    run = pushed_box_run(T=120, k0=30)
+    rng = np.random.default_rng(1)
+    q = goodness_of_fit([_noise_residuals(run, 4, rng, ("contact", 40, 55, 10.0))], [run], 4)
+    assert not q.consistent
+    w = q.worst[0]
+    assert w["term"] == "contact" and w["start"] < 55 and w["stop"] > 40
+    assert q.std_scale > 1.5
+    assert "NOT consistent" in q.summary() and "contact" in q.summary()
+
+
+def _assert_residuals_live_where_dof_says(est, runs):
+    """Every residual the estimator stores at a sample is zero where residual_dof gives
+    that sample no degrees of freedom, and terms with degrees of freedom somewhere have
+    residuals somewhere (the counts and the estimator agree on where terms live)."""
+    K = len(est.vertices)
+    for r_est, run in zip(est.runs, runs):
+        dof = residual_dof(run, K)
+        for term in TERMS:
+            if term not in r_est.residuals:
+                continue
+            res = np.asarray(r_est.residuals[term])
+            assert np.all(res[dof[term] == 0] <= 1e-12), (term, np.nonzero((dof[term] == 0) & (res > 1e-12)))
+
+
+@pytest.mark.slow
+def test_2d_fit_is_consistent_and_a_wrong_shape_is_not(tmp_path):
+    """A 2-D known-answer fit (seed 1, six pokes) is consistent; the same data with the
+    box held at 80 % of its fitted extents (a wrong basin made on purpose) are not, and
+    the mark survives the estimate file."""
+    from tacest.estimation.estimator import ImplicitEstimator, theta_of, warm_start
+    from tacest.dims import estimate_runs
+    from tacest.io.estimate import read_estimate, write_estimate
+    from tacest.sim.record import SimOptions, record_sim
+
+    run = record_sim(SimOptions(object_spec="box", seed=1, pokes=6))
+    good = estimate_runs([run], "box")
+    assert good.consistent is True, good.fit_quality
+    _assert_residuals_live_where_dof_says(good, [run])
+
+    free = ImplicitEstimator([run], "box")
+    th = theta_of(free, good)
+    th[: free.problem.n_shape] *= 0.8
+    held = ImplicitEstimator([run], "box", pinned_theta=th, pin="shape")
+    wrong = held.result(held.solve_from(warm_start(held, good)), 0.0)
+    assert wrong.consistent is False
+    write_estimate(wrong, tmp_path / "wrong.h5")
+    back = read_estimate(tmp_path / "wrong.h5")
+    assert back.consistent is False and back.fit_quality["worst"]
+    # the widened error bars: every std of the inconsistent fit is scaled by std_scale
+    scale = back.fit_quality["std_scale"]
+    assert scale > 1.0
+
+
+def test_3d_fit_residuals_live_where_dof_says(tosses):
+    """3-D: two short noiseless tosses (the project's own model): the fit is consistent
+    and its residuals sit where residual_dof counts degrees of freedom (the stage terms
+    start at sample 2, the rest term at sample 1)."""
+    from tacest.estimation.estimator3d import estimate_3d
+
+    est = estimate_3d(tosses, "box")
+    assert est.consistent is True, est.fit_quality
+    _assert_residuals_live_where_dof_says(est, tosses)
