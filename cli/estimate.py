@@ -34,8 +34,9 @@ def estimate(runs, output, shape, method, config_path, quiet):
     if not quiet:
         p = est.params
 
-        def fit_mark(e):  # the goodness-of-fit test (warning above says where)
-            return "" if e.consistent in (True, None) else "; fit NOT consistent with the data (see warning)"
+        def fit_mark(e):  # the goodness-of-fit test and the shape's identifiability (warnings above)
+            return ("" if e.consistent in (True, None) else "; fit NOT consistent with the data (see warning)") \
+                + ("; shape not identifiable" if e.identifiable.get("shape") is False else "")
 
         def note(name):  # without a force stream, at a bound, or set by the Occam term (warnings above)
             return "" if est.identifiable.get(name, True) else " (not identifiable)"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
@@ -45,6 +46,10 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
     settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
                             population=population).validate()
     est = read_estimate(estimate)
+    if est.consistent is False:
+        logging.getLogger("tacest.plan").warning(
+            f"{estimate}: its fit is NOT consistent with its data (fit_quality): the plan rests on an estimate "
+            "whose error bars are not to be trusted")
     loaded = [read_run(p) for p in runs]
     result = plan_next(est, loaded, settings)
     write_plan(result, Path(output))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tacest.estimation.fitquality import ALPHA, goodness_of_fit
+from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.floor import TERMS, residual_dof
 from tests.test_estimator import pushed_box_run
 from tests.test_estimator3d import tosses  # noqa: F401  (the fixture)

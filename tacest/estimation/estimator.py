@@ -26,12 +26,13 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, parameter_vector, touching
 from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound
+from tacest.estimation.fitquality import goodness_of_fit
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
 from tacest.estimation.smc2d import SMCSettings, smc_start
 from tacest.estimation.solver import (BuiltSolver, SolverCache, plan_stages, pin, run_stages, solve_from_starts,
                                       SolveOutcome)
-from tacest.estimation.uncertainty import observed_information_2d
-from tacest.geometry.shapes import make_shape, polygon_area_centroid_j
+from tacest.estimation.uncertainty import information_names_2d, observed_information_2d, vertex_jacobian
+from tacest.geometry.shapes import make_shape, numeric_vertices, polygon_area_centroid_j
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.h5util import sha256_file
 from tacest.io.run import Run
@@ -254,7 +255,8 @@ class ImplicitEstimator:
             kind, value = start
             z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
             out = self.solve_from(z0, accept_budget=accept_budget)
-            return out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final)
+            return (out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final),
+                    self.fit_quality(out.z).consistent)
 
         self.attempts = []
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
@@ -284,6 +286,11 @@ class ImplicitEstimator:
         z[ns:ns + 4] = [log_mass, 0.0, *np.clip([sampled.mu_ground, sampled.mu_finger], *FRICTION_BOUNDS)]
         z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(z[: pr.n_theta], sc.L, sc.m0)).reshape(-1)
         return self.with_pins(z)
+
+    def fit_quality(self, z):
+        """The goodness-of-fit test of the fit at z (fitquality.goodness_of_fit)."""
+        return goodness_of_fit([r.residuals for r in self.run_estimates(z)], self.runs, self.problem.K,
+                               weights=self.config.to_dict().get("weights", {}))
 
     def physics_per_sample(self, z) -> float:
         """Objective units per sample of the physics terms (:data:`PHYSICS_TERMS`) at z
@@ -403,11 +410,15 @@ class ImplicitEstimator:
             at_bound={"mass": ended_at_bound(np.log(mass / self.scales.m0), LOG_MASS_BOUNDS),
                       "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
                       "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)},
-            effect_sigma=self.effect_prior_sigmas(z), effects=pr.effects, held=held_all)
+            effect_sigma=self.effect_prior_sigmas(z), effects=pr.effects, held=held_all,
+            shape_seen=shape_seen(self.runs), shape_names=tuple(information_names_2d(pr)[: pr.n_shape]))
         return assemble(2, self.shape.name, V, params, self.run_estimates(z), out, wall_time, info, facts,
                         self.config.to_dict(), "implicit",
                         extra={"length_scale": self.scales.L, "mass_scale": self.scales.m0, "gravity": self.scales.g},
-                        attempts=self.attempts, notes=notes, data=self.runs)
+                        attempts=self.attempts, notes=notes, data=self.runs,
+                        vertex_jacobian=vertex_jacobian(lambda p_: numeric_vertices(self.shape, p_ / self.scales.L,
+                                                                                    self.scales.L),
+                                                        np.asarray(z[: pr.n_shape], float) * self.scales.L))
 
     def information(self, z, penalty_shift=False):
         """The observed information of the fit at z (uncertainty.observed_information_2d)

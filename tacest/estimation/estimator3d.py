@@ -33,10 +33,11 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
 from tacest.estimation.initial3d import start_candidates_3d
 from tacest.estimation.problem3d import Problem3D
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound
+from tacest.estimation.fitquality import goodness_of_fit
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
 from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, pin, plan_stages, run_stages,
                                       solve_from_starts)
-from tacest.estimation.uncertainty import observed_information_3d
+from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobian
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
@@ -425,7 +426,8 @@ class Estimator3D:
                 out = self.solve_from_shape(s0)
             finally:
                 self.start_tracks = None
-            return out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final)
+            return (out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final),
+                    self.fit_quality(out.z).consistent)
 
         records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
                     "touch_inconsistency": float(c.inconsistency)} for c in starts]
@@ -438,6 +440,11 @@ class Estimator3D:
             raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {first}") from None
         self.z = out.z
         return out
+
+    def fit_quality(self, z):
+        """The goodness-of-fit test of the fit at z (fitquality.goodness_of_fit)."""
+        return goodness_of_fit([res for *_, res in self.run_results(z)], self.runs, self.problem.K,
+                               weights=self.config.to_dict().get("weights", {}))
 
     def physics_per_sample(self, z) -> float:
         """Objective units per sample of the physics terms (stage2d.PHYSICS_TERMS: dynamics,
@@ -610,7 +617,8 @@ class Estimator3D:
                          at_bound={"mass": ended_at_bound(np.log(mass / sc.m0), LOG_MASS_BOUNDS),
                                    "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
                                    "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)},
-                         effect_sigma=effect_sigma, effects=pr.effects, held=self.fixed_theta is not None)
+                         effect_sigma=effect_sigma, effects=pr.effects, held=self.fixed_theta is not None,
+                         shape_seen=shape_seen(self.runs), shape_names=tuple(self.shape.param_names))
         notes = []
         if not self.has_force:
             notes.append("no force measurement: mass is not identifiable (held at the prior "
@@ -618,7 +626,9 @@ class Estimator3D:
         return assemble(3, self.shape.name, V, params, run_ests, out, wall_time, info, facts, self.config.to_dict(),
                         "implicit", extra={"length_scale": sc.L, "mass_scale": sc.m0,
                                            "shape_params": np.asarray(out.z[: pr.n_shape] * sc.L, float)},
-                        attempts=self.attempts, notes=notes, data=self.runs)
+                        attempts=self.attempts, notes=notes, data=self.runs,
+                        vertex_jacobian=vertex_jacobian(lambda p_: numeric_vertices_3d(self.shape, p_ / sc.L, sc.L),
+                                                        np.asarray(out.z[: pr.n_shape], float) * sc.L))
 
 
 #: the size bound must exceed this multiple of the length scale (the smallest extent is

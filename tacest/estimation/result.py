@@ -18,6 +18,11 @@ Policy (:func:`identifiability`), in this order:
 
 The ``std`` written is the posterior's (data and priors): what a user reads as the
 uncertainty of an estimate.  Whether the data determine a parameter is item 2 above.
+``std["shape"]`` (m) is the shape's in one number: the RMS over the vertices of their
+one-sigma position uncertainty in the body frame (uncertainty.shape_std), combined in
+quadrature with the contact model's tolerance ``noise.contact_gap`` (0.5 mm): the smooth
+contact terms place a surface within about that of where a hard contact would, however
+many samples touch it (a bias, not noise: more data do not shrink it).
 
 Every estimate carries its goodness-of-fit test (tacest.estimation.fitquality): a fit
 whose residuals exceed the stated noise floor is marked inconsistent (a warning says
@@ -37,7 +42,7 @@ import numpy as np
 
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.solver import SolveOutcome, attempts_json
-from tacest.estimation.uncertainty import Information
+from tacest.estimation.uncertainty import Information, shape_std
 from tacest.io.estimate import Estimate
 
 log = logging.getLogger(__name__)
@@ -61,7 +66,9 @@ class FitFacts:
     has_force : a force stream was measured; has_fingers : a fingertip touched;
     at_bound : {name: True} for parameters that ended at a hard bound; effect_sigma :
     {information row name: prior sigma in physical units} of the effect parameters;
-    effects : the modelled effects' names; held : every parameter was held fixed."""
+    effects : the modelled effects' names; held : every parameter was held fixed;
+    shape_seen : some fingertip touched (a contact flag 1) or some pose was observed;
+    shape_names : the information rows of the shape's parameters."""
 
     has_force: bool
     has_fingers: bool
@@ -69,6 +76,20 @@ class FitFacts:
     effect_sigma: dict = field(default_factory=dict)
     effects: tuple = ()
     held: bool = False
+    shape_seen: bool = True
+    shape_names: tuple = ()
+
+
+def shape_seen(runs: list) -> bool:
+    """Whether the runs measure the shape at all: some fingertip touched (a contact
+    flag 1 that arrived) or some pose was observed.  Without either nothing tells the
+    object's extent (a run in which no fingertip touched)."""
+    for r in runs:
+        if r.contact is not None and r.n_fingers and np.any(r.contact.astype(bool) & ~r.finger_missing_mask):
+            return True
+        if r.pose_obs is not None and np.any(np.all(np.isfinite(r.pose_obs), axis=1)):
+            return True
+    return False
 
 
 def ended_at_bound(u: float, bounds) -> bool:
@@ -101,6 +122,10 @@ def identifiability(params: dict, info: Optional[Information], facts: FitFacts) 
         # every force in the model (weight, inertia, contacts) scales with the mass, the
         # measured ones with the gain: only gain × mass is identifiable (docs/diagnosis.md)
         ident["mass"] = ident["force_scale.gain"] = False
+    ident["shape"] = bool(facts.shape_seen and all(np.isfinite(std.get(k, 0.0)) for k in facts.shape_names))
+    if not facts.shape_seen and not facts.held:
+        log.warning("no fingertip touched the object and no pose was observed: the shape is the estimator's "
+                    "starting guess, not an estimate (identifiable shape: false)")
     if facts.held:
         ident = {k: False for k in ident}
     return ident
@@ -108,11 +133,17 @@ def identifiability(params: dict, info: Optional[Information], facts: FitFacts) 
 
 def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: SolveOutcome, wall_time: float,
              info: Optional[Information], facts: FitFacts, config: dict, method: str, extra: dict = None,
-             attempts: list = None, notes: list = (), data: list = None) -> Estimate:
+             attempts: list = None, notes: list = (), data: list = None, vertex_jacobian=None) -> Estimate:
     """The Estimate of a fit (see the module docstring); ``data``: the runs fitted (for
-    the goodness-of-fit test; without them the estimate is untested)."""
+    the goodness-of-fit test; without them the estimate is untested); vertex_jacobian
+    (K·dim, n_shape): the vertices' derivative by the shape parameters, the first
+    n_shape rows of the information (for std["shape"], uncertainty.shape_std)."""
     quality = None
     std = {} if info is None else dict(info.std)
+    if info is not None and info.cov is not None and vertex_jacobian is not None:
+        ns = np.asarray(vertex_jacobian).shape[1]
+        floor = float((config or {}).get("noise", {}).get("contact_gap", 0.0))
+        std["shape"] = float(np.hypot(shape_std(vertex_jacobian, info.cov[:ns, :ns], dim), floor))
     if data is not None:
         weights = (config or {}).get("weights", {})
         q = goodness_of_fit([r.residuals for r in runs], data, len(np.asarray(vertices)), weights=weights)

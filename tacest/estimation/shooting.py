@@ -78,7 +78,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, pose_observation_columns
 from tacest.estimation.estimator import check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
-from tacest.estimation.result import FitFacts, assemble
+from tacest.estimation.result import FitFacts, assemble, shape_seen
 from tacest.estimation.solver import BuiltSolver, SolverCache, Stage, run_stages
 from tacest.estimation.uncertainty import Information, std_of
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
@@ -755,7 +755,7 @@ def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: Estimato
     except (np.linalg.LinAlgError, RuntimeError):
         info = None
     params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
-    facts = FitFacts(has_force=est.has_force, has_fingers=any(r.n_fingers for r in runs))
+    facts = FitFacts(has_force=est.has_force, has_fingers=any(r.n_fingers for r in runs), shape_seen=shape_seen(runs))
     return assemble(2, est.shape.name, V, params, run_ests, out, time.perf_counter() - t_start, info, facts,
                     est.config.to_dict(), "shooting",
                     extra={"length_scale": est.scales.L, "mass_scale": est.scales.m0,

@@ -369,18 +369,21 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
 
 
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list) -> tuple:
-    """Solve from each start in turn until a fit is physically consistent; keep the
-    successful fit of lowest objective (the restarts of the 2-D and 3-D estimators).
+    """Solve from each start in turn until a fit is good enough; keep the successful fit
+    of lowest objective (the restarts of the 2-D and 3-D estimators).
 
     starts : list of (record, start): ``record`` a dict describing the start (copied into
         the attempt's entry), ``start`` what ``solve_one`` takes;
-    solve_one(start) -> (SolveOutcome, physics per sample (objective units), saved):
-        one staged solve; ``saved`` is whatever the caller must restore for that fit;
-        raises SolveFailedError when the solve fails;
-    restart_physics : a fit whose physics per sample is at most this ends the search;
+    solve_one(start) -> (SolveOutcome, physics per sample (objective units), saved,
+        consistent): one staged solve; ``saved`` is whatever the caller must restore for
+        that fit; ``consistent`` its goodness-of-fit verdict (fitquality; None: not
+        tested); raises SolveFailedError when the solve fails;
+    restart_physics : a fit whose physics per sample is at most this, or that is
+        consistent with its data, ends the search (a fast, tipping object's right fit
+        holds more physics residual than a slow one's, and its data say it is right);
     attempts : a list that receives one dict per solve (the record with status,
-        objective and physics_per_sample, or status "failed" and error), also when every
-        solve fails.
+        objective, physics_per_sample and consistent, or status "failed" and error), also
+        when every solve fails.
 
     Returns (out, saved): the kept fit and its ``saved``.  When no start gives a fit,
     raises the first start's SolveFailedError (``attempts`` holds every failure).
@@ -391,18 +394,19 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             last = attempts[-1]
             log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
                      + ("failed" if last["status"] == "failed" else
-                        f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"))
+                        f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"
+                        + (" and does not explain its data" if last.get("consistent") is False else "")))
         try:
-            out, physics, saved = solve_one(start)
+            out, physics, saved, consistent = solve_one(start)
         except SolveFailedError as exc:
             failure = failure or exc
             attempts.append({**record, "status": "failed", "error": str(exc)})
             continue
         attempts.append({**record, "status": out.status, "objective": float(out.objective),
-                         "physics_per_sample": float(physics)})
+                         "physics_per_sample": float(physics), "consistent": consistent})
         if best is None or out.objective < best[0].objective:
             best = (out, saved)
-        if physics <= restart_physics:
+        if physics <= restart_physics or consistent:
             break
     if best is None:
         raise failure

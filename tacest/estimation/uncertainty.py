@@ -70,13 +70,15 @@ class Information:
     std_data {name: sigma} : the data's own (inf where they do not determine it); std
     {name: sigma} : the posterior's (data and priors); shift {name: value} : how far the
     data alone would move each parameter without the penalty (Occam) terms (2-D
-    pose-observed fits; empty otherwise)."""
+    pose-observed fits; empty otherwise); cov (n, n) : the posterior's covariance,
+    physical units (NaN in held rows and columns), or None."""
 
     matrix: Optional[np.ndarray]
     names: list
     std_data: dict
     std: dict
     shift: dict = field(default_factory=dict)
+    cov: Optional[np.ndarray] = None
 
 
 def schur_information(A, B) -> np.ndarray:
@@ -275,5 +277,36 @@ def _finish(I_s, d, kept_fixed, names, prior_H, n_theta) -> Information:
     # the priors act on theta only; held rows are left out by std_of's free block
     P_phys = np.zeros_like(I_phys)
     P_phys[:n_theta, :n_theta] = np.asarray(prior_H, float) * np.outer(d[:n_theta], d[:n_theta])
-    std_post, _ = std_of(I_phys + P_phys, free, names)
-    return Information(matrix=I_phys, names=names, std_data=std_data, std=std_post)
+    std_post, cov_post = std_of(I_phys + P_phys, free, names)
+    return Information(matrix=I_phys, names=names, std_data=std_data, std=std_post, cov=cov_post)
+
+
+def vertex_jacobian(vertices_of, p_shape) -> np.ndarray:
+    """(K·D, n) derivative of the vertices (m, body frame, flattened row by row) by the
+    physical shape parameters p_shape (n,) (m), by central differences (step 1e-6 of
+    the largest |p|: the vertex maps are smooth and at most quadratic in p, so the
+    error is ~1e-12 relative).  vertices_of(p) -> (K, D) m."""
+    p = np.asarray(p_shape, float)
+    h = 1e-6 * max(float(np.max(np.abs(p))), 1e-3)
+    cols = []
+    for k in range(p.size):
+        e = np.zeros_like(p)
+        e[k] = h
+        cols.append((np.asarray(vertices_of(p + e), float) - np.asarray(vertices_of(p - e), float)).ravel() / (2 * h))
+    return np.column_stack(cols)
+
+
+def shape_std(J_vertices, cov_shape, dim: int) -> float:
+    """RMS over the K vertices of their one-sigma position uncertainty, m:
+    sqrt(trace(J C Jᵀ) / K) for J (K·dim, n) (:func:`vertex_jacobian`) and C (n, n) the
+    shape parameters' covariance (m²); inf where C has a non-finite entry (a shape
+    direction that the data and priors leave undetermined).  A box whose width is known
+    to ±2 mm (and its height exactly) has vertices known to ±1 mm: shape_std 1 mm."""
+    C = np.asarray(cov_shape, float)
+    J = np.asarray(J_vertices, float)
+    if C.size == 0:
+        return 0.0
+    if not np.all(np.isfinite(C)):
+        return float("inf")
+    n_vertices = J.shape[0] // dim
+    return float(np.sqrt(max(float(np.trace(J @ C @ J.T)), 0.0) / n_vertices))

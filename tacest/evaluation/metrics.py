@@ -132,6 +132,8 @@ def evaluate(est, truth_run, run_index: int = 0, n_samples=None, max_frames: int
         "chamfer": float(np.mean(ch)),
         "chamfer_max": float(np.max(ch)),
         "chamfer_body": float(ch_body),
+        "shape_std": _finite_scalar(est.std.get("shape")),
+        "chamfer_body_sigmas": _sigmas(ch_body, 0.0, est.std.get("shape")),
         "pose_position_rmse": float(np.sqrt(np.mean(pos_err ** 2))),
         "pose_angle_rmse": float(np.sqrt(np.mean(ang_err ** 2))),
         "mass_rel": params["mass"]["rel"],
@@ -300,7 +302,9 @@ def format_report(report: dict) -> str:
     rows = [
         ("chamfer", _mm(report["chamfer"]), f"placed shapes, mean over {report['n_frames']} frames"),
         ("chamfer_max", _mm(report["chamfer_max"]), "placed shapes, worst frame"),
-        ("chamfer_body", _mm(report["chamfer_body"]), "shapes alone, best rigid alignment"),
+        ("chamfer_body", _mm(report["chamfer_body"]), "shapes alone, best rigid alignment"
+         + (f" ({report['chamfer_body_sigmas']:.1f} x the shape's std {_mm(report['shape_std'])})"
+            if report.get("chamfer_body_sigmas") is not None else "")),
         ("pose_position_rmse", _mm(report["pose_position_rmse"]), "centre of mass"),
         ("pose_angle_rmse", _angle(report["pose_angle_rmse"]), "orientation"),
     ]

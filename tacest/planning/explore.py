@@ -156,12 +156,14 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
             report = evaluate(est, run, run_index=0)
             step.update({k: report[k] for k in STEP_METRICS})
             step["params"] = report["params"]
+            step["fit_consistent"] = est.consistent
         else:
             step.update({k: None for k in STEP_METRICS})
         msg = f"[{n}/{N}] {run.n_samples} samples; estimate {step['estimate_status']} ({step['estimate_time']:.1f} s)"
         if est is not None:
             msg += f": chamfer {1e3 * step['chamfer']:.2f} mm, mass error {_pct(step['mass_rel'])}, " \
-                   f"ground friction error {_pct(step['friction_ground_rel'])}"
+                   f"ground friction error {_pct(step['friction_ground_rel'])}" \
+                   + ("" if est.consistent is not False else " (fit NOT consistent with its data)")
         # -- plan and execute the next poke ------------------------------------------
         if n < N:
             plan_path = out / f"plan_{n}.h5"
