@@ -256,7 +256,7 @@ class ImplicitEstimator:
             z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
             out = self.solve_from(z0, accept_budget=accept_budget)
             return (out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final),
-                    self.fit_quality(out.z).consistent)
+                    self.fit_quality(out.z).local)
 
         self.attempts = []
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(

@@ -427,7 +427,7 @@ class Estimator3D:
             finally:
                 self.start_tracks = None
             return (out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final),
-                    self.fit_quality(out.z).consistent)
+                    self.fit_quality(out.z).local)
 
         records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
                     "touch_inconsistency": float(c.inconsistency)} for c in starts]

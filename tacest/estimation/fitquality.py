@@ -34,6 +34,10 @@ from tacest.estimation.floor import (WINDOW, breakdown, contact_state, fit_floor
 ALPHA = 0.01
 #: how many of the worst windows an estimate file keeps
 N_WORST = 5
+#: a misfit whose flagged windows cover at most this fraction of the samples is local
+#: (FitQuality.local): one flagged window of 20 samples in a 10 s recording is 2.5 %; the
+#: wrong basins seen (a box that slid where it toppled) misfit 10-60 %
+LOCAL_FRACTION = 0.05
 
 
 @dataclass
@@ -49,9 +53,19 @@ class FitQuality:
     worst: list = field(default_factory=list)
     terms: list = field(default_factory=list)
     flagged_samples: int = 0
+    #: samples of all runs tested
+    n_samples: int = 0
     #: the factor on the std of an inconsistent fit: sqrt of the flagged windows' ‖r‖²
     #: per degree of freedom (1 for a consistent one)
     std_scale: float = 1.0
+
+    @property
+    def local(self) -> bool:
+        """Consistent, or the misfit is local: the flagged windows cover at most
+        LOCAL_FRACTION of the samples (a fast release, a stalled push: the model's
+        simplifications at an instant, not a wrong basin, whose misplaced object misfits
+        long stretches).  The estimators restart only from fits that are not."""
+        return self.consistent or self.flagged_samples <= LOCAL_FRACTION * self.n_samples
 
     def summary(self) -> str:
         """One line: consistent, or where it is not."""
@@ -67,7 +81,8 @@ class FitQuality:
 
     def to_json(self) -> dict:
         return {"consistent": self.consistent, "alpha": self.alpha, "n_tests": self.n_tests,
-                "flagged_samples": self.flagged_samples, "worst": self.worst, "terms": self.terms}
+                "flagged_samples": self.flagged_samples, "n_samples": self.n_samples, "worst": self.worst,
+                "terms": self.terms}
 
 
 def release_samples(run) -> np.ndarray:
@@ -125,7 +140,7 @@ def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict 
                 "excess": float(s.excess)} for s in worst[:N_WORST]],
         terms=[{"run": int(r["run"]), "term": r["term"], "contact": bool(r["contact"]), "p": float(r["p"]),
                 "excess": float(r["excess"])} for r in sorted(bad_terms, key=lambda r: r["p"])],
-        flagged_samples=int(sum(s.stop - s.start for s in merged)),
+        flagged_samples=int(sum(s.stop - s.start for s in merged)), n_samples=int(sum(r.n_samples for r in runs)),
         std_scale=float(np.sqrt(max(1.0, sum(s.S for s in flagged) / max(sum(s.n for s in flagged), 1e-12))))
         if flagged else 1.0)
 

@@ -376,8 +376,9 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         the attempt's entry), ``start`` what ``solve_one`` takes;
     solve_one(start) -> (SolveOutcome, physics per sample (objective units), saved,
         consistent): one staged solve; ``saved`` is whatever the caller must restore for
-        that fit; ``consistent`` its goodness-of-fit verdict (fitquality; None: not
-        tested); raises SolveFailedError when the solve fails;
+        that fit; ``consistent`` whether its data say it is right (fitquality's
+        FitQuality.local: consistent, or a local misfit only; None: not tested); raises
+        SolveFailedError when the solve fails;
     restart_physics : a fit whose physics per sample is at most this, or that is
         consistent with its data, ends the search (a fast, tipping object's right fit
         holds more physics residual than a slow one's, and its data say it is right);
