@@ -79,6 +79,7 @@ from tacest.estimation.solver import SUCCESS_STATUSES, _Progress
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
 from tacest.io.estimate import Estimate, RunEstimate
+from tacest.interrupt import raise_if_interrupted, watch_interrupts
 from tacest.io.run import Run
 
 #: physics substeps per sample (h = dt / SUBSTEPS: 1 ms at 100 Hz)
@@ -683,10 +684,12 @@ class ShootingEstimator:
         solver = ca.nlpsol("tacest_shooting", "ipopt", pr.nlp, opts)
         z0 = np.clip(self.z0, lbx, ubx)
         t0 = time.perf_counter()
-        sol = solver(x0=z0, p=self.p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
+        with watch_interrupts() as watch:
+            sol = solver(x0=z0, p=self.p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
         wall = time.perf_counter() - t0
         st = solver.stats()
         status = st.get("return_status", "unknown")
+        raise_if_interrupted(status, watch)
         iters = int(st.get("iter_count", 0))
         self.echo(f"shooting: {status}, {iters} iterations, objective {float(sol['f']):.6g}, {wall:.1f} s")
         self.last = (np.asarray(sol["x"]).reshape(-1), status, iters, float(sol["f"]))

@@ -12,6 +12,7 @@ import numpy as np
 from tacest.errors import SolveFailedError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.problem import Problem2D, RunStructure
+from tacest.interrupt import raise_if_interrupted, watch_interrupts
 
 #: IPOPT statuses that count as a solution
 SUCCESS_STATUSES = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -170,9 +171,11 @@ class BuiltSolver:
         if lam_g0 is not None:
             args["lam_g0"] = lam_g0
         t0 = time.perf_counter()
-        sol = solver(**args)
+        with watch_interrupts() as watch:
+            sol = solver(**args)
         wall = time.perf_counter() - t0
         st = solver.stats()
+        raise_if_interrupted(st.get("return_status", "unknown"), watch)
         return sol, StageInfo(name=label, status=st.get("return_status", "unknown"),
                               iterations=int(st.get("iter_count", 0)), wall_time=wall,
                               objective=float(sol["f"]))
