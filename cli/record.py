@@ -72,8 +72,16 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def record(source, output, **kw):
     """Record a run file (SPEC run format) from SOURCE."""
+    from tacest.io.outputs import check_output
+
     output = Path(output)
     quiet = kw.pop("quiet")
+    inputs = [kw[n] for n in ("plan_path", "frames", "calib", "finger_log", "reference")]
+    if source == "sim" and kw["object_spec"] and Path(kw["object_spec"]).is_file():
+        inputs.append(kw["object_spec"])
+    # before any work (a planned poke continues an existing OUTPUT in place: _record_sim
+    # checks that it is the run the plan was made from)
+    check_output(output, inputs=inputs)
     if source == "sim":
         _record_sim(output, quiet=quiet, **kw)
     elif source == "serial":
@@ -104,6 +112,7 @@ def _echo_err(*args, **kwargs):
 
 
 def _record_sim(output, quiet, **kw):
+    from tacest.io.plan import check_plan_continues, read_plan
     from tacest.io.run import write_run
     from tacest.sim.record import SimOptions, record_sim
 
@@ -113,7 +122,10 @@ def _record_sim(output, quiet, **kw):
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
         observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"],
     )
-    run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None,
+    append_to = output if kw["plan_path"] and output.exists() else None
+    if append_to is not None:
+        check_plan_continues(read_plan(kw["plan_path"]), append_to)
+    run = record_sim(opts, plan_path=kw["plan_path"], append_to=append_to,
                      echo=(lambda *a, **k: None) if quiet else _echo_err)
     write_run(run, output, include_truth=not kw["no_truth"])
     if not quiet:

@@ -7,8 +7,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,30 +17,20 @@ from tacest.errors import FileFormatError, TacestError
 @contextlib.contextmanager
 def atomic_h5(path):
     """Open a new HDF5 file for writing under a temporary name in the target folder;
-    rename it into place only when the ``with`` block finishes without error.
+    rename it into place only when the ``with`` block finishes without error
+    (:func:`tacest.io.outputs.atomic_file`, which also refuses a ``path`` that is a
+    link, a folder or another non-regular file).
 
-    A crash or an exception inside the block leaves no file at ``path`` (and removes
-    the temporary one), so a file that exists always is complete.
+    A crash, an exception or an interrupt inside the block leaves ``path`` as it was
+    (and removes the temporary file), so a file that exists always is complete.
     """
     import h5py
 
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise TacestError(f"{path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
-    os.close(fd)
-    try:
+    from tacest.io.outputs import atomic_file
+
+    with atomic_file(path) as tmp:
         with h5py.File(tmp, "w") as f:
             yield f
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a finished file follows the umask
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def open_h5(path):

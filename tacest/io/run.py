@@ -49,6 +49,25 @@ VERSION = 1
 #: few decimals in a text protocol stay within 1e-3.
 UNIT_NORM_TOL = 1e-3
 
+#: Plausibility limits.  A value beyond one is not a measurement of a hand-sized object
+#: poked on a table but a unit or encoding error (millimetres written as metres, a
+#: sensor's overflow value, an uninitialised buffer), and the reader names it instead of
+#: handing it to the estimator (docs/formats.md, "Validation"):
+#: N, |force component|: 10 kN is a tonne-force, two orders above the range of any
+#: fingertip or wrist force sensor (tactile skins ~10 N, wrist F/T sensors up to ~1 kN)
+MAX_ABS_FORCE = 1e4
+#: m, |position coordinate| (fingertips, observed poses, ground height): a 100 m
+#: world exceeds any robot cell or motion-capture volume (~10 m); 10 mm written as
+#: millimetres reads as 10 m, 150 mm as 150 m
+MAX_ABS_POSITION = 100.0
+#: m, finger radius: a fingertip is millimetres to centimetres
+MAX_FINGER_RADIUS = 1.0
+#: s, sample period: 1 MHz to 1 Hz (tactile and motion-capture streams run at 30 Hz to
+#: a few kHz; below 1 Hz there is no contact dynamics left to see)
+MIN_DT, MAX_DT = 1e-6, 1.0
+#: m/s², |gravity|: 10 g (a value in mm/s² or ft/s² in g units reads far above)
+MAX_GRAVITY = 100.0
+
 #: Defaults for /observations/pose noise levels when a writer left the attrs out
 #: (documented in docs/formats.md; a note is printed when they are used).
 DEFAULT_SIGMA_POSITION = 1e-3  # m
@@ -188,15 +207,33 @@ def _check_finite(filename, path, arr):
         _fail(filename, path, "contains NaN or inf where values are required")
 
 
+def _check_limit(filename, path, arr, limit, unit, name):
+    """FileFormatError naming the first entry of ``arr`` with |value| > limit (NaN passes)."""
+    arr = np.asarray(arr, float)
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(arr) > limit
+    if np.any(bad):
+        at = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = f" at index {list(at)}" if at else ""
+        _fail(filename, path, f"{arr[at]:.3g} {unit}{where} is beyond the plausibility limit "
+              f"{limit:g} {unit} (tacest.io.run.{name}; a unit or encoding error?)")
+
+
 def _validate(run: Run, filename):
     D = run.dim
     if D not in (2, 3):
         _fail(filename, "attrs dim", f"must be 2 or 3, got {D}")
     if not (np.isfinite(run.dt) and run.dt > 0):
         _fail(filename, "attrs dt", f"must be a positive number, got {run.dt}")
+    if not MIN_DT <= run.dt <= MAX_DT:
+        _fail(filename, "attrs dt", f"{run.dt:.3g} s is outside the plausible sample periods [{MIN_DT:g}, "
+              f"{MAX_DT:g}] s (tacest.io.run.MIN_DT, MAX_DT)")
     g = np.asarray(run.gravity, float)
     _check_shape(filename, "attrs gravity", g, (D,))
     _check_finite(filename, "attrs gravity", g)
+    if np.linalg.norm(g) > MAX_GRAVITY:
+        _fail(filename, "attrs gravity", f"|gravity| = {np.linalg.norm(g):.3g} m/s² is beyond the plausibility "
+              f"limit {MAX_GRAVITY:g} m/s² (tacest.io.run.MAX_GRAVITY; a unit error?)")
     t = np.asarray(run.time, float)
     _check_shape(filename, "/time", t, (None,))
     _check_finite(filename, "/time", t)
@@ -224,6 +261,7 @@ def _validate(run: Run, filename):
         if fp.ndim != 3 or fp.shape[0] != T or fp.shape[2] != D:
             _fail(filename, "/robot/finger_position", f"expected shape ({T}, F, {D}), got {fp.shape}")
         _check_finite(filename, "/robot/finger_position", fp)
+        _check_limit(filename, "/robot/finger_position", fp, MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
         F = fp.shape[1]
         if F < 1:
             _fail(filename, "/robot/finger_position", "needs at least one finger")
@@ -234,6 +272,7 @@ def _validate(run: Run, filename):
         _check_finite(filename, "/robot/finger_radius", rad)
         if np.any(rad <= 0):
             _fail(filename, "/robot/finger_radius", "radii must be > 0")
+        _check_limit(filename, "/robot/finger_radius", rad, MAX_FINGER_RADIUS, "m", "MAX_FINGER_RADIUS")
         if not has_tactile:
             _fail(filename, "/tactile/contact", "required when /robot is present")
     if has_tactile:
@@ -262,12 +301,14 @@ def _validate(run: Run, filename):
             fz = np.asarray(run.force, float)
             _check_shape(filename, "/tactile/force", fz, (T, F, D))
             _check_finite(filename, "/tactile/force", fz)
+            _check_limit(filename, "/tactile/force", fz, MAX_ABS_FORCE, "N", "MAX_ABS_FORCE")
     if run.pose_obs is not None:
         P = pose_size(D)
         po = np.asarray(run.pose_obs, float)
         _check_shape(filename, "/observations/pose", po, (T, P))
         if np.any(np.isinf(po)):
             _fail(filename, "/observations/pose", "contains inf")
+        _check_limit(filename, "/observations/pose", po[:, :D], MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
         nanrow = np.isnan(po)
         partial = np.any(nanrow, axis=1) & ~np.all(nanrow, axis=1)
         if np.any(partial):
@@ -316,6 +357,8 @@ def _validate(run: Run, filename):
         _fail(filename, "/scene attrs ground_normal", "must be a unit vector")
     if not np.isfinite(run.ground_height):
         _fail(filename, "/scene attrs ground_height", "must be finite")
+    _check_limit(filename, "/scene attrs ground_height", run.ground_height, MAX_ABS_POSITION, "m",
+                 "MAX_ABS_POSITION")
     if "initial_pose" in run.prior:
         ip = np.asarray(run.prior["initial_pose"], float)
         _check_shape(filename, "/prior attrs initial_pose", ip, (pose_size(D),))
@@ -434,6 +477,26 @@ def read_run(path) -> Run:
     return run
 
 
+def read_runs(paths) -> list:
+    """Read and validate the run files of one object (:func:`read_run` each).
+
+    The same run given twice — the same file, or a copy of it (equal SHA-256) — is an
+    error: its samples would count twice.
+    """
+    from tacest.errors import TacestError
+    from tacest.io.h5util import sha256_file
+
+    runs, seen = [], {}
+    for path in paths:
+        run = read_run(path)
+        sha = sha256_file(path)
+        if sha in seen:
+            raise TacestError(f"{path}: is the same run as {seen[sha]} (SHA-256 {sha[:12]}...); give each run once")
+        seen[sha] = path
+        runs.append(run)
+    return runs
+
+
 def _read_truth(r: Reader, f, dim, T) -> Truth:
     pose = r.dataset("/truth/pose", (T, pose_size(dim)))
     vertices = r.dataset("/truth/vertices", (None, dim))
@@ -467,8 +530,30 @@ def write_run(run: Run, path, include_truth: bool = True) -> None:
         fill_run_file(f, run, include_truth=include_truth)
 
 
+def write_provenance(f, blind: bool = False) -> None:
+    """Root attrs ``tacest_version`` and ``command_line`` (tacest.provenance).  A blind
+    run (a simulated run written without its /truth) must not give its answer away: its
+    command line and the simulator's ``sim_options`` (which name the injected effects and
+    the seed that reproduces the truth) are replaced by their SHA-256,
+    ``command_line_sha256`` and ``sim_options_sha256`` (docs/formats.md, "Provenance")."""
+    from tacest.provenance import provenance, sha256_text
+
+    prov = provenance()
+    f.attrs["tacest_version"] = prov["tacest_version"]
+    if not blind:
+        f.attrs["command_line"] = prov["command_line"]
+        return
+    f.attrs["command_line_sha256"] = sha256_text(prov["command_line"])
+    for key in ("command_line", "sim_options"):
+        if key in f.attrs:
+            if key == "sim_options":
+                f.attrs["sim_options_sha256"] = sha256_text(attr_str(f.attrs[key]))
+            del f.attrs[key]
+
+
 def fill_run_file(f, run: Run, include_truth: bool = True) -> None:
-    """Write every group of ``run`` into an open, empty h5py File (no validation)."""
+    """Write every group of ``run`` into an open, empty h5py File (no validation), with
+    the provenance attrs (:func:`write_provenance`)."""
     f.attrs["format"] = FORMAT
     f.attrs["version"] = VERSION
     f.attrs["dim"] = int(run.dim)
@@ -477,6 +562,7 @@ def fill_run_file(f, run: Run, include_truth: bool = True) -> None:
     f.attrs["source"] = str(run.source)
     for k, v in run.extra_attrs.items():
         f.attrs[k] = v
+    write_provenance(f, blind=include_truth is False and run.truth is not None)
     f.create_dataset("time", data=np.asarray(run.time, float))
     if run.finger_position is not None:
         g = f.create_group("robot")
