@@ -127,6 +127,8 @@ def main(argv=None):
         click.echo(f"tacest: internal error: {exc.__class__.__name__}: {_first_line(exc)} "
                    "(a bug in tacest; set TACEST_DEBUG=1 for a traceback)", err=True)
         sys.exit(EXIT_BUG)
+    finally:
+        set_command_line(None)
     sys.exit(rv if isinstance(rv, int) else EXIT_OK)
 
 

@@ -15,13 +15,18 @@ import sys
 
 from tacest import __version__
 
+#: root attrs that say who wrote a file; a reader does not carry them over (a file
+#: written from what it read gets its own)
+PROVENANCE_ATTRS = ("tacest_version", "command_line", "command_line_sha256")
+
 _command_line: str | None = None
 
 
 def set_command_line(argv) -> None:
-    """Record the arguments of this ``tacest`` invocation (without the program name)."""
+    """Record the arguments of this ``tacest`` invocation (without the program name);
+    None forgets them (the entry point does, when the command ends)."""
     global _command_line
-    _command_line = shlex.join(["tacest", *map(str, argv)])
+    _command_line = None if argv is None else shlex.join(["tacest", *map(str, argv)])
 
 
 def command_line() -> str:

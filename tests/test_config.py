@@ -1,4 +1,4 @@
-"""configs/estimate.toml against the settings dataclasses, and the config errors.
+"""tacest/configs/estimate.toml (shipped in the package) against the settings dataclasses, and the config errors.
 
 The shipped TOML must list every key of :class:`EstimatorConfig` at its default value,
 each with a comment, so that the file and the code cannot drift apart silently: change
@@ -20,7 +20,7 @@ from tacest.estimation.config import EstimatorConfig, load_config
 from tacest.io.run import Run, write_run
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "configs" / "estimate.toml"
+CONFIG = ROOT / "tacest" / "configs" / "estimate.toml"
 TACEST = str(Path(sys.executable).parent / "tacest")
 
 

@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5
-from tacest.provenance import provenance
+from tacest.provenance import PROVENANCE_ATTRS, provenance
 
 FORMAT = "tacest.plan"
 VERSION = 1
@@ -192,7 +192,7 @@ def read_plan(path) -> Plan:
         score = attr_str(r.attr("/", "score"))
         sha = attr_str(f.attrs.get("estimate_sha256", ""))
         extra = {k: f.attrs[k] for k in f.attrs
-                 if k not in ("format", "version", "method", "score", "estimate_sha256")}
+                 if k not in ("format", "version", "method", "score", "estimate_sha256", *PROVENANCE_ATTRS)}
     plan = Plan(chosen=chosen, candidates=candidates, scores=scores, method=method, score=score,
                 estimate_sha256=sha, names=names, kind=kind, extra_attrs=extra, filename=str(path))
     _validate(plan, path)

@@ -40,6 +40,7 @@ import numpy as np
 from tacest.errors import FileFormatError
 from tacest.geometry.transforms import pose_size
 from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5
+from tacest.provenance import PROVENANCE_ATTRS, provenance, sha256_text
 
 FORMAT = "tacest.run"
 VERSION = 1
@@ -471,7 +472,7 @@ def read_run(path) -> Run:
         if r.has("/truth"):
             run.truth = _read_truth(r, f, dim, T)
         for k, v in f.attrs.items():
-            if k not in ("format", "version", "dim", "dt", "gravity", "source"):
+            if k not in ("format", "version", "dim", "dt", "gravity", "source", *PROVENANCE_ATTRS):
                 run.extra_attrs[k] = v
     _validate(run, path)
     return run
@@ -536,8 +537,6 @@ def write_provenance(f, blind: bool = False) -> None:
     command line and the simulator's ``sim_options`` (which name the injected effects and
     the seed that reproduces the truth) are replaced by their SHA-256,
     ``command_line_sha256`` and ``sim_options_sha256`` (docs/formats.md, "Provenance")."""
-    from tacest.provenance import provenance, sha256_text
-
     prov = provenance()
     f.attrs["tacest_version"] = prov["tacest_version"]
     if not blind:
