@@ -112,6 +112,7 @@ def _echo_err(*args, **kwargs):
 
 
 def _record_sim(output, quiet, **kw):
+    from tacest.errors import TacestError
     from tacest.io.plan import check_plan_continues, read_plan
     from tacest.io.run import write_run
     from tacest.sim.record import SimOptions, record_sim
@@ -125,8 +126,13 @@ def _record_sim(output, quiet, **kw):
     append_to = output if kw["plan_path"] and output.exists() else None
     if append_to is not None:
         check_plan_continues(read_plan(kw["plan_path"]), append_to)
-    run = record_sim(opts, plan_path=kw["plan_path"], append_to=append_to,
-                     echo=(lambda *a, **k: None) if quiet else _echo_err)
+    try:
+        run = record_sim(opts, plan_path=kw["plan_path"], append_to=append_to,
+                         echo=(lambda *a, **k: None) if quiet else _echo_err)
+    except TacestError as exc:
+        if kw["plan_path"] and str(exc).startswith("poke:"):  # the plan's action: name the file
+            raise TacestError(f"{kw['plan_path']}: /chosen/params: {exc}") from None
+        raise
     write_run(run, output, include_truth=not kw["no_truth"])
     if not quiet:
         _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), "

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tacest.diagnosis.floor import TERMS
 from tacest.io.estimate import Estimate, RunEstimate, write_estimate
 from tacest.io.h5util import sha256_file
 from tacest.io.plan import POKE_NAMES, Plan, write_plan
@@ -57,7 +58,7 @@ def truth_estimate(run_paths, path) -> Path:
                 "friction_finger": tr.friction_finger},
         runs=[RunEstimate(pose=r.truth.pose, velocity=np.zeros_like(r.truth.pose),
                           impulses={"finger_0": np.zeros((r.n_samples, 2))},
-                          residuals={"force": np.zeros(r.n_samples)},
+                          residuals={t: np.zeros(r.n_samples) for t in TERMS},
                           source_file=str(p), source_sha256=sha256_file(p)) for r, p in zip(runs, run_paths)],
         solver_status="Solve_Succeeded", success=True, iterations=1, objective=1.0)
     write_estimate(est, path)

@@ -128,17 +128,6 @@ def _jsonable(v):
     return v
 
 
-def _int_attr(r: Reader, name, default=KeyError) -> int:
-    raw = r.attr("/", name, default)
-    try:
-        val = np.asarray(raw).reshape(())
-        if not np.issubdtype(val.dtype, np.number) or val != np.round(val):
-            raise ValueError
-        return int(val)
-    except (TypeError, ValueError):
-        r.fail(f"attrs {name}", f"expected an integer, got {raw!r}")
-
-
 def _json_attr(r: Reader, where: str, raw, kind):
     """A JSON attr that must decode to ``kind`` (dict or list)."""
     try:
@@ -193,13 +182,14 @@ def read_estimate(path) -> Estimate:
         fmt = attr_str(r.attr("/", "format"))
         if fmt != FORMAT:
             r.fail("attrs format", f"expected {FORMAT!r}, got {fmt!r}")
-        version = _int_attr(r, "version")
+        version = r.attr_int("/", "version")
         if version != VERSION:
             r.fail("attrs version", f"unknown version {version} (this tacest reads version {VERSION})")
-        dim = _int_attr(r, "dim")
+        dim = r.attr_int("/", "dim")
         if dim not in (2, 3):
             r.fail("attrs dim", f"must be 2 or 3, got {dim}")
         shape = attr_str(r.attr("/", "shape", "polygon"))
+        _check_shape_name(r, shape, dim)
         model = _json_attr(r, "attrs model", r.attr("/", "model", "[]"), list)
         pgroup = _group(r, "/params")
         vertices = r.dataset("/params/vertices", (None, dim))
@@ -274,7 +264,7 @@ def read_estimate(path) -> Estimate:
         est = Estimate(
             dim=dim, shape=shape, vertices=vertices, params=params, runs=runs, model=model,
             solver_status=attr_str(r.attr("/", "solver_status", "unknown")),
-            success=bool(success), iterations=_int_attr(r, "iterations", 0),
+            success=bool(success), iterations=r.attr_int("/", "iterations", 0),
             wall_time=r.attr_float("/", "wall_time", 0.0), objective=_objective(r),
             information=info, info_names=names, std=std, identifiable=identifiable,
             config=_json_attr(r, "attrs config", r.attr("/", "config", "{}"), dict),
@@ -282,6 +272,22 @@ def read_estimate(path) -> Estimate:
             filename=str(path),
         )
     return est
+
+
+def _check_shape_name(r: Reader, shape: str, dim: int) -> None:
+    from tacest.errors import TacestError
+
+    try:
+        if dim == 2:
+            from tacest.geometry.shapes import make_shape
+
+            make_shape(shape)
+        else:
+            from tacest.geometry.shapes3d import make_shape_3d
+
+            make_shape_3d(shape)
+    except TacestError as exc:
+        r.fail("attrs shape", str(exc))
 
 
 def _objective(r: Reader) -> float:

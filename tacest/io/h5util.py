@@ -109,6 +109,20 @@ class Reader:
             self.fail(where, f"must be > 0, got {val}")
         return val
 
+    def attr_int(self, h5path, name, default=KeyError) -> int:
+        """An integer attribute (a float with an integral value is accepted)."""
+        where = f"{h5path} attrs {name}" if h5path != "/" else f"attrs {name}"
+        raw = self.attr(h5path, name, default)
+        if raw is default and default is not KeyError:
+            return default
+        try:
+            val = np.asarray(raw).reshape(())
+            if val.dtype.kind not in "biuf" or not np.isfinite(val) or val != np.round(val):
+                raise ValueError
+            return int(val)
+        except (TypeError, ValueError, OverflowError):
+            self.fail(where, f"expected an integer, got {raw!r}")
+
     def attr_vector(self, h5path, name, length, default=KeyError) -> np.ndarray:
         where = f"{h5path} attrs {name}" if h5path != "/" else f"attrs {name}"
         raw = self.attr(h5path, name, default)
@@ -137,10 +151,14 @@ class Reader:
         obj = self.f[h5path]
         if not isinstance(obj, h5py.Dataset):
             self.fail(h5path, "expected a dataset, found a group")
+        if obj.dtype.kind not in "biuf":  # strings, complex, compound: not real numbers
+            self.fail(h5path, f"expected real numbers, got {obj.dtype}")
         try:
             arr = np.asarray(obj[()], dtype=dtype)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             self.fail(h5path, f"cannot read as {np.dtype(dtype).name}")
+        except OSError as exc:  # HDF5 could not read the data: a damaged file
+            self.fail(h5path, f"cannot be read ({_first_line(exc)})")
         if len(arr.shape) != len(shape) or any(
             s is not None and s != a for s, a in zip(shape, arr.shape)
         ):
@@ -153,6 +171,11 @@ class Reader:
             elif not np.all(np.isfinite(arr)):
                 self.fail(h5path, "contains NaN or inf where values are required")
         return arr
+
+
+def _first_line(exc) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else exc.__class__.__name__
 
 
 def json_attr(value) -> str:

@@ -169,10 +169,7 @@ def read_plan(path) -> Plan:
             if fmt != FORMAT:
                 r.fail("attrs format", f"expected {FORMAT!r}, got {fmt!r}")
         if "version" in f.attrs:
-            try:
-                version = int(np.asarray(f.attrs["version"]).reshape(()))
-            except (TypeError, ValueError):
-                r.fail("attrs version", "expected an integer")
+            version = r.attr_int("/", "version")
             if version != VERSION:
                 r.fail("attrs version", f"unknown version {version} (this tacest reads version {VERSION})")
         chosen = r.dataset("/chosen/params", (None,))

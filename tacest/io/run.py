@@ -386,21 +386,16 @@ def read_run(path) -> Run:
     TacestError / FileFormatError : missing file, not HDF5, or anything against SPEC;
         the message names the file and the offending path.
     """
+    notes = []  # shown once the whole file is valid (a bad file gets one line: its error)
     with open_h5(path) as f:
         r = Reader(f, path)
         fmt = attr_str(r.attr("/", "format"))
         if fmt != FORMAT:
             r.fail("attrs format", f"expected {FORMAT!r}, got {fmt!r}")
-        try:
-            version = int(np.asarray(r.attr("/", "version")).reshape(()))
-        except (TypeError, ValueError):
-            r.fail("attrs version", "expected an integer")
+        version = r.attr_int("/", "version")
         if version != VERSION:
             r.fail("attrs version", f"unknown version {version} (this tacest reads version {VERSION})")
-        try:
-            dim = int(np.asarray(r.attr("/", "dim")).reshape(()))
-        except (TypeError, ValueError):
-            r.fail("attrs dim", "expected 2 or 3")
+        dim = r.attr_int("/", "dim")
         if dim not in (2, 3):
             r.fail("attrs dim", f"must be 2 or 3, got {dim}")
         dt = r.attr_float("/", "dt", positive=True)
@@ -429,8 +424,8 @@ def read_run(path) -> Run:
             missing = [n for n in ("sigma_position", "sigma_angle")
                        if n not in f["/observations/pose"].attrs and n not in f["/observations"].attrs]
             if missing:
-                print(f"note: {path}: /observations/pose has no {' or '.join(missing)}; using "
-                      f"{DEFAULT_SIGMA_POSITION} m / {DEFAULT_SIGMA_ANGLE} rad", file=sys.stderr)
+                notes.append(f"note: {path}: /observations/pose has no {' or '.join(missing)}; using "
+                             f"{DEFAULT_SIGMA_POSITION} m / {DEFAULT_SIGMA_ANGLE} rad")
             for name, default in (("sigma_position", DEFAULT_SIGMA_POSITION),
                                   ("sigma_angle", DEFAULT_SIGMA_ANGLE)):
                 holder = "/observations/pose" if name in f["/observations/pose"].attrs else "/observations"
@@ -475,6 +470,8 @@ def read_run(path) -> Run:
             if k not in ("format", "version", "dim", "dt", "gravity", "source", *PROVENANCE_ATTRS):
                 run.extra_attrs[k] = v
     _validate(run, path)
+    for note in notes:
+        print(note, file=sys.stderr)
     return run
 
 
@@ -498,6 +495,12 @@ def read_runs(paths) -> list:
     return runs
 
 
+def _is_number_or_numbers(v) -> bool:
+    if isinstance(v, list):
+        return all(_is_number_or_numbers(x) for x in v)
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _read_truth(r: Reader, f, dim, T) -> Truth:
     pose = r.dataset("/truth/pose", (T, pose_size(dim)))
     vertices = r.dataset("/truth/vertices", (None, dim))
@@ -516,6 +519,10 @@ def _read_truth(r: Reader, f, dim, T) -> Truth:
         r.fail("/truth attrs effects", "not valid JSON")
     if isinstance(effects, dict):
         effects = [effects]
+    for e in effects if isinstance(effects, list) else [None]:
+        if not (isinstance(e, dict) and isinstance(e.get("name"), str) and all(
+                _is_number_or_numbers(v) for k, v in e.items() if k != "name")):
+            r.fail("/truth attrs effects", f"expected {{\"name\": str, parameter: number, ...}} objects, got {e!r}"[:200])
     return Truth(pose=pose, vertices=vertices, mass=mass, inertia=inertia,
                  friction_ground=fg, friction_finger=ff, effects=effects)
 
