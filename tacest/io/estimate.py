@@ -151,12 +151,15 @@ def _group(r: Reader, h5path):
 
 
 def _param(r: Reader, name, raw, dim):
-    """One /params attr as a float or an array; core parameters must be physical."""
+    """One /params attr as a float or an array; core parameters must be physical (a
+    friction may be NaN: not estimated)."""
     where = f"/params attrs {name}"
     try:
         v = np.asarray(raw, float)
     except (TypeError, ValueError):
         r.fail(where, f"expected a number, got {raw!r}")
+    if name.startswith("friction_") and v.size == 1 and np.isnan(v).all():
+        return float("nan")  # not estimated (another program's estimate): evaluation reports n/a
     if not np.all(np.isfinite(v)):
         r.fail(where, "must be finite")
     if name == "inertia" and dim == 3:
