@@ -20,7 +20,7 @@ import numpy as np
 
 from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5
 from tacest.provenance import provenance
-from tacest.io.run import pose_size, velocity_size
+from tacest.io.run import MAX_ABS_POSITION, check_plausible, pose_size, velocity_size
 
 FORMAT = "tacest.estimate"
 VERSION = 1
@@ -196,6 +196,7 @@ def read_estimate(path) -> Estimate:
         model = _json_attr(r, "attrs model", r.attr("/", "model", "[]"), list)
         pgroup = _group(r, "/params")
         vertices = r.dataset("/params/vertices", (None, dim))
+        check_plausible(path, "/params/vertices", vertices, MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
         if vertices.shape[0] < dim + 1:
             r.fail("/params/vertices", f"a {dim}-D shape needs at least {dim + 1} vertices, got {vertices.shape[0]}")
         params = {}
@@ -225,6 +226,7 @@ def read_estimate(path) -> Estimate:
             base = f"/runs/{i}"
             rg = _group(r, base)
             pose = r.dataset(f"{base}/pose", (None, P))
+            check_plausible(path, f"{base}/pose", pose[:, :dim], MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
             T = pose.shape[0]
             if T < 2:
                 r.fail(f"{base}/pose", f"needs at least 2 samples, got {T}")

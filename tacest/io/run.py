@@ -208,8 +208,9 @@ def _check_finite(filename, path, arr):
         _fail(filename, path, "contains NaN or inf where values are required")
 
 
-def _check_limit(filename, path, arr, limit, unit, name):
-    """FileFormatError naming the first entry of ``arr`` with |value| > limit (NaN passes)."""
+def check_plausible(filename, path, arr, limit, unit, name):
+    """FileFormatError naming the first entry of ``arr`` with |value| > limit (NaN
+    passes); ``name`` is the limit's constant in this module."""
     arr = np.asarray(arr, float)
     with np.errstate(invalid="ignore"):
         bad = np.abs(arr) > limit
@@ -262,7 +263,7 @@ def _validate(run: Run, filename):
         if fp.ndim != 3 or fp.shape[0] != T or fp.shape[2] != D:
             _fail(filename, "/robot/finger_position", f"expected shape ({T}, F, {D}), got {fp.shape}")
         _check_finite(filename, "/robot/finger_position", fp)
-        _check_limit(filename, "/robot/finger_position", fp, MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
+        check_plausible(filename, "/robot/finger_position", fp, MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
         F = fp.shape[1]
         if F < 1:
             _fail(filename, "/robot/finger_position", "needs at least one finger")
@@ -273,7 +274,7 @@ def _validate(run: Run, filename):
         _check_finite(filename, "/robot/finger_radius", rad)
         if np.any(rad <= 0):
             _fail(filename, "/robot/finger_radius", "radii must be > 0")
-        _check_limit(filename, "/robot/finger_radius", rad, MAX_FINGER_RADIUS, "m", "MAX_FINGER_RADIUS")
+        check_plausible(filename, "/robot/finger_radius", rad, MAX_FINGER_RADIUS, "m", "MAX_FINGER_RADIUS")
         if not has_tactile:
             _fail(filename, "/tactile/contact", "required when /robot is present")
     if has_tactile:
@@ -302,14 +303,14 @@ def _validate(run: Run, filename):
             fz = np.asarray(run.force, float)
             _check_shape(filename, "/tactile/force", fz, (T, F, D))
             _check_finite(filename, "/tactile/force", fz)
-            _check_limit(filename, "/tactile/force", fz, MAX_ABS_FORCE, "N", "MAX_ABS_FORCE")
+            check_plausible(filename, "/tactile/force", fz, MAX_ABS_FORCE, "N", "MAX_ABS_FORCE")
     if run.pose_obs is not None:
         P = pose_size(D)
         po = np.asarray(run.pose_obs, float)
         _check_shape(filename, "/observations/pose", po, (T, P))
         if np.any(np.isinf(po)):
             _fail(filename, "/observations/pose", "contains inf")
-        _check_limit(filename, "/observations/pose", po[:, :D], MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
+        check_plausible(filename, "/observations/pose", po[:, :D], MAX_ABS_POSITION, "m", "MAX_ABS_POSITION")
         nanrow = np.isnan(po)
         partial = np.any(nanrow, axis=1) & ~np.all(nanrow, axis=1)
         if np.any(partial):
@@ -358,7 +359,7 @@ def _validate(run: Run, filename):
         _fail(filename, "/scene attrs ground_normal", "must be a unit vector")
     if not np.isfinite(run.ground_height):
         _fail(filename, "/scene attrs ground_height", "must be finite")
-    _check_limit(filename, "/scene attrs ground_height", run.ground_height, MAX_ABS_POSITION, "m",
+    check_plausible(filename, "/scene attrs ground_height", run.ground_height, MAX_ABS_POSITION, "m",
                  "MAX_ABS_POSITION")
     if "initial_pose" in run.prior:
         ip = np.asarray(run.prior["initial_pose"], float)
@@ -443,6 +444,8 @@ def read_run(path) -> Run:
             seg = r.dataset("/actions/segments", (None, 2), dtype=float)
             if np.any(seg != np.round(seg)):
                 r.fail("/actions/segments", "must be integers")
+            if seg.size and (seg.min() < 0 or seg.max() > T):
+                r.fail("/actions/segments", f"each row must be [start, stop) with 0 <= start < stop <= {T}")
             params = r.dataset("/actions/params", (seg.shape[0], None))
             kind = attr_str(r.attr("/actions/params", "kind", "poke"))
             names = [attr_str(n) for n in np.atleast_1d(r.attr("/actions/params", "names", np.array([])))]
