@@ -36,6 +36,10 @@ from hypothesis import strategies as st
 
 from tests.reliability_files import make_run, poke_plan, truth_estimate
 
+#: a numpy warning (overflow in a check) would be a second line on a user's stderr
+pytestmark = [pytest.mark.filterwarnings("error::RuntimeWarning"),
+              pytest.mark.filterwarnings("error::numpy.exceptions.ComplexWarning")]
+
 #: cases per CI run (each reads one corrupted file through one command: ~10-50 ms);
 #: CI's cases are the same every run (derandomized), a longer run draws new ones
 FUZZ_EXAMPLES = int(os.environ.get("TACEST_FUZZ_EXAMPLES", "300"))

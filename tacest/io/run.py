@@ -222,6 +222,13 @@ def check_plausible(filename, path, arr, limit, unit, name):
 
 
 def _validate(run: Run, filename):
+    # absurd values (1e300) may overflow in the checks (a norm): they fail the check,
+    # and numpy's warning would only be a second line on stderr
+    with np.errstate(over="ignore", invalid="ignore"):
+        _validate_values(run, filename)
+
+
+def _validate_values(run: Run, filename):
     D = run.dim
     if D not in (2, 3):
         _fail(filename, "attrs dim", f"must be 2 or 3, got {D}")
