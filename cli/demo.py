@@ -12,7 +12,6 @@ import importlib.util
 import json
 import math
 import time
-from pathlib import Path
 
 import click
 
@@ -20,6 +19,8 @@ import click
 DEMO_OBJECT = "box"
 DEMO_POKES = 6
 DEMO_SHAPE = "box"
+#: the demo's files in its output folder
+DEMO_FILES = ("run.h5", "estimate.h5", "eval.json", "eval.png")
 #: later stages, by CLI module; each is run only if its module exists
 LATER_STAGES = (("plan", "tacest.cli.plan"), ("diagnose", "tacest.cli.diagnose"))
 
@@ -40,29 +41,33 @@ def _available(module: str) -> bool:
 def demo(out_dir, seed, quiet):
     """Record a simulated 2-D box with 6 pokes, estimate it, score the estimate
     against the truth, and print a summary.  Files go to OUTPUT."""
-    from tacest.errors import SolveFailedError, TacestError
-    from tacest.estimation.config import load_config
-    from tacest.dims import estimate_runs
-    from tacest.evaluation.metrics import evaluate, to_jsonable
-    from tacest.evaluation.plots import plot_evaluation
-    from tacest.io.estimate import read_estimate, write_estimate
-    from tacest.io.run import read_run, write_run
     from tacest.cli.logs import setup_logging
-    from tacest.sim.record import SimOptions, record_sim
+    from tacest.io.outputs import replacing_files
 
     log = setup_logging(quiet)
 
     def progress(msg):
         log.info(msg)
 
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise TacestError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    run_path, est_path = out / "run.h5", out / "estimate.h5"
-    json_path, png_path = out / "eval.json", out / "eval.png"
-    for stale in (est_path, json_path, png_path):  # outputs of an earlier demo: never mistake them for this one's
-        stale.unlink(missing_ok=True)
+    # outputs of an earlier demo are removed, never mistaken for this one's (put back on Ctrl-C)
+    with replacing_files(out_dir, DEMO_FILES) as out:
+        run_path, est_path = out / "run.h5", out / "estimate.h5"
+        json_path, png_path = out / "eval.json", out / "eval.png"
+        lines = _demo(run_path, est_path, json_path, png_path, seed, progress)
+    click.echo("\n".join(lines))
+
+
+def _demo(run_path, est_path, json_path, png_path, seed, progress) -> list:
+    """record -> estimate -> eval into the given files; returns the summary lines."""
+    from tacest.dims import estimate_runs
+    from tacest.errors import SolveFailedError
+    from tacest.estimation.config import load_config
+    from tacest.evaluation.metrics import evaluate, to_jsonable
+    from tacest.evaluation.plots import plot_evaluation
+    from tacest.io.estimate import read_estimate, write_estimate
+    from tacest.io.run import read_run, write_run
+    from tacest.sim.record import SimOptions, record_sim
+
     t_all = time.perf_counter()
 
     # -- record ----------------------------------------------------------------------
@@ -115,7 +120,7 @@ def demo(out_dir, seed, quiet):
         else:
             lines.append(f"{name}: not available in this version yet")
     lines.append(f"wall time {t_total:.1f} s")
-    click.echo("\n".join(lines))
+    return lines
 
 
 def _finite(v):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 
@@ -19,7 +18,7 @@ import click
 @click.option("--effects", default=None, metavar="a,b,...",
               help="Candidate effects to compare (default: every SPEC effect).")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-              help="Estimator settings (TOML, see configs/estimate.toml).")
+              help="Estimator settings (TOML; `tacest config --defaults` prints every key).")
 @click.option("--window", type=click.IntRange(min=1), default=None,
               help="Longest residual window, samples (default 20).")
 @click.option("--alpha", type=click.FloatRange(0, 1, min_open=True, max_open=True), default=None,
@@ -44,23 +43,24 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  See docs/diagnosis.md."""
     from tacest.diagnosis.candidates import parse_effect_list
-    from tacest.diagnosis.diagnose import DiagnoseOptions
+    from tacest.diagnosis.diagnose import DiagnoseOptions, check_heldout_data
     from tacest.diagnosis.diagnose import diagnose as run_diagnosis
     from tacest.diagnosis.report import write_report
     from tacest.errors import TacestError
     from tacest.estimation.config import load_config
     from tacest.io.estimate import read_estimate
-    from tacest.io.run import read_run
+    from tacest.io.outputs import check_output
+    from tacest.io.run import read_runs
+    from tacest.linear_solver import check_linear_solver
 
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
-    out = Path(output)
-    if out.exists() and not out.is_dir():
-        raise TacestError(f"{out}: exists and is not a folder")
+    out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     names = parse_effect_list(effects)
     config = load_config(config_path)
-    loaded = [read_run(p) for p in runs]
+    check_linear_solver(config.solver.linear_solver)
+    loaded = read_runs(runs)
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
@@ -81,6 +81,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
                      ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach)):
         if val is not None:
             setattr(opts, key, val)
+    check_heldout_data(loaded)  # before any fit: without held-out data nothing can be decided
     diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est)
     _report(diag, write_report, out, as_json, quiet)
 
@@ -88,7 +89,9 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
 def _report(diag, write, out, as_json: bool, quiet: bool):
     """Write the report folder with write(diag, out, obj) -> file names, print the JSON
     object (--json) on stdout and the verdict line on stderr (unless --quiet)."""
-    obj = diag.to_json()
+    from tacest.provenance import provenance
+
+    obj = {**diag.to_json(), **provenance()}
     written = write(diag, out, obj)
     if as_json:
         click.echo(json.dumps(obj))

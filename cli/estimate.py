@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 
@@ -14,23 +12,27 @@ import click
 @click.option("--method", type=click.Choice(["implicit", "shooting"]), default="implicit", show_default=True,
               help="implicit: one NLP over states, impulses and parameters; shooting: baseline.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-              help="TOML settings (see configs/estimate.toml); unknown keys are an error.")
+              help="TOML settings (`tacest config --defaults` prints every key with its default); unknown keys are an error.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def estimate(runs, output, shape, method, config_path, quiet):
     """Estimate one object from RUNS (run files of the same object; shared parameters,
     one trajectory each) and write the estimate file OUTPUT."""
-    from tacest.estimation.config import load_config
     from tacest.dims import estimate_runs
+    from tacest.estimation.config import load_config
     from tacest.io.estimate import write_estimate
-    from tacest.io.run import read_run
+    from tacest.io.outputs import check_output
+    from tacest.io.run import read_runs
+    from tacest.linear_solver import check_linear_solver
 
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
+    output = check_output(output, inputs=[*runs, config_path])  # before minutes of solving
     config = load_config(config_path)
-    loaded = [read_run(p) for p in runs]
+    check_linear_solver(config.solver.linear_solver)
+    loaded = read_runs(runs)
     est = estimate_runs(loaded, shape, config=config, method=method)
-    write_estimate(est, Path(output))
+    write_estimate(est, output)
     if not quiet:
         p = est.params
 

@@ -25,12 +25,16 @@ def eval_cmd(estimate, truth, as_json, plot_path, run_index):
     import json
 
     from tacest.evaluation.metrics import evaluate_files, format_report, to_jsonable
+    from tacest.io.outputs import atomic_file, check_output
 
+    if plot_path:
+        check_output(plot_path, inputs=[estimate, truth])
     report, series, est, run = evaluate_files(estimate, truth, run_index=run_index, return_series=True)
     if plot_path:
         from tacest.evaluation.plots import plot_evaluation
 
-        plot_evaluation(plot_path, report, series, est, run, run_index=report["run_index"])
+        with atomic_file(plot_path) as tmp:
+            plot_evaluation(tmp, report, series, est, run, run_index=report["run_index"])
         report["plot"] = str(plot_path)
     if as_json:
         click.echo(json.dumps(to_jsonable(report), allow_nan=False))

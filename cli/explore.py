@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import click
 
+#: the files of a loop in its output folder (tacest/planning/explore.py)
+EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "estimate_*.h5", "plan_*.h5")
+
 
 @click.command()
 @click.option("-o", "--output", "out_dir", type=click.Path(file_okay=False), required=True,
@@ -21,23 +24,29 @@ import click
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
               help="Also choose the depth and/or speed of each poke (repeatable).")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-              help="Estimator TOML settings (configs/estimate.toml).")
+              help="Estimator TOML settings (`tacest config --defaults` prints every key).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def explore(out_dir, object_spec, seed, policy, pokes, shape, score, vary, config_path, quiet):
     """Explore a simulated object: record a poke, estimate, plan the next poke with
     POLICY, repeat until POKES pokes; write per-step files, summary.json and a
     learning-curve plot to OUTPUT."""
     import sys
+    from pathlib import Path
 
+    from tacest.cli.logs import setup_logging
+    from tacest.estimation.config import load_config
     from tacest.geometry.shapes import make_shape
+    from tacest.io.outputs import check_output, replacing_files
+    from tacest.linear_solver import check_linear_solver
     from tacest.planning.explore import ExploreOptions, explore as run_loop
 
+    object_file = object_spec if Path(object_spec).is_file() else None
+    check_output(out_dir, inputs=[object_file, config_path], folder=True)
     if shape is not None:
         make_shape(shape)  # a bad --shape is an error before anything is simulated
+    check_linear_solver(load_config(config_path).solver.linear_solver)
     opts = ExploreOptions(object_spec=object_spec, seed=seed, policy=policy, pokes=pokes, shape=shape, score=score,
                           config_path=config_path, vary=tuple(vary)).validate()
-    from tacest.cli.logs import setup_logging
-
     setup_logging(quiet)
 
     def progress(done, total):
@@ -47,7 +56,9 @@ def explore(out_dir, object_spec, seed, policy, pokes, shape, score, vary, confi
         k = int(round(width * done / total))
         click.echo(f"  [{'#' * k}{'.' * (width - k)}] {done}/{total} pokes", err=True)
 
-    summary = run_loop(opts, out_dir, progress=progress)
+    # an earlier loop's files are removed, never mistaken for this one's (put back on Ctrl-C)
+    with replacing_files(out_dir, EXPLORE_FILES) as out:
+        summary = run_loop(opts, out, progress=progress)
     last = summary["steps"][-1]
     ch = last.get("chamfer")
     if not quiet:

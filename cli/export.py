@@ -37,9 +37,11 @@ def export(estimate, output, fmt, depth, run_index, run_path, trajectory_path, k
     priors the data could not determine (docs/export.md).
     """
     from tacest.errors import TacestError
-    from tacest.export.formats import SUFFIX_FORMAT, check_finite_body, write_export, write_trajectory_csv
+    from tacest.export.formats import (SUFFIX_FORMAT, check_finite_body, export_paths, write_export,
+                                       write_trajectory_csv)
     from tacest.export.model import body_from_estimate
     from tacest.io.estimate import read_estimate
+    from tacest.io.outputs import check_output
 
     output = Path(output)
     if fmt is None:
@@ -47,6 +49,11 @@ def export(estimate, output, fmt, depth, run_index, run_path, trajectory_path, k
         if fmt is None:
             raise click.UsageError(f"cannot tell the format from {output.name!r}; give --format "
                                    + "|".join(FORMAT_CHOICES))
+    outputs = export_paths(output, fmt) + ([Path(trajectory_path)] if trajectory_path else [])
+    if len({p.resolve() for p in outputs}) < len(outputs):
+        raise TacestError(f"{trajectory_path}: is also the model file or its companion; give another --trajectory")
+    for path in outputs:  # before any work
+        check_output(path, inputs=[estimate, run_path])
     if keyframes == "all":
         max_keys = None
     else:

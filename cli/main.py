@@ -1,5 +1,13 @@
-"""Entry point: the ``tacest`` click group, and the one place where errors become
-one line on stderr with exit status 2.
+"""Entry point: the ``tacest`` click group, and the one place where errors and
+interrupts become one line on stderr and an exit status (docs/index.md, "Exit status"):
+
+- 0 (EXIT_OK): success; also ``tacest`` with no arguments, which prints the help on stdout;
+- 2 (EXIT_BAD_INPUT): bad input or environment — a usage error, a bad file, an output
+  tacest must not write, a failed solve: ``tacest: error: ...``;
+- 3 (EXIT_BUG): an unexpected exception, a bug in tacest: ``tacest: internal error: ...``
+  (TACEST_DEBUG=1 shows the traceback);
+- 130 (EXIT_INTERRUPTED): Ctrl-C (SIGINT): ``tacest: interrupted``; no output is written
+  and an existing output is left as it was.
 
 Subcommands live in their own modules and are imported only when invoked, so
 ``tacest --help`` stays fast.
@@ -13,6 +21,12 @@ import sys
 
 import click
 
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+EXIT_BUG = 3
+#: 128 + SIGINT, as a shell reports a program ended by Ctrl-C
+EXIT_INTERRUPTED = 130
+
 #: command name -> (module, attribute, one-line help)
 COMMANDS = {
     "record": ("tacest.cli.record", "record", "Record a run: simulation, serial tactile rig or tactile video."),
@@ -24,6 +38,7 @@ COMMANDS = {
     "export": ("tacest.cli.export", "export", "Export the estimated object: MJCF, URDF, SDF, OBJ, STL, GLB."),
     "view": ("tacest.cli.view", "view", "Animate a run or an estimate: GIF/MP4 (2-D), interactive HTML (3-D)."),
     "demo": ("tacest.cli.demo", "demo", "Run the whole pipeline on a built-in simulated example."),
+    "config": ("tacest.cli.config", "config", "Print the estimator's default settings (TOML)."),
 }
 
 
@@ -60,49 +75,63 @@ def _unavailable(name, help_text):
     return cmd
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=LazyGroup, invoke_without_command=True, no_args_is_help=False,
+             context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="tacest")
-def cli():
+@click.pass_context
+def cli(ctx):
     """tacest: learn an unknown rigid object by touch.
 
     Stages chain over HDF5 files (see docs/formats.md):
     record -> estimate -> plan -> eval / diagnose.
     """
+    if ctx.invoked_subcommand is None:  # bare `tacest`: the help, as `tacest --help`
+        click.echo(ctx.get_help())
+
+
+def _first_line(exc) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else ""
 
 
 def main(argv=None):
-    """Run the CLI; every failure is one line on stderr and exit status 2.
+    """Run the CLI; every failure is one line on stderr and an exit status (module doc).
 
     Set TACEST_DEBUG=1 to see the Python traceback of an unexpected error.
     """
     from tacest.errors import TacestError
+    from tacest.provenance import set_command_line
 
+    args = list(sys.argv[1:] if argv is None else argv)
+    set_command_line(args)
     try:
-        rv = cli.main(args=argv, prog_name="tacest", standalone_mode=False)
-    except click.exceptions.Abort:
+        rv = cli.main(args=args, prog_name="tacest", standalone_mode=False)
+    except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("tacest: interrupted", err=True)
-        sys.exit(130)
+        sys.exit(EXIT_INTERRUPTED)
     except click.ClickException as exc:
         # usage errors: unknown option, bad value, missing argument
         ctx_hint = ""
         if isinstance(exc, click.UsageError) and exc.ctx is not None:
             ctx_hint = f" (see '{exc.ctx.command_path} --help')"
-        click.echo(f"tacest: error: {exc.format_message()}{ctx_hint}", err=True)
-        sys.exit(2)
+        click.echo(f"tacest: error: {_first_line(exc.format_message())}{ctx_hint}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
     except TacestError as exc:
-        click.echo(f"tacest: error: {exc}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        click.echo("tacest: interrupted", err=True)
-        sys.exit(130)
-    except Exception as exc:  # an input we failed to validate, or a bug: still one line
+        click.echo(f"tacest: error: {_first_line(exc)}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    except OSError as exc:  # the environment: disk full, permissions, a vanished file
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"tacest: error: {where}{exc.strerror or _first_line(exc) or exc.__class__.__name__}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    except Exception as exc:  # a bug: still one line, and its own status
         if os.environ.get("TACEST_DEBUG"):
             raise
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        click.echo(f"tacest: error: {exc.__class__.__name__}: {msg} "
-                   "(unexpected; set TACEST_DEBUG=1 for a traceback)", err=True)
-        sys.exit(2)
-    sys.exit(rv if isinstance(rv, int) else 0)
+        click.echo(f"tacest: internal error: {exc.__class__.__name__}: {_first_line(exc)} "
+                   "(a bug in tacest; set TACEST_DEBUG=1 for a traceback)", err=True)
+        sys.exit(EXIT_BUG)
+    finally:
+        set_command_line(None)
+    sys.exit(rv if isinstance(rv, int) else EXIT_OK)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import click
 
@@ -29,30 +28,33 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
     """Plan the next poke of the object in ESTIMATE (an estimate file) from the RUNS it
     was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
     centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
+    import json
     import math
 
-    from tacest.errors import TacestError
-    from tacest.io.estimate import read_estimate
-    from tacest.io.plan import write_plan
-    from tacest.io.run import read_run
+    from tacest.io.estimate import check_runs_match, read_estimate
+    from tacest.io.h5util import sha256_file
+    from tacest.io.outputs import check_output
+    from tacest.io.plan import RUNS_SHA256, write_plan
+    from tacest.io.run import read_runs
     from tacest.planning.planner import PlanSettings, plan_next
 
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
-    folder = Path(output).parent
-    if str(folder) and not folder.is_dir():
-        raise TacestError(f"{output}: folder {folder} does not exist")
+    output = check_output(output, inputs=[estimate, *runs])
     settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
                             population=population).validate()
     est = read_estimate(estimate)
+    loaded = read_runs(runs)
+    check_runs_match(est, runs)
     if est.consistent is False:
         logging.getLogger("tacest.plan").warning(
             f"{estimate}: its fit is NOT consistent with its data (fit_quality): the plan rests on an estimate "
             "whose error bars are not to be trusted")
-    loaded = [read_run(p) for p in runs]
     result = plan_next(est, loaded, settings)
-    write_plan(result, Path(output))
+    # the runs the poke was planned from: `tacest record --plan` continues only the last
+    result.extra_attrs[RUNS_SHA256] = json.dumps([sha256_file(p) for p in runs])
+    write_plan(result, output)
     if not quiet:
         a = result.chosen_dict()
         click.echo(f"wrote {output}: {method} ({score} {result.scores.max() if method != 'random' else result.scores[0]:.4g}, "

@@ -86,6 +86,7 @@ def record(bag, source, output, **kw):
     .db3 file, read with the mapping given by --mapping.
     """
     from tacest.cli.logs import setup_logging
+    from tacest.io.outputs import check_output
 
     output = Path(output)
     quiet = kw.pop("quiet")
@@ -93,9 +94,15 @@ def record(bag, source, output, **kw):
     mapping = kw.pop("mapping")
     if source != "rosbag" and bag is not None:
         raise click.UsageError(f"unexpected argument {bag!r}: a BAG is read with --source rosbag")
+    if source == "rosbag" and (bag is None or mapping is None):
+        raise click.UsageError("--source rosbag needs BAG and --mapping MAP.toml")
+    inputs = [bag, mapping] + [kw[n] for n in ("plan_path", "frames", "calib", "finger_log", "reference")]
+    if source == "sim" and kw["object_spec"] and Path(kw["object_spec"]).is_file():
+        inputs.append(kw["object_spec"])
+    # before any work (a planned poke continues an existing OUTPUT in place: _record_sim
+    # checks that it is the run the plan was made from)
+    check_output(output, inputs=inputs)
     if source == "rosbag":
-        if bag is None or mapping is None:
-            raise click.UsageError("--source rosbag needs BAG and --mapping MAP.toml")
         from tacest.io.run import write_run
         from tacest.sensors.rosbag import record_rosbag
 
@@ -131,8 +138,10 @@ def _echo_err(*args, **kwargs):
 
 
 def _record_sim(output, quiet, **kw):
-    from tacest.io.run import write_run
     from tacest.dims import record_sim
+    from tacest.errors import TacestError
+    from tacest.io.plan import check_plan_continues, read_plan
+    from tacest.io.run import write_run
     from tacest.sim.record import SimOptions
 
     opts = SimOptions(
@@ -141,7 +150,15 @@ def _record_sim(output, quiet, **kw):
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
         observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"], poke_style=kw["poke_style"],
     )
-    run = record_sim(opts, plan_path=kw["plan_path"], append_to=output if kw["plan_path"] and output.exists() else None)
+    append_to = output if kw["plan_path"] and output.exists() else None
+    if append_to is not None:
+        check_plan_continues(read_plan(kw["plan_path"]), append_to)
+    try:
+        run = record_sim(opts, plan_path=kw["plan_path"], append_to=append_to)
+    except TacestError as exc:
+        if kw["plan_path"] and str(exc).startswith("poke:"):  # the plan's action: name the file
+            raise TacestError(f"{kw['plan_path']}: /chosen/params: {exc}") from None
+        raise
     write_run(run, output, include_truth=not kw["no_truth"])
     if not quiet:
         _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), "

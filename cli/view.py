@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 
@@ -23,12 +21,10 @@ import click
 def view(file, output, run_path, run_index, fps, max_frames):
     """Animate FILE (a run or an estimate file): true and estimated shapes along the
     trajectory, fingertips with their path, contact points and normals."""
-    from tacest.errors import TacestError
+    from tacest.io.outputs import check_output
     from tacest.view.scene import load_scene
 
-    output = Path(output)
-    if not output.parent.exists():
-        raise TacestError(f"{output}: the folder {output.parent} does not exist")
+    output = check_output(output, inputs=[file, run_path])  # before any work
     sc = load_scene(file, run_path=run_path, run_index=run_index)
     suffix = output.suffix.lower()
     if sc.dim == 2:

@@ -17,8 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: the layers of docs/architecture.md, lowest first: a package may import only from its
 #: own package and from packages of lower layers
 LAYERS = (
-    ("tacest", "tacest.errors", "tacest.constants"),
-    ("tacest.geometry",),
+    ("tacest", "tacest.errors", "tacest.constants", "tacest.interrupt"),
+    ("tacest.geometry", "tacest.provenance", "tacest.linear_solver"),
     ("tacest.io", "tacest.dynamics"),
     ("tacest.model", "tacest.sim", "tacest.sensors", "tacest.evaluation", "tacest.view"),
     ("tacest.estimation", "tacest.sim3d"),

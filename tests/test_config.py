@@ -1,4 +1,4 @@
-"""configs/estimate.toml against the settings dataclasses, and the config errors.
+"""tacest/configs/estimate.toml (shipped in the package) against the settings dataclasses, and the config errors.
 
 The shipped TOML must list every key of :class:`EstimatorConfig` at its default value,
 each with a comment, so that the file and the code cannot drift apart silently: change
@@ -20,7 +20,7 @@ from tacest.estimation.config import EstimatorConfig, load_config
 from tacest.io.run import Run, write_run
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "configs" / "estimate.toml"
+CONFIG = ROOT / "tacest" / "configs" / "estimate.toml"
 TACEST = str(Path(sys.executable).parent / "tacest")
 
 
@@ -43,18 +43,18 @@ def test_shipped_config_lists_every_key_with_its_default():
     # every section and key present, nothing extra, each value equal to the default
     raw = tomllib.loads(CONFIG.read_text())
     sections = _sections()
-    assert set(raw) == set(sections), "sections of configs/estimate.toml differ from EstimatorConfig"
+    assert set(raw) == set(sections), "sections of tacest/configs/estimate.toml differ from EstimatorConfig"
     for name, default in sections.items():
         fields = {f.name: getattr(default, f.name) for f in dataclasses.fields(default)}
         missing = sorted(set(fields) - set(raw[name]))
         extra = sorted(set(raw[name]) - set(fields))
-        assert not missing, f"[{name}] lacks {missing} in configs/estimate.toml"
+        assert not missing, f"[{name}] lacks {missing} in tacest/configs/estimate.toml"
         assert not extra, f"[{name}] has keys {extra} that EstimatorConfig does not know"
         for key, value in fields.items():
             if isinstance(value, tuple):  # frozen settings hold lists as tuples
                 value = [list(v) if isinstance(v, tuple) else v for v in value]
             assert raw[name][key] == value, (
-                f"configs/estimate.toml [{name}] {key} = {raw[name][key]!r} but the default is {value!r}")
+                f"tacest/configs/estimate.toml [{name}] {key} = {raw[name][key]!r} but the default is {value!r}")
             assert type(raw[name][key]) is type(value) or isinstance(value, float), (
                 f"[{name}] {key}: TOML type {type(raw[name][key]).__name__}, default {type(value).__name__}")
 
@@ -70,7 +70,7 @@ def test_every_key_in_the_shipped_config_has_a_comment():
             section = m.group(1)
             continue
         key = s.split("=", 1)[0].strip()
-        assert "#" in s.split("=", 1)[1], f"[{section}] {key} has no comment in configs/estimate.toml"
+        assert "#" in s.split("=", 1)[1], f"[{section}] {key} has no comment in tacest/configs/estimate.toml"
 
 
 def test_the_complementarity_reach_may_be_off_or_on(tmp_path):

@@ -37,7 +37,7 @@ from tacest.io.run import write_run
 from tacest.sim.record import SimOptions, record_sim
 
 TACEST = str(Path(sys.executable).parent / "tacest")
-#: m, the estimator's default contact-gap sigma (configs/estimate.toml noise.contact_gap)
+#: m, the estimator's default contact-gap sigma (tacest/configs/estimate.toml noise.contact_gap)
 SIGMA_GAP = 5e-4
 
 
@@ -475,6 +475,30 @@ def test_estimate_of_another_object_exits_2(recordings, tmp_path):
     line = _one_error_line(_tacest("diagnose", recordings["none"], "--estimate", path, "-o", tmp_path / "out"))
     assert "other data" in line
     assert not (tmp_path / "out").exists()
+
+
+def test_nothing_compared_is_undetermined_not_none(recordings, stand_in, monkeypatch):
+    """When no held-out comparison could be made (every held-out fit of the plain model
+    failed), the verdict is "undetermined", never "none" (no unmodelled effect)."""
+    from tacest.errors import SolveFailedError
+
+    def fails(*_a, **_k):
+        raise SolveFailedError("IPOPT failed in stage 'homotopy 2/2': Restoration_Failed")
+
+    monkeypatch.setattr(diag_mod._Context, "fold_objective", fails)
+    run = _read(recordings["latency"])
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency",)))
+    assert d.verdict == diag_mod.UNDETERMINED == "undetermined"
+    assert "no comparison possible" in d.reason
+    assert d.to_json()["verdict"] == "undetermined"
+
+
+def test_no_held_out_data_is_an_error_before_any_fit(recordings, stand_in):
+    run = _read(recordings["none"])
+    one_poke = run.replace(actions=None)
+    with pytest.raises(TacestError, match="no held-out data"):
+        diag_mod.diagnose([one_poke], "box", options=diag_mod.DiagnoseOptions(effects=("latency",)))
+    assert stand_in.calls == 0
 
 
 # ------------------------------------------------------------------------------------

@@ -359,7 +359,8 @@ def test_plan_cli_failures_exit_2_and_leave_no_plan(tmp_path):
     cases = [
         (["plan", "missing.h5", "run.h5", "-o", "old.h5"], "no such file"),
         (["plan", "est.h5", "other.h5", "-o", "old.h5"], "not the run the estimate was made from"),
-        (["plan", "est.h5", "run.h5", "run.h5", "-o", "old.h5"], "holds 1 run"),
+        (["plan", "est.h5", "run.h5", "run.h5", "-o", "old.h5"], "same run"),
+        (["plan", "est.h5", "run.h5", "other.h5", "-o", "old.h5"], "estimated from 1 run(s), 2 given"),
         (["plan", "est.h5", "run.h5", "--method", "oracle", "-o", "old.h5"], "oracle"),
         (["plan", "run.h5", "run.h5", "-o", "old.h5"], "attrs format"),
     ]

@@ -266,8 +266,8 @@ def test_errors_name_the_bag_and_topic(sim_run, tmp_path):
 
 
 def test_the_example_mapping_reads():
-    """configs/rosbag_mapping.toml, the documented example, is a valid mapping."""
+    """tacest/configs/rosbag_mapping.toml, the documented example, is a valid mapping."""
     from tacest.sensors.rosbag import read_mapping
 
-    m = read_mapping(Path(__file__).resolve().parents[1] / "configs" / "rosbag_mapping.toml")
+    m = read_mapping(Path(__file__).resolve().parents[1] / "tacest" / "configs" / "rosbag_mapping.toml")
     assert m.dt == 0.01 and len(m.fingers) == 1 and m.fingers[0].force.scale == -1.0

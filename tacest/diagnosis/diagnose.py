@@ -56,6 +56,7 @@ from tacest.estimation.floor import TERMS as FLOOR_TERMS
 from tacest.estimation.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
 from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_folds, make_pieces
+from tacest.diagnosis.slicing import MIN_SUBRUN_SAMPLES
 from tacest.diagnosis.transforms import apply_transform
 from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import SolveFailedError, TacestError
@@ -117,8 +118,24 @@ FITS_PER_CANDIDATE = 3
 DIAGNOSIS_REACH = 0.01
 
 
+#: the verdict when nothing could be compared on held-out data (every held-out fit of
+#: the plain model failed, or no candidate's): not "none", which means that the
+#: comparison was made and no unmodelled effect was found (docs/diagnosis.md, "Verdict")
+UNDETERMINED = "undetermined"
+
+
 def _noop(*_a, **_k):
     pass
+
+
+def check_heldout_data(runs: list) -> None:
+    """TacestError unless ``runs`` hold held-out data (several runs, or one run with at
+    least two actions): without it no effect can be tested, so no verdict can be given."""
+    if not make_folds(make_pieces(runs)):
+        name = runs[0].filename or "the run"
+        raise TacestError(f"{name}: no held-out data to test effects on (one run, without two actions of at least "
+                          f"{MIN_SUBRUN_SAMPLES} samples); diagnose needs several runs of the object, or a run "
+                          "with two or more actions (/actions/segments)")
 
 
 @dataclass
@@ -450,6 +467,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     if dims != [2]:
         raise TacestError(f"diagnose works on 2-D runs in this version (got dim {', '.join(map(str, dims))})")
     check_runs(runs)
+    check_heldout_data(runs)
     K = make_shape(shape, dim=2).n_vertices
     names = cands.parse_effect_list(options.effects)
     wanted = [cands.candidate(n, n_vertices=K) for n in names]
@@ -484,18 +502,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     results = [cands.candidate(n, n_vertices=K) for n in names]
     cres = [CandidateResult(name=c.name, kind=c.kind, n_params=c.n_params, screening=screening.get(c.name, 0.0))
             for c in results]
-    heldout_info = {"design": describe_pieces(pieces, runs) if folds else "no held-out data",
-                    "folds": len(folds), "pieces": [[p.run, p.start, p.stop] for p in pieces]}
-    if not folds:
-        note = ("no held-out data: give several runs, or a run with at least two actions "
-                "(/actions/segments); only the residual breakdown was done")
-        ctx.notes.append(note)
-        for c in cres:
-            c.status, c.message = "failed", "no held-out data"
-        return Diagnosis(verdict="none", reason=note, effects=cres, where=where, stats=stats, table=table,
-                         floor=floor, base=base_est, runs=runs, shape=shape, backend=backend, heldout=heldout_info,
-                         notes=ctx.notes, wall_time=time.perf_counter() - t_start, options=options,
-                         mass_prior=mass_prior)
+    heldout_info = {"design": describe_pieces(pieces, runs), "folds": len(folds),
+                    "pieces": [[p.run, p.start, p.stop] for p in pieces]}
 
     # which candidates are refitted (screening only when their number is limited)
     order = sorted(range(len(cres)), key=lambda i: -cres[i].screening)
@@ -623,7 +631,9 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
                          "fold_objective_plain": {str(k): v for k, v in base_fold.items()},
                          "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
     if not base_fold:
-        verdict, reason = "none", "every held-out fit of the plain model failed: no comparison possible"
+        verdict, reason = UNDETERMINED, "every held-out fit of the plain model failed: no comparison possible"
+    elif not ok:
+        verdict, reason = UNDETERMINED, "no candidate effect could be compared on held-out data (see their status)"
     elif winners:
         w = winners[0]
         verdict = w.name

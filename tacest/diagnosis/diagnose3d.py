@@ -280,8 +280,8 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tacest.diagnosis.report import atomic_dir
     from tacest.evaluation.plots import plain_log_axis
+    from tacest.io.outputs import atomic_dir
 
     obj = json_obj if json_obj is not None else diag.to_json()
     with atomic_dir(folder) as tmp:

@@ -12,51 +12,15 @@ report never leaves a half-written folder.  matplotlib is imported here only (Ag
 
 from __future__ import annotations
 
-import contextlib
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from tacest.estimation.floor import TERMS
-from tacest.errors import TacestError
+from tacest.io.outputs import atomic_dir
 
 #: smallest value drawn on the log-scale residual panels (0.5·‖r‖² per sample)
 LOG_FLOOR = 1e-4
-
-
-@contextlib.contextmanager
-def atomic_dir(path):
-    """Yield a temporary folder beside ``path``; on success it replaces ``path``."""
-    path = Path(path)
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise TacestError(f"{path}: folder {parent} does not exist")
-    if path.exists() and not path.is_dir():
-        raise TacestError(f"{path}: exists and is not a folder")
-    if path.is_dir() and any(path.iterdir()) and not (path / "report.md").is_file():
-        # never replace a folder that is not an earlier report
-        raise TacestError(f"{path}: folder exists and is not a diagnose report (no report.md); "
-                          "choose a new or empty folder")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=parent))
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=parent))
-            os.rmdir(old)
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def write_report(diag, folder, json_obj: dict = None) -> list:

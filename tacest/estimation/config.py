@@ -1,6 +1,7 @@
-"""Typed estimator settings, read from a TOML file (``configs/estimate.toml`` shows every
-key with its default and meaning).  Unknown keys are an error; the resolved settings
-are written into every estimate file (attr ``config``).
+"""Typed estimator settings, read from a TOML file (``tacest/configs/estimate.toml``,
+shipped with the package and printed by ``tacest config --defaults``, shows every key
+with its default and meaning).  Unknown keys are an error; the resolved settings are
+written into every estimate file (attr ``config``).
 
 The settings are frozen and validated where they are built (each section's
 ``__post_init__``): a configuration that exists is a valid one.  Change one with

@@ -28,7 +28,7 @@ degrees of freedom in a window, the floor says S ~ mu·χ²(n).
 Two floors (``mode``):
 
 ``nominal``
-    mu = 1: the configured noise levels exactly (``configs/estimate.toml`` [noise]).
+    mu = 1: the configured noise levels exactly (``tacest/configs/estimate.toml`` [noise]).
     The test is exact for whitened noise at those levels; it flags only what exceeds
     them.  A fit absorbs part of the noise and the configured levels are generous, so
     on real fits this floor is far above most residuals.

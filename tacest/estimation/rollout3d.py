@@ -24,6 +24,7 @@ from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d
 from tacest.geometry.transforms import quat_conjugate, quat_multiply, quat_to_matrix
+from tacest.interrupt import raise_if_interrupted, watch_interrupts
 from tacest.model.stage3d import DI, G3_NAMES, NP, StageModel3D
 
 #: factor on the whitened dynamics residual in a simulation step: with the estimator's
@@ -130,8 +131,11 @@ class TimeStepper3D:
 
     def _solve(self, y0, xa, xb, theta, lbx):
         par = np.concatenate([xa, xb, theta, self.d, self.g])
-        sol = self._step_fun(x0=y0, p=par, lbx=lbx, ubx=np.inf)
-        return np.asarray(sol["x"]).ravel(), self._step_fun.stats()["return_status"]
+        with watch_interrupts() as watch:
+            sol = self._step_fun(x0=y0, p=par, lbx=lbx, ubx=np.inf)
+        status = self._step_fun.stats()["return_status"]
+        raise_if_interrupted(status, watch)
+        return np.asarray(sol["x"]).ravel(), status
 
     def _scaled(self, pose):
         pose = np.asarray(pose, float)

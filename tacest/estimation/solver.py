@@ -7,8 +7,10 @@ Used by the 2-D and 3-D estimators, the shooting baseline and every diagnosis fi
 Status policy (:func:`run_stages`):
 
 - an IPOPT status in :data:`SUCCESS_STATUSES` is a solution;
-- an interrupt (Ctrl-C: IPOPT returns ``User_Requested_Stop``) ends everything at once
-  (KeyboardInterrupt), never a failed stage that the caller might step over;
+- an interrupt (Ctrl-C during a solve, noted by :func:`tacest.interrupt.watch_interrupts`
+  or reported by IPOPT as ``User_Requested_Stop``) ends everything at once
+  (KeyboardInterrupt, :func:`tacest.interrupt.raise_if_interrupted`), never a failed
+  stage that the caller might step over;
 - an intermediate stage (impulses alone, an early homotopy stage) only prepares the
   next: its iterate is used whether or not IPOPT met its tolerance within the stage's
   budget, unless its status is in :data:`FATAL_STATUSES`;
@@ -33,6 +35,7 @@ import casadi as ca
 import numpy as np
 
 from tacest.errors import SolveFailedError
+from tacest.interrupt import raise_if_interrupted, watch_interrupts
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +55,6 @@ RETRY_STATUSES = ("Error_In_Step_Computation", "Restoration_Failed")
 #: before it was lowered to 0.05 for speed; it keeps the steps local where IPOPT failed to
 #: step
 RETRY_RIDGE = 1.0
-#: IPOPT's status when its intermediate callback asked it to stop (here: an interrupt)
-INTERRUPTED_STATUS = "User_Requested_Stop"
 #: half-width (scaled units, relative to max(1, |value|)) of the interval that holds a
 #: variable fixed (:func:`pin`).  IPOPT removes variables with equal bounds; with the
 #: Gauss–Newton Hessian model some such problems failed at iteration 0
@@ -155,7 +156,8 @@ def held(lbx, ubx) -> np.ndarray:
 
 class _Progress(ca.Callback):
     """IPOPT iteration callback: one progress line (log level INFO) every ``every``
-    iterations; asks IPOPT to stop when an interrupt arrived."""
+    iterations.  A Ctrl-C that arrives here stops IPOPT (``User_Requested_Stop``);
+    :meth:`BuiltSolver.solve` turns that into KeyboardInterrupt (tacest.interrupt)."""
 
     def __init__(self, nx, ng, every):
         ca.Callback.__init__(self)
@@ -266,7 +268,7 @@ class BuiltSolver:
 
     def solve(self, z0, p, lbx, ubx, lam_x0=None, lam_g0=None, label="", hessian="gauss-newton", max_iter=None):
         """One IPOPT solve; returns (solution dict, StageInfo).  An interrupt during the
-        solve raises KeyboardInterrupt."""
+        solve raises KeyboardInterrupt (:func:`tacest.interrupt.raise_if_interrupted`)."""
         max_iter = self.config.solver.max_iter if max_iter is None else int(max_iter)
         key = (hessian, max_iter)
         if key not in self.solvers:
@@ -282,12 +284,12 @@ class BuiltSolver:
         if lam_g0 is not None and np.size(lam_g0) == pr.g.shape[0]:
             args["lam_g0"] = lam_g0
         t0 = time.perf_counter()
-        sol = solver(**args)
+        with watch_interrupts() as watch:
+            sol = solver(**args)
         wall = time.perf_counter() - t0
         st = solver.stats()
         status = st.get("return_status", "unknown")
-        if status == INTERRUPTED_STATUS:
-            raise KeyboardInterrupt
+        raise_if_interrupted(status, watch)
         return sol, StageInfo(name=label, status=status, iterations=int(st.get("iter_count", 0)), wall_time=wall,
                               objective=float(sol["f"]))
 

@@ -40,6 +40,7 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.export.model import MAX_KEYFRAMES, ExportBody
+from tacest.io.outputs import atomic_file
 
 log = logging.getLogger(__name__)
 
@@ -293,9 +294,8 @@ def physics_json(body: ExportBody) -> str:
 
 def write_trajectory_csv(body: ExportBody, path) -> None:
     """The pose trajectory as CSV: ``sample, time, x, y, z, qw, qx, qy, qz`` (m, s;
-    time empty when unknown), one row per sample."""
-    path = Path(path)
-    with path.open("w", newline="") as fh:
+    time empty when unknown), one row per sample; written atomically."""
+    with atomic_file(path) as tmp, tmp.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["sample", "time", "x", "y", "z", "qw", "qx", "qy", "qz"])
         for k, pose in enumerate(body.pose__world):
@@ -303,49 +303,66 @@ def write_trajectory_csv(body: ExportBody, path) -> None:
             w.writerow([k, t, *(repr(float(v)) for v in pose)])
 
 
-def write_export(body: ExportBody, path, fmt: str, max_keys=MAX_KEYFRAMES) -> list:
-    """Write ``body`` to ``path`` in ``fmt`` (FORMATS); returns the files written."""
+def export_paths(path, fmt: str) -> list:
+    """The files :func:`write_export` writes for ``path`` in ``fmt``: the model file, and
+    the STL mesh of URDF/SDF or the ``NAME.physics.json`` of the mesh formats beside it
+    (the command checks them all before any work)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise TacestError(f"--format {fmt}: expected one of {', '.join(FORMATS)}")
-    if path.is_dir():
-        raise TacestError(f"{path}: is a folder, expected a file name")
-    if not path.parent.exists():
-        raise TacestError(f"{path}: the folder {path.parent} does not exist")
-    written = []
     if fmt == "mjcf":
-        path.write_text(mjcf_string(body, max_keys=max_keys))
-        written.append(path)
-    elif fmt in ("urdf", "sdf"):
+        return [path]
+    if fmt in ("urdf", "sdf"):
         mesh_path = _mesh_file(path)
         if mesh_path == path:
             raise TacestError(f"{path}: a {fmt.upper()} file needs another suffix than .stl (its mesh is written as .stl)")
-        body.mesh().export(mesh_path, file_type="stl")
+        return [path, mesh_path]
+    return [path, path.with_name(path.stem + ".physics.json")]
+
+
+def write_export(body: ExportBody, path, fmt: str, max_keys=MAX_KEYFRAMES) -> list:
+    """Write ``body`` to ``path`` in ``fmt`` (FORMATS); returns the files written
+    (:func:`export_paths`), each written atomically (tacest.io.outputs.atomic_file)."""
+    written = export_paths(path, fmt)
+    path = written[0]
+    if fmt == "mjcf":
+        with atomic_file(path) as tmp:
+            tmp.write_text(mjcf_string(body, max_keys=max_keys))
+    elif fmt in ("urdf", "sdf"):
+        mesh_path = written[1]
+        with atomic_file(mesh_path) as tmp:
+            body.mesh().export(str(tmp), file_type="stl")
         text = urdf_string(body, mesh_path.name) if fmt == "urdf" else sdf_string(body, mesh_path.name)
-        path.write_text(text)
-        written += [path, mesh_path]
+        with atomic_file(path) as tmp:
+            tmp.write_text(text)
     else:
-        mesh = body.mesh()
-        notes = list(body.notes) + _expressed(body, fmt) + [
-            f"This file holds the geometry only (body frame, m); the physical parameters are in "
-            f"{path.stem}.physics.json beside it."]
+        _write_mesh_format(body, path, fmt)
+        with atomic_file(written[1]) as tmp:
+            tmp.write_text(physics_json(body))
+    log.info("wrote %s", ", ".join(str(p) for p in written))
+    return written
+
+
+def _write_mesh_format(body: ExportBody, path: Path, fmt: str) -> None:
+    """The geometry alone as OBJ, GLB or STL at ``path`` (the numbers go to the
+    ``NAME.physics.json`` beside it)."""
+    mesh = body.mesh()
+    notes = list(body.notes) + _expressed(body, fmt) + [
+        f"This file holds the geometry only (body frame, m); the physical parameters are in "
+        f"{path.stem}.physics.json beside it."]
+    with atomic_file(path) as tmp:
         if fmt == "obj":
             text = mesh.export(file_type="obj", include_normals=False)
             header = "".join(f"# {line}\n" for line in notes)
-            path.write_text(header + text)
+            tmp.write_text(header + text)
         elif fmt == "glb":
             import trimesh
 
             scene = trimesh.Scene(mesh)
             scene.metadata["tacest"] = {**body.params, "notes": notes}
-            path.write_bytes(trimesh.exchange.gltf.export_glb(scene))  # metadata: /scenes/0/extras
+            tmp.write_bytes(trimesh.exchange.gltf.export_glb(scene))  # metadata: /scenes/0/extras
         else:
-            mesh.export(path, file_type="stl")
-        side = path.with_name(path.stem + ".physics.json")
-        side.write_text(physics_json(body))
-        written += [path, side]
-    log.info("wrote %s", ", ".join(str(p) for p in written))
-    return written
+            mesh.export(str(tmp), file_type="stl")
 
 
 def check_finite_body(body: ExportBody, source: str) -> None:

@@ -55,6 +55,7 @@ from tacest.estimation.data import Scales, data_matrix, global_vector, touching
 from tacest.estimation.uncertainty import schur_information
 from tacest.geometry.polygon import polygon_inertia, signed_area
 from tacest.geometry.shapes import Shape, make_shape
+from tacest.interrupt import deferred_interrupts
 from tacest.io.run import Run
 from tacest.model.jacobians2d import (KINEMATICS_SIGMA, contact_state_function, stage_active_weights,
                                       stage_residual_jacobian, start_residual_jacobian)
@@ -237,6 +238,7 @@ class PredictedPoke:
         return run
 
 
+@deferred_interrupts()  # Ctrl-C in a substep's cffi callback would be lost (tacest.interrupt)
 def predict_poke(model: ModelState, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
                  settle_time: float = 0.05) -> PredictedPoke:
     """Simulate one poke (a (6,) POKE_NAMES vector) on the estimated object, noiseless.

@@ -7,8 +7,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,30 +17,20 @@ from tacest.errors import FileFormatError, TacestError
 @contextlib.contextmanager
 def atomic_h5(path):
     """Open a new HDF5 file for writing under a temporary name in the target folder;
-    rename it into place only when the ``with`` block finishes without error.
+    rename it into place only when the ``with`` block finishes without error
+    (:func:`tacest.io.outputs.atomic_file`, which also refuses a ``path`` that is a
+    link, a folder or another non-regular file).
 
-    A crash or an exception inside the block leaves no file at ``path`` (and removes
-    the temporary one), so a file that exists always is complete.
+    A crash, an exception or an interrupt inside the block leaves ``path`` as it was
+    (and removes the temporary file), so a file that exists always is complete.
     """
     import h5py
 
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise TacestError(f"{path}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
-    os.close(fd)
-    try:
+    from tacest.io.outputs import atomic_file
+
+    with atomic_file(path) as tmp:
         with h5py.File(tmp, "w") as f:
             yield f
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a finished file follows the umask
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def open_h5(path):
@@ -121,6 +109,20 @@ class Reader:
             self.fail(where, f"must be > 0, got {val}")
         return val
 
+    def attr_int(self, h5path, name, default=KeyError) -> int:
+        """An integer attribute (a float with an integral value is accepted)."""
+        where = f"{h5path} attrs {name}" if h5path != "/" else f"attrs {name}"
+        raw = self.attr(h5path, name, default)
+        if raw is default and default is not KeyError:
+            return default
+        try:
+            val = np.asarray(raw).reshape(())
+            if val.dtype.kind not in "biuf" or not np.isfinite(val) or val != np.round(val):
+                raise ValueError
+            return int(val)
+        except (TypeError, ValueError, OverflowError):
+            self.fail(where, f"expected an integer, got {raw!r}")
+
     def attr_vector(self, h5path, name, length, default=KeyError) -> np.ndarray:
         where = f"{h5path} attrs {name}" if h5path != "/" else f"attrs {name}"
         raw = self.attr(h5path, name, default)
@@ -149,10 +151,14 @@ class Reader:
         obj = self.f[h5path]
         if not isinstance(obj, h5py.Dataset):
             self.fail(h5path, "expected a dataset, found a group")
+        if obj.dtype.kind not in "biuf":  # strings, complex, compound: not real numbers
+            self.fail(h5path, f"expected real numbers, got {obj.dtype}")
         try:
             arr = np.asarray(obj[()], dtype=dtype)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             self.fail(h5path, f"cannot read as {np.dtype(dtype).name}")
+        except OSError as exc:  # HDF5 could not read the data: a damaged file
+            self.fail(h5path, f"cannot be read ({_first_line(exc)})")
         if len(arr.shape) != len(shape) or any(
             s is not None and s != a for s, a in zip(shape, arr.shape)
         ):
@@ -165,6 +171,11 @@ class Reader:
             elif not np.all(np.isfinite(arr)):
                 self.fail(h5path, "contains NaN or inf where values are required")
         return arr
+
+
+def _first_line(exc) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else exc.__class__.__name__
 
 
 def json_attr(value) -> str:

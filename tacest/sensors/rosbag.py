@@ -512,20 +512,17 @@ def _to_world(bag: _Bag, msgs: _Messages, world: str, rotate_only: bool, gap_ns)
     return vals, ok
 
 
-def record_rosbag(bag, mapping_path) -> Run:
-    """A Run (SPEC, source ``rosbag``) from the bag ``bag`` and the TOML mapping
-    ``mapping_path`` (module docstring)."""
-    m = read_mapping(mapping_path)
-    b = _Bag(bag, m)
-    world = m.world_frame
-    dt_ns = int(round(m.dt * 1e9))
-    F = len(m.fingers)
+def _gap_ns(spec: StreamSpec, m: Mapping, stamps) -> int:
+    """The largest message spacing (ns) of a stream that is not a gap: the stream's
+    ``max_gap``, else the mapping's, else GAP_FACTOR x the median spacing of ``stamps``."""
+    g = spec.max_gap if spec.max_gap is not None else m.max_gap
+    return int(round(g * 1e9)) if g is not None else _default_gap(stamps)
 
-    def gap_of(spec: StreamSpec, stamps):
-        g = spec.max_gap if spec.max_gap is not None else m.max_gap
-        return int(round(g * 1e9)) if g is not None else _default_gap(stamps)
 
-    # vectors in the world frame, per topic-backed stream
+def _world_streams(b: _Bag, m: Mapping) -> dict:
+    """{(finger, role): (_Messages, StreamSpec)} of the topic-backed streams, their
+    vectors in the world frame (positions transformed, forces and normals rotated) and
+    scaled; messages whose stamp TF does not cover are dropped."""
     streams = {}
     for f, fs in enumerate(m.fingers):
         for role in ROLES:
@@ -538,18 +535,23 @@ def record_rosbag(bag, mapping_path) -> Run:
                 if vals.shape[1] != 3:
                     raise TacestError(f"{b.path}: {spec.topic}: {role} needs a 3-vector, the field gives "
                                       f"{vals.shape[1]} number(s)")
-                vals, okw = _to_world(b, msgs, world, rotate_only=(role != "position"), gap_ns=None)
+                vals, okw = _to_world(b, msgs, m.world_frame, rotate_only=(role != "position"), gap_ns=None)
                 keep = okw
             else:
                 keep = np.ones(len(vals), bool)
             vals = vals * spec.scale
             if not np.any(keep):
-                raise TacestError(f"{b.path}: {spec.topic}: no message could be put in frame {world!r} "
+                raise TacestError(f"{b.path}: {spec.topic}: no message could be put in frame {m.world_frame!r} "
                                   "(TF does not cover its stamps)")
             streams[(f, role)] = (_Messages(spec.topic, msgs.msgtype, msgs.stamps[keep], vals[keep],
                                             [msgs.frames[i] for i in np.flatnonzero(keep)]), spec)
-    # the clock: from the latest first to the earliest last message of the streams that
-    # define samples (positions, forces, contacts; TF edges of TF positions)
+    return streams
+
+
+def _run_clock(b: _Bag, m: Mapping, streams: dict, dt_ns: int) -> tuple:
+    """(t0, t_ns): the run's first time (ns) and its uniform sample times (T,) ns, from
+    the latest first to the earliest last message of the streams that define samples
+    (positions, forces, contacts; the moving TF edges of TF positions)."""
     firsts, lasts = [], []
     for (f, role), (msgs, spec) in streams.items():
         if role != "normal":
@@ -569,49 +571,69 @@ def record_rosbag(bag, mapping_path) -> Run:
         raise TacestError(f"{b.path}: the streams overlap for {(t1 - t0) / 1e9:.3g} s, less than one sample "
                           f"(dt = {m.dt} s)")
     T = int((t1 - t0) // dt_ns) + 1
-    t_ns = t0 + dt_ns * np.arange(T, dtype=np.int64)
+    return t0, t0 + dt_ns * np.arange(T, dtype=np.int64)
 
-    D = m.dim
+
+def _finger_samples(b: _Bag, m: Mapping, streams: dict, f: int, t_ns, dt_ns: int) -> dict:
+    """Finger ``f``'s streams on the run's clock, in the world frame (3-vectors):
+    ``position`` (T, 3), ``force`` (T, 3) or None, ``contact`` (T,) bool, ``normal``
+    (T, 3), ``normal_ok`` (T,) where the normal stream is not in a gap, ``missing`` (T,)
+    where any other stream is."""
+    fs = m.fingers[f]
+    t0 = int(t_ns[0])
+    T = len(t_ns)
+    missing = np.zeros(T, bool)
+    if fs.position.tf:
+        _, p, ok = b.transform(m.world_frame, fs.position.tf, t_ns, _gap_ns(fs.position, m, []) or None)
+        p_w = p * fs.position.scale
+    else:
+        msgs, spec = streams[(f, "position")]
+        p_w, ok = _resample_at(msgs, t_ns, _gap_ns(spec, m, msgs.stamps))
+    missing |= ~ok
+    f_w = None
+    if fs.force is not None:
+        msgs, spec = streams[(f, "force")]
+        f_w, ok = _resample_interval(msgs, t_ns, t0, dt_ns, _gap_ns(spec, m, msgs.stamps), "mean")
+        missing |= ~ok
+    if fs.contact.force_threshold is not None:
+        c = np.linalg.norm(f_w, axis=1) > fs.contact.force_threshold
+    else:
+        msgs, spec = streams[(f, "contact")]
+        cv, ok = _resample_interval(msgs, t_ns, t0, dt_ns, _gap_ns(spec, m, msgs.stamps), "max")
+        c = cv[:, 0] > spec.threshold
+        missing |= ~ok
+    if fs.normal.from_force:
+        mag = np.linalg.norm(f_w, axis=1, keepdims=True)
+        n_w = np.where(mag > MIN_FORCE_FOR_NORMAL, -f_w / np.maximum(mag, MIN_FORCE_FOR_NORMAL), np.nan)
+        n_ok = np.ones(T, bool)
+    else:
+        msgs, spec = streams[(f, "normal")]
+        n_w, n_ok = _resample_interval(msgs, t_ns, t0, dt_ns, _gap_ns(spec, m, msgs.stamps), "mean")
+    return {"position": p_w, "force": f_w, "contact": c, "normal": n_w, "normal_ok": n_ok, "missing": missing}
+
+
+def _run_arrays(b: _Bag, m: Mapping, streams: dict, t_ns, dt_ns: int) -> dict:
+    """The run's finger arrays on its clock: ``finger_position`` (T, F, D), ``force``
+    (T, F, D) or None, ``contact`` (T, F), ``normal`` (T, F, D) unit or NaN, and
+    ``missing`` (T, F) bool, with the placeholders of docs/formats.md where a finger's
+    sample is missing (contact 0, force 0, normal NaN, position interpolated)."""
+    T, F, D = len(t_ns), len(m.fingers), m.dim
     axes = _PLANES[m.plane] if D == 2 else (0, 1, 2)
     pos = np.zeros((T, F, D))
     force = np.zeros((T, F, D)) if any(fs.force is not None for fs in m.fingers) else None
     contact = np.zeros((T, F), np.uint8)
     normal = np.full((T, F, D), np.nan)
     missing = np.zeros((T, F), bool)
-    for f, fs in enumerate(m.fingers):
-        if fs.position.tf:
-            R, p, ok = b.transform(world, fs.position.tf, t_ns, gap_of(fs.position, []) or None)
-            p_w = p * fs.position.scale
-        else:
-            msgs, spec = streams[(f, "position")]
-            p_w, ok = _resample_at(msgs, t_ns, gap_of(spec, msgs.stamps))
-        pos[:, f] = p_w[:, axes]
-        missing[:, f] |= ~ok
-        f_w = None
-        if fs.force is not None:
-            msgs, spec = streams[(f, "force")]
-            f_w, ok = _resample_interval(msgs, t_ns, t0, dt_ns, gap_of(spec, msgs.stamps), "mean")
-            missing[:, f] |= ~ok
-        if fs.contact.force_threshold is not None:
-            c = np.linalg.norm(f_w, axis=1) > fs.contact.force_threshold
-        else:
-            msgs, spec = streams[(f, "contact")]
-            cv, ok = _resample_interval(msgs, t_ns, t0, dt_ns, gap_of(spec, msgs.stamps), "max")
-            c = cv[:, 0] > spec.threshold
-            missing[:, f] |= ~ok
-        if fs.normal.from_force:
-            mag = np.linalg.norm(f_w, axis=1, keepdims=True)
-            n_w = np.where(mag > MIN_FORCE_FOR_NORMAL, -f_w / np.maximum(mag, MIN_FORCE_FOR_NORMAL), np.nan)
-            n_ok = np.ones(T, bool)
-        else:
-            msgs, spec = streams[(f, "normal")]
-            n_w, n_ok = _resample_interval(msgs, t_ns, t0, dt_ns, gap_of(spec, msgs.stamps), "mean")
-        n = n_w[:, axes]
+    for f in range(F):
+        fx = _finger_samples(b, m, streams, f, t_ns, dt_ns)
+        pos[:, f] = fx["position"][:, axes]
+        c = fx["contact"]
+        n = fx["normal"][:, axes]
         nn = np.linalg.norm(n, axis=1)
-        good_n = n_ok & np.isfinite(nn) & (nn > 0)
-        missing[:, f] |= c & ~good_n
-        if f_w is not None:
-            force[:, f] = f_w[:, axes]
+        good_n = fx["normal_ok"] & np.isfinite(nn) & (nn > 0)
+        missing[:, f] = fx["missing"] | (c & ~good_n)
+        if fx["force"] is not None:
+            force[:, f] = fx["force"][:, axes]
         contact[:, f] = c
         normal[:, f] = np.where(good_n[:, None], n / np.where(nn > 0, nn, 1.0)[:, None], np.nan)
     # placeholders where missing (docs/formats.md): position interpolated over the gap
@@ -625,20 +647,34 @@ def record_rosbag(bag, mapping_path) -> Run:
     normal[contact == 0] = np.nan
     if force is not None:
         force[missing] = 0.0
+    return {"finger_position": pos, "force": force, "contact": contact, "normal": normal, "missing": missing}
+
+
+def record_rosbag(bag, mapping_path) -> Run:
+    """A Run (SPEC, source ``rosbag``) from the bag ``bag`` and the TOML mapping
+    ``mapping_path`` (module docstring): the streams in the world frame
+    (:func:`_world_streams`), the clock (:func:`_run_clock`), the finger arrays on it
+    (:func:`_run_arrays`)."""
+    m = read_mapping(mapping_path)
+    b = _Bag(bag, m)
+    dt_ns = int(round(m.dt * 1e9))
+    streams = _world_streams(b, m)
+    t0, t_ns = _run_clock(b, m, streams, dt_ns)
+    arrays = _run_arrays(b, m, streams, t_ns, dt_ns)
+    missing = arrays.pop("missing")
+    T, D = len(t_ns), m.dim
     gravity = m.gravity if m.gravity is not None else ([0.0, -STANDARD_GRAVITY] if D == 2
                                                        else [0.0, 0.0, -STANDARD_GRAVITY])
     summary = RosbagSummary(samples=T, missing=int(np.any(missing, axis=1).sum()),
                             missing_per_finger=[int(x) for x in missing.sum(axis=0)],
                             messages={t: int(len(ms.stamps)) for t, ms in b.messages.items()}, t0_ns=int(t0))
     run = Run(dim=D, dt=dt_ns / 1e9, time=(t_ns - t0) / 1e9, gravity=np.asarray(gravity, float), source="rosbag",
-              finger_position=pos, finger_radius=np.array([fs.radius for fs in m.fingers]),
-              contact=contact, force=force, normal=normal, ground_height=m.ground_height,
+              finger_radius=np.array([fs.radius for fs in m.fingers]), ground_height=m.ground_height,
               prior=m.prior, missing=np.any(missing, axis=1).astype(np.uint8),
-              missing_finger=missing.astype(np.uint8),
+              missing_finger=missing.astype(np.uint8), **arrays,
               extra_attrs={"rosbag_file": str(b.path), "rosbag_mapping": m.text, "rosbag_t0_ns": int(t0),
                            "rosbag_summary": json.dumps({"samples": T, "missing": summary.missing,
                                                          "missing_per_finger": summary.missing_per_finger,
                                                          "messages": summary.messages})})
-    log.info(f"{b.path}: {summary.line()}")
     log.info("%s: %s", b.path, summary.line())
     return run

@@ -41,6 +41,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.interrupt import deferred_interrupts
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.geometry.polygon import signed_area
@@ -201,6 +202,7 @@ class WorldState:
 # a new object
 
 
+@deferred_interrupts()  # Ctrl-C in a substep's cffi callback would be lost (tacest.interrupt)
 def initial_state(opts: SimOptions) -> WorldState:
     """A new object (per ``opts.object_spec`` and ``opts.seed``) at rest on the ground,
     with its effects resolved and the fingers parked above it.
@@ -318,6 +320,7 @@ def _at_rest(velocity) -> bool:
     return math.hypot(velocity[0], velocity[1]) < REST_SPEED and abs(velocity[2]) < REST_OMEGA
 
 
+@deferred_interrupts()  # Ctrl-C in a substep's cffi callback would be lost (tacest.interrupt)
 def _simulate(state: WorldState, sources, opts: SimOptions, rng_pokes, lead_idle=False,
               settle_first=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (6,) POKE_NAMES vector or None for a random
@@ -639,7 +642,72 @@ def _plan_pokes(plan_path):
     return plan
 
 
+#: root attr of a simulated run: JSON list, one entry per recording that made it
+#: (docs/simulation.md, "Reproducing a simulated run")
+SIM_OPTIONS_ATTR = "sim_options"
+
+
+def _effect_text(effect) -> str:
+    """An effect as the ``--effect`` text that gives it (strings are kept as given)."""
+    if isinstance(effect, str):
+        return effect
+
+    def value(v):
+        return ";".join(repr(float(x)) for x in v) if isinstance(v, list) else repr(v)
+
+    params = ",".join(f"{k}={value(v)}" for k, v in effect.params.items())
+    return effect.name + (f":{params}" if params else "")
+
+
+def sim_options_entry(opts: SimOptions, plan_path=None, start_sample: int = 0) -> dict:
+    """One recording's entry of the run attr ``sim_options``: ``options`` (every
+    SimOptions field, effects as ``--effect`` texts: ``tacest.dims.record_sim(SimOptions(**options))``
+    records the same run again), and for a planned poke ``plan`` (file and SHA-256),
+    for a continuation ``start_sample`` (the sample of the run it starts from)."""
+    import dataclasses
+
+    from tacest.io.h5util import sha256_file
+
+    options = {f.name: getattr(opts, f.name) for f in dataclasses.fields(SimOptions)}
+    options["effects"] = [_effect_text(e) for e in opts.effects]
+    entry = {"options": options}
+    if plan_path is not None:
+        entry["plan"] = {"file": str(plan_path), "sha256": sha256_file(plan_path)}
+    if start_sample:
+        entry["start_sample"] = int(start_sample)
+    return entry
+
+
+def note_sim_options(run: Run, opts: SimOptions, plan_path=None, append_to=None) -> Run:
+    """Note in the root attr ``sim_options`` of a just recorded ``run`` how it was made
+    (:func:`sim_options_entry`; a continuation of ``append_to`` adds its entry to the
+    continued run's list).  Used by the 2-D and the 3-D recorder; returns ``run``."""
+    entries = []
+    if append_to is not None and SIM_OPTIONS_ATTR in run.extra_attrs:
+        from tacest.io.h5util import attr_str
+
+        try:
+            entries = list(json.loads(attr_str(run.extra_attrs[SIM_OPTIONS_ATTR])))
+        except (json.JSONDecodeError, TypeError):
+            entries = []
+    start = 0
+    if append_to is not None:
+        from tacest.io.run import read_run
+
+        start = read_run(append_to).n_samples - 1
+    entries.append(sim_options_entry(opts, plan_path, start))
+    run.extra_attrs[SIM_OPTIONS_ATTR] = json.dumps(entries, sort_keys=True)
+    return run
+
+
 def record_sim(opts: SimOptions, plan_path=None, append_to=None) -> Run:
+    """Record a simulated 2-D run (:func:`_record`) and note how in its root attr
+    ``sim_options`` (:func:`note_sim_options`)."""
+    run = _record(opts, plan_path=plan_path, append_to=append_to)
+    return note_sim_options(run, opts, plan_path, append_to)
+
+
+def _record(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     """Record a simulated run.
 
     Without ``plan_path``: ``opts.pokes`` random pokes.  With ``plan_path``: the plan's

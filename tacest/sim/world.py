@@ -34,6 +34,7 @@ import numpy as np
 
 from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import TacestError
+from tacest.interrupt import check_interrupt
 from tacest.sim.effects import find
 from tacest.geometry.transforms import rot2
 from tacest.sim.objects import SimObject
@@ -291,6 +292,9 @@ class World:
         # from Python cost as much as the physics step itself
         for callback, finger in zip(self._finger_callbacks, self.fingers):
             finger.each_arbiter(callback)
+        # a Ctrl-C noted during the callbacks (the simulators run in
+        # tacest.interrupt.deferred_interrupts): raised here, outside cffi
+        check_interrupt()
 
     def _finger_callback(self, f):
         """Arbiter callback of finger f: accumulates what the finger feels of the object."""

@@ -37,7 +37,8 @@ from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE_LEVER, PRE_ROLL, REST_OMEGA,
                                REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, SimOptions, _rng,
-                               _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run, sensor_streams)
+                               _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run,
+                               note_sim_options, sensor_streams)
 from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
                                   uniform_object)
 from tacest.sim.pokes import style_of_poke
@@ -415,6 +416,13 @@ def _plan_sources(plan_path, n_fingers, where=""):
 
 
 def record_sim(opts: SimOptions, plan_path=None, append_to=None) -> Run:
+    """Record a simulated 3-D run (:func:`_record`) and note how in its root attr
+    ``sim_options`` (tacest.sim.record.note_sim_options)."""
+    run = _record(opts, plan_path=plan_path, append_to=append_to)
+    return note_sim_options(run, opts, plan_path, append_to)
+
+
+def _record(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     """Record a simulated 3-D run (``opts.dim`` = 3).
 
     Without ``plan_path``: ``opts.pokes`` random pokes.  With ``plan_path``: the plan's

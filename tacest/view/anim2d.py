@@ -15,6 +15,7 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.geometry.transforms import transform_points
+from tacest.io.outputs import atomic_file
 from tacest.view.scene import Scene, frame_indices
 
 log = logging.getLogger(__name__)
@@ -130,7 +131,8 @@ def write_animation_2d(sc: Scene, path, fps: float = 20.0, max_frames: int = 300
     anim = animation.FuncAnimation(fig, draw, frames=len(idx), blit=False)
     writer = animation.PillowWriter(fps=fps) if suffix == ".gif" else animation.FFMpegWriter(fps=fps)
     try:
-        anim.save(str(path), writer=writer)
+        with atomic_file(path) as tmp:  # the target's suffix: the writers choose the format by it
+            anim.save(str(tmp), writer=writer)
     finally:
         plt.close(fig)
     log.info("wrote %s: %d frames", path, len(idx))

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.io.outputs import atomic_file
 from tacest.view.scene import Scene, frame_indices
 
 log = logging.getLogger(__name__)
@@ -169,6 +170,7 @@ def write_html_3d(sc: Scene, path, fps: float = 20.0, max_frames: int = 600) -> 
     doc = scene_json(sc, fps=fps, max_frames=max_frames)
     data = json.dumps(doc, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
     title = sc.title.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-    path.write_text(_PAGE.replace("__TITLE__", title).replace("__DATA__", data))
+    with atomic_file(path) as tmp:
+        tmp.write_text(_PAGE.replace("__TITLE__", title).replace("__DATA__", data))
     log.info("wrote %s: %d frames", path, len(doc["frames"]))
     return len(doc["frames"])

@@ -1,0 +1,183 @@
+"""Ctrl-C during an IPOPT solve ends the command, never just the solve.
+
+IPOPT, through CasADi, turns a KeyboardInterrupt raised inside a solve (in a callback or
+a function evaluation) into a return status (``User_Requested_Stop``, or
+``NonIpopt_Exception_Thrown`` when it arrived during an evaluation) and carries on; the
+estimator would then take it for a failed stage, try another start and write an
+estimate.  Every solve is therefore wrapped::
+
+    with watch_interrupts() as watch:
+        sol = solver(**args)
+    raise_if_interrupted(solver.stats()["return_status"], watch)
+
+:func:`watch_interrupts` notes a SIGINT that arrives during the block (and still raises
+KeyboardInterrupt at once, so IPOPT stops at its next check); :func:`raise_if_interrupted`
+raises KeyboardInterrupt after the solve if one arrived, or if IPOPT says the user
+stopped it.  The command line turns KeyboardInterrupt into "tacest: interrupted" and
+exit status 130 (cli/main.py).
+
+Python callbacks run from C through cffi (pymunk's arbiter iteration, every physics
+substep of the 2-D simulator) lose a KeyboardInterrupt raised inside them: cffi prints
+it as "Exception ignored" and the simulation goes on.  The simulators therefore run
+inside :func:`deferred_interrupts`, where a SIGINT is only noted, and call
+:func:`check_interrupt` after each substep, outside any callback, which raises it::
+
+    with deferred_interrupts():
+        for ...:
+            world.step(...)        # World.step ends with check_interrupt()
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+
+#: IPOPT return statuses that mean "stopped by the user" (tacest's iteration callbacks
+#: never ask IPOPT to stop, so this status comes from an interrupt only)
+INTERRUPT_STATUSES = ("User_Requested_Stop",)
+#: CasADi's warning when an interrupt arrives during a function evaluation: not shown
+#: (the command line says "tacest: interrupted" instead)
+_CASADI_INTERRUPT_WARNING = "KeyboardInterruptException"
+
+
+class InterruptWatch:
+    """What :func:`watch_interrupts` saw: ``interrupted`` is True once a SIGINT arrived."""
+
+    def __init__(self):
+        self.interrupted = False
+
+
+class _DropCasadiInterruptWarning:
+    """sys.stderr during a watched solve: passes every line on except CasADi's warning
+    about the KeyboardInterrupt it caught (CasADi writes that line in pieces, so text is
+    passed on line by line; :meth:`close` passes on an unfinished last line)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._line = ""
+
+    def write(self, text):
+        *lines, self._line = (self._line + text).split("\n")
+        for line in lines:
+            if _CASADI_INTERRUPT_WARNING not in line:
+                self._stream.write(line + "\n")
+        return len(text)
+
+    def close(self):
+        if self._line and _CASADI_INTERRUPT_WARNING not in self._line:
+            self._stream.write(self._line)
+        self._line = ""
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def watch_interrupts():
+    """Note a SIGINT that arrives inside the block (yields an :class:`InterruptWatch`).
+
+    The previous SIGINT handler still runs (Python's default raises KeyboardInterrupt);
+    a handler that ignores SIGINT keeps it ignored.  Outside the main thread, where no
+    signal handler can be set, the watch sees only what IPOPT's status tells.
+    """
+    watch = InterruptWatch()
+    if threading.current_thread() is not threading.main_thread():
+        yield watch
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN:
+        yield watch
+        return
+
+    def note(signum, frame):
+        watch.interrupted = True
+        if callable(previous):
+            previous(signum, frame)
+        else:  # SIG_DFL or a handler installed outside Python: end as Python's default would
+            raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, note)
+    stderr = sys.stderr
+    sys.stderr = filtered = _DropCasadiInterruptWarning(stderr)
+    try:
+        yield watch
+    finally:
+        sys.stderr = stderr
+        filtered.close()
+        signal.signal(signal.SIGINT, previous)
+
+
+def raise_if_interrupted(status: str, watch: InterruptWatch | None = None) -> None:
+    """Raise KeyboardInterrupt if IPOPT's return ``status`` says the user stopped the
+    solve or ``watch`` saw a SIGINT during it."""
+    if status in INTERRUPT_STATUSES or (watch is not None and watch.interrupted):
+        raise KeyboardInterrupt
+
+
+class _Deferral:
+    """The state of :func:`deferred_interrupts`: how deep its blocks are nested, the
+    SIGINT handler it replaced, and a SIGINT noted meanwhile ((signum, frame) or None)."""
+
+    def __init__(self):
+        self.depth = 0
+        self.previous = None
+        self.pending = None
+
+
+_DEFERRAL = _Deferral()
+
+
+@contextlib.contextmanager
+def deferred_interrupts():
+    """Inside the block a SIGINT is only noted, never raised where it lands (which may be
+    a cffi callback that would swallow it); :func:`check_interrupt` delivers it at a safe
+    point, and the end of the block at the latest.  Delivering means running the
+    previous handler (Python's default raises KeyboardInterrupt).
+
+    Blocks nest (the outermost one holds the handler).  A handler that ignores SIGINT
+    keeps it ignored; outside the main thread, where no handler can be set, the block
+    changes nothing.
+    """
+    d = _DEFERRAL
+    if d.depth:
+        d.depth += 1
+        try:
+            yield
+        finally:
+            d.depth -= 1
+        return
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN or previous is None:
+        yield
+        return
+
+    def note(signum, frame):
+        d.pending = (signum, frame)
+
+    d.depth, d.previous, d.pending = 1, previous, None
+    signal.signal(signal.SIGINT, note)
+    try:
+        yield
+        check_interrupt()  # a SIGINT noted after the block's last check
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        d.depth, d.previous, d.pending = 0, None, None
+
+
+def check_interrupt() -> None:
+    """Deliver a SIGINT that :func:`deferred_interrupts` noted (KeyboardInterrupt with
+    Python's default handler); nothing otherwise.  Cheap: called every physics substep."""
+    d = _DEFERRAL
+    if d.pending is None:
+        return
+    signum, frame = d.pending
+    d.pending = None
+    if callable(d.previous):
+        d.previous(signum, frame)
+    else:  # SIG_DFL or a handler installed outside Python: end as Python's default would
+        raise KeyboardInterrupt

@@ -1,0 +1,152 @@
+"""Ctrl-C stops every command at once (issue 27, item 2): exit status 130, one line
+"tacest: interrupted", no new output, an existing output untouched.
+
+The commands run as a user runs them (the installed ``tacest``) and get SIGINT in the
+middle of their work: during an IPOPT solve (estimate, diagnose, explore), the planner's
+search (plan) and the simulation (record).
+"""
+
+import os
+import signal
+
+import pytest
+
+from tacest.interrupt import check_interrupt, deferred_interrupts, raise_if_interrupted, watch_interrupts
+from tests.reliability_files import interrupt_when, make_run, truth_estimate
+
+INTERRUPTED = "tacest: interrupted"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("interrupt")
+    a = make_run(d / "a.h5", seed=1, pokes=3)
+    b = make_run(d / "b.h5", seed=1, pokes=2)
+    return {"dir": d, "a": a, "b": b, "est": truth_estimate([a], d / "est.h5")}
+
+
+def _snapshot(folder):
+    """{relative path: bytes} of every file under ``folder`` (hidden ones included)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _assert_interrupted(code, lines):
+    assert code == 130, lines
+    assert lines and lines[-1] == INTERRUPTED, lines
+    for ln in lines:
+        assert "Traceback" not in ln and "CasADi" not in ln and not ln.startswith("wrote"), lines
+        assert not ln.startswith("restart") and "tacest: error" not in ln, lines
+
+
+def test_estimate_interrupted_mid_solve_keeps_the_previous_estimate(files, tmp_path):
+    out = tmp_path / "est.h5"
+    out.write_bytes(files["est"].read_bytes())  # the previous output
+    before = _snapshot(tmp_path)
+    code, lines = interrupt_when(["estimate", files["a"], "-o", out], marker="homotopy 1/2 iter", delay=0.2)
+    _assert_interrupted(code, lines)
+    assert _snapshot(tmp_path) == before  # byte-identical, no temporary file left
+
+
+def test_diagnose_interrupted_mid_fit_writes_no_report(files, tmp_path):
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "report.md").write_text("an earlier report")
+    before = _snapshot(tmp_path)
+    code, lines = interrupt_when(["diagnose", files["a"], files["b"], "--effects", "latency", "-o", report],
+                                 marker="plain model", delay=1.0)
+    _assert_interrupted(code, lines)
+    assert _snapshot(tmp_path) == before
+
+
+def test_plan_interrupted_mid_search_writes_no_plan(files, tmp_path):
+    out = tmp_path / "plan.h5"
+    out.write_text("an earlier plan")
+    before = _snapshot(tmp_path)
+    # a long search, interrupted once the planner has started
+    code, lines = interrupt_when(["plan", files["est"], files["a"], "--iterations", "50", "--population", "500",
+                                  "-o", out], delay=4.0)
+    _assert_interrupted(code, lines)
+    assert _snapshot(tmp_path) == before
+
+
+def test_explore_interrupted_mid_loop_leaves_the_folder_as_it_was(tmp_path):
+    out = tmp_path / "loop"
+    out.mkdir()
+    for name in ("run.h5", "summary.json", "estimate_1.h5", "notes.txt"):
+        (out / name).write_text(f"earlier {name}")
+    before = _snapshot(tmp_path)
+    code, lines = interrupt_when(["explore", "--pokes", "2", "-o", out], delay=3.0)  # while it estimates
+    _assert_interrupted(code, lines)
+    assert _snapshot(tmp_path) == before
+
+
+def test_record_interrupted_mid_simulation_writes_no_run(tmp_path):
+    out = tmp_path / "run.h5"
+    code, lines = interrupt_when(["record", "--pokes", "400", "-o", out], marker="poke 2/", delay=0.2)
+    _assert_interrupted(code, lines)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_raise_if_interrupted():
+    raise_if_interrupted("Solve_Succeeded")
+    raise_if_interrupted("Maximum_Iterations_Exceeded")
+    with pytest.raises(KeyboardInterrupt):
+        raise_if_interrupted("User_Requested_Stop")
+
+
+def test_watch_interrupts_notes_a_sigint_that_a_solver_swallowed():
+    with pytest.raises(KeyboardInterrupt):
+        with watch_interrupts() as watch:
+            try:
+                os.kill(os.getpid(), signal.SIGINT)  # the handler runs right after
+            except KeyboardInterrupt:
+                pass  # what IPOPT does: it turns the exception into a return status
+        raise_if_interrupted("NonIpopt_Exception_Thrown", watch)
+    assert watch.interrupted
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def _resting_ball():
+    """A pymunk space with a ball resting on a static ground, and the ball, whose body
+    has an arbiter (the space is returned too: the body keeps only a weak reference)."""
+    import pymunk
+
+    space = pymunk.Space()
+    space.gravity = (0.0, -9.81)
+    space.add(pymunk.Segment(space.static_body, (-1.0, 0.0), (1.0, 0.0), 0.0))
+    ball = pymunk.Body(1.0, pymunk.moment_for_circle(1.0, 0.0, 0.05))
+    ball.position = (0.0, 0.049)
+    space.add(ball, pymunk.Circle(ball, 0.05))
+    space.step(1e-3)
+    return space, ball
+
+
+def test_a_sigint_in_a_cffi_callback_is_delivered_after_it(capfd):
+    """pymunk runs the arbiter callbacks from C through cffi, which swallows a
+    KeyboardInterrupt raised inside them; in deferred_interrupts the SIGINT is noted and
+    check_interrupt raises it outside, with nothing printed."""
+    space, ball = _resting_ball()
+    seen = []
+
+    def callback(arbiter):
+        os.kill(os.getpid(), signal.SIGINT)  # the handler runs inside the callback
+        seen.append(sum(range(100)))  # ... and the callback goes on
+
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupts():
+            ball.each_arbiter(callback)
+            assert seen  # the callback ran to its end
+            check_interrupt()
+    assert "Exception ignored" not in capfd.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_deferred_interrupts_deliver_at_the_end_of_the_block_at_the_latest():
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupts():
+            with deferred_interrupts():  # nested: the outer block holds the handler
+                os.kill(os.getpid(), signal.SIGINT)
+                sum(range(1000))
+            sum(range(1000))  # nothing raised inside the block
+    check_interrupt()  # nothing pending any more
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
