@@ -61,7 +61,7 @@ def bench_realtime(seconds, rate, corrupt, fingers=1, seed=7):
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "rec.h5"
         t0 = time.perf_counter()
-        s = record_serial(port, baud=921600, output=out, echo=lambda *a: None)
+        s = record_serial(port, baud=921600, output=out)
         wall = time.perf_counter() - t0
         _, emu_err = emu.communicate(timeout=30)
         from tacest.io.run import read_run

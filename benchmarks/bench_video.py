@@ -69,7 +69,7 @@ def end_to_end_png(seq) -> dict:
         out = os.path.join(d, "run.h5")
         w0, c0 = time.perf_counter(), time.process_time()
         run, _ = record_video(paths["frames"], paths["calib"], paths["finger_log"], output=out,
-                              echo=lambda *a: None, options=VideoOptions())
+                              options=VideoOptions())
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     return {"fps": len(seq.frames) / wall, "cpu_ms": 1e3 * cpu / len(seq.frames), "samples": run.n_samples,
             "dim": run.dim}

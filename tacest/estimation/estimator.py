@@ -177,10 +177,17 @@ class ImplicitEstimator:
 
     def params(self, eps, comp_mult, dyn_mult=1.0, ridge=None):
         return parameter_vector(self.problem, self.runs, self.scales, self.config, eps, comp_mult, self.s0,
-                                dyn_mult=dyn_mult, ridge=ridge)
+                                dyn_mult=dyn_mult, ridge=self.ridge() if ridge is None else ridge)
+
+    def ridge(self) -> float:
+        """The Hessian model's ridge: solver.hessian_ridge_observed where some run has pose
+        observations, solver.hessian_ridge otherwise."""
+        cfg = self.config.solver
+        observed = any(r.pose_obs is not None for r in self.runs)
+        return float(cfg.hessian_ridge_observed if observed else cfg.hessian_ridge)
 
     def stage_params(self, stage, retry=False):
-        ridge = max(self.config.solver.hessian_ridge, 1.0) if retry else None
+        ridge = max(self.ridge(), 1.0) if retry else None
         return self.params(stage.eps, stage.comp_mult, stage.dyn_mult, ridge=ridge)
 
     def _prepare(self, stage, z, p):
@@ -242,12 +249,10 @@ class ImplicitEstimator:
         if self.pinned_theta is not None and self.pin in ("all", "shape"):
             starts = [({"start_shape": self.pinned_theta[: pr.n_shape].copy()}, ("shape", self.pinned_theta[: pr.n_shape]))]
         else:
-            n = 1 + int(self.config.solver.restarts)
-            starts = []
-            sampled = self.sampled_start()
-            if sampled is not None:
-                starts.append(({"start": "sampler", "start_extents": np.asarray(sampled.extents, float),
-                                "log_likelihood": sampled.log_likelihood}, ("sampler", sampled)))
+            starts = [({"start": "sampler", "sampler_seed": s.seed, "start_extents": np.asarray(s.extents, float),
+                        "log_likelihood": s.log_likelihood}, ("sampler", s)) for s in self.sampled_starts()]
+            n_always = len(starts)
+            n = n_always + 1 + int(self.config.solver.restarts)
             starts += [({"start_shape": np.asarray(s0, float)}, ("shape", s0))
                        for s0 in start_shape_candidates(pr, self.runs, self.scales, self.s0, n - len(starts))]
 
@@ -255,23 +260,36 @@ class ImplicitEstimator:
             kind, value = start
             z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
             out = self.solve_from(z0, accept_budget=accept_budget)
+            V, mass, _, mu_g, mu_f = self.physical(out.z)
+            found = {"vertices": np.asarray(V, float),
+                     "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
             return (out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final),
-                    self.fit_quality(out.z).local)
+                    self.fit_quality(out.z).local, found)
 
         self.attempts = []
+        pinned = self.pinned_theta is not None and self.pin in ("all", "shape")
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-            starts, solve_one, self.config.solver.restart_physics, self.attempts)
+            starts, solve_one, self.config.solver.restart_physics, self.attempts,
+            min_solves=0 if pinned else n_always)
         self.z = out.z
         return out
 
-    def sampled_start(self):
-        """The sampler's start (smc2d.SMCResult), or None where it does not apply (off,
-        pose observations, or no fingertip data)."""
-        n = int(self.config.solver.sampler_particles)
+    def sampled_starts(self) -> list:
+        """The sampler's starts (smc2d.SMCResult, one per seed of solver.sampler_seed,
+        +1, ... up to solver.sampler_starts; a start whose box is within 2 % of an
+        earlier one's is dropped), or [] where the sampler does not apply (off, pose
+        observations, or no fingertip data)."""
+        cfg = self.config.solver
+        n = int(cfg.sampler_particles)
         if n < 2 or any(r.pose_obs is not None for r in self.runs) or not any(r.n_fingers for r in self.runs):
-            return None
-        return smc_start(self.runs, self.scales.L, self.scales.m0,
-                         SMCSettings(particles=n, seed=int(self.config.solver.sampler_seed)))
+            return []
+        out = []
+        for k in range(int(cfg.sampler_starts)):
+            s = smc_start(self.runs, self.scales.L, self.scales.m0,
+                          SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k))
+            if all(np.max(np.abs(s.extents / o.extents - 1.0)) > 0.02 for o in out):
+                out.append(s)
+        return out
 
     def sampler_z(self, sampled) -> np.ndarray:
         """Scaled z0 from the sampler's best hypothesis: its box as the starting shape

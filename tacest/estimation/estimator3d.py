@@ -426,8 +426,11 @@ class Estimator3D:
                 out = self.solve_from_shape(s0)
             finally:
                 self.start_tracks = None
+            V, mass, _, mu_g, mu_f = self.physical(out.z)
+            found = {"vertices": np.asarray(V, float),
+                     "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
             return (out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final),
-                    self.fit_quality(out.z).local)
+                    self.fit_quality(out.z).local, found)
 
         records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
                     "touch_inconsistency": float(c.inconsistency)} for c in starts]

@@ -61,11 +61,12 @@ class FitQuality:
 
     @property
     def local(self) -> bool:
-        """Consistent, or the misfit is local: the flagged windows cover at most
-        LOCAL_FRACTION of the samples (a fast release, a stalled push: the model's
-        simplifications at an instant, not a wrong basin, whose misplaced object misfits
-        long stretches).  The estimators restart only from fits that are not."""
-        return self.consistent or self.flagged_samples <= LOCAL_FRACTION * self.n_samples
+        """Consistent, or the misfit is local: no term's total is flagged and the
+        flagged windows cover at most LOCAL_FRACTION of the samples (a fast release, a
+        stalled push: the model's simplifications at an instant, not a wrong basin, whose
+        misplaced object misfits long stretches or a whole term).  The estimators restart
+        only from fits that are not."""
+        return self.consistent or (not self.terms and self.flagged_samples <= LOCAL_FRACTION * self.n_samples)
 
     def summary(self) -> str:
         """One line: consistent, or where it is not."""

@@ -18,6 +18,10 @@ Policy (:func:`identifiability`), in this order:
 
 The ``std`` written is the posterior's (data and priors): what a user reads as the
 uncertainty of an estimate.  Whether the data determine a parameter is item 2 above.
+Where another start's fit lies within the likelihood-ratio bound of the kept one
+(:func:`basin_spread`), the data cannot tell the two basins apart: the std of the shape,
+mass and frictions is widened by the distance between them, in quadrature.
+
 ``std["shape"]`` (m) is the shape's in one number: the RMS over the vertices of their
 one-sigma position uncertainty in the body frame (uncertainty.shape_std), combined in
 quadrature with the contact model's tolerance ``noise.contact_gap`` (0.5 mm): the smooth
@@ -131,6 +135,46 @@ def identifiability(params: dict, info: Optional[Information], facts: FitFacts) 
     return ident
 
 
+#: confidence of the likelihood-ratio region within which another basin's fit counts
+#: as plausible (basin_spread)
+BASIN_CONFIDENCE = 0.95
+
+
+def basin_spread(attempts: list, objective: float, vertices, params: dict) -> dict:
+    """{name: how far another plausible basin's fit lies from the kept one}: "shape" (m,
+    the Chamfer distance of the two shapes after the best rigid alignment) and mass,
+    friction_ground, friction_finger (their differences), maximized over the other
+    successful fits of the estimate's starts whose objective is within half the
+    BASIN_CONFIDENCE quantile of χ²(p) of the kept one's, p the number of compared
+    parameters (shape parameters as vertices' coordinates, and the three): the fits a
+    likelihood-ratio test cannot tell from the kept one.  A local Laplace std says
+    nothing about another basin; the reported std is widened by this spread in
+    quadrature.  {} when there is none."""
+    from scipy.stats import chi2
+
+    from tacest.geometry.chamfer import chamfer_body
+
+    V = np.asarray(vertices, float)
+    limit = 0.5 * float(chi2.ppf(BASIN_CONFIDENCE, V.size + 3))
+    out = {}
+    for a in attempts:
+        if "vertices" not in a or not np.isfinite(a.get("objective", np.inf)):
+            continue
+        if a["objective"] > objective + limit:
+            continue
+        Va = np.asarray(a["vertices"], float)
+        if Va.shape != V.shape or np.array_equal(Va, V):
+            continue
+        d = {"shape": float(chamfer_body(Va, V))}
+        d.update({k: abs(float(v) - float(params[k])) for k, v in a.get("params", {}).items() if k in params})
+        for k, v in d.items():
+            out[k] = max(out.get(k, 0.0), v)
+    if out:
+        log.info("another start's fit is within the likelihood-ratio bound of the kept one: the std covers the "
+                 "spread between them (" + ", ".join(f"{k} {v:.3g}" for k, v in out.items()) + ")")
+    return out
+
+
 def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: SolveOutcome, wall_time: float,
              info: Optional[Information], facts: FitFacts, config: dict, method: str, extra: dict = None,
              attempts: list = None, notes: list = (), data: list = None, vertex_jacobian=None) -> Estimate:
@@ -144,6 +188,10 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         ns = np.asarray(vertex_jacobian).shape[1]
         floor = float((config or {}).get("noise", {}).get("contact_gap", 0.0))
         std["shape"] = float(np.hypot(shape_std(vertex_jacobian, info.cov[:ns, :ns], dim), floor))
+    spread = basin_spread(attempts or [], outcome.objective, vertices, params)
+    for k, d in spread.items():
+        if k in std and d > 0:
+            std[k] = float(np.hypot(std[k], d))
     if data is not None:
         weights = (config or {}).get("weights", {})
         q = goodness_of_fit([r.residuals for r in runs], data, len(np.asarray(vertices)), weights=weights)

@@ -94,6 +94,8 @@ class SMCResult:
     skipped: int = 0
     wall_time: float = 0.0
     history: dict = field(default_factory=dict)
+    #: the seed of the sampler's draws
+    seed: int = 0
 
 
 class _Particles:
@@ -313,7 +315,7 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
     result = SMCResult(extents=ext.copy(), mass=mass, inertia=mass * float(ext[0] ** 2 + ext[1] ** 2) / 12,
                        mu_ground=float(parts.mu_g[best]), mu_finger=float(parts.mu_f[best]), poses=poses,
                        log_likelihood=float(parts.log_lik[best]), resamples=stats["resamples"],
-                       skipped=stats["skipped"], wall_time=time.perf_counter() - t0)
+                       skipped=stats["skipped"], wall_time=time.perf_counter() - t0, seed=int(settings.seed))
     log.info(f"sampled start: {parts.n} hypotheses, {stats['resamples']} resamples, {stats['skipped']} idle samples "
              f"skipped, best box {np.round(ext * 1e3, 1)} mm, log likelihood {result.log_likelihood:.4g} "
              f"({result.wall_time:.1f} s)")

@@ -370,50 +370,57 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
                         objective=last.objective, stages=infos)
 
 
-def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list) -> tuple:
+def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0) -> tuple:
     """Solve from each start in turn until a fit is good enough; keep the successful fit
     of lowest objective (the restarts of the 2-D and 3-D estimators).
 
     starts : list of (record, start): ``record`` a dict describing the start (copied into
         the attempt's entry), ``start`` what ``solve_one`` takes;
     solve_one(start) -> (SolveOutcome, physics per sample (objective units), saved,
-        consistent): one staged solve; ``saved`` is whatever the caller must restore for
-        that fit; ``consistent`` whether its data say it is right (fitquality's
-        FitQuality.local: consistent, or a local misfit only; None: not tested); raises
+        local, found): one staged solve; ``saved`` is whatever the caller must restore
+        for that fit; ``local`` whether its data say it is right but for a local misfit
+        (fitquality's FitQuality.local; None: not tested); ``found`` a dict of what the fit found, copied into its attempt (the
+        ``vertices`` and ``params`` that result.basin_spread compares); raises
         SolveFailedError when the solve fails;
-    restart_physics : a fit whose physics per sample is at most this, or that is
-        consistent with its data, ends the search (a fast, tipping object's right fit
+    restart_physics : a fit whose physics per sample is at most this, or whose misfit
+        of its data is at most local, ends the search (a fast, tipping object's right fit
         holds more physics residual than a slow one's, and its data say it is right);
     attempts : a list that receives one dict per solve (the record with status,
-        objective, physics_per_sample and consistent, or status "failed" and error), also
-        when every solve fails.
+        objective, physics_per_sample, misfit_local and what it found, or status "failed"
+        and error), also
+        when every solve fails;
+    min_solves : the first this many starts are all solved, whatever their fits (starts
+        whose objectives are to be compared: the sampler's).
 
     Returns (out, saved): the kept fit and its ``saved``.  When no start gives a fit,
     raises the first start's SolveFailedError (``attempts`` holds every failure).
     """
     best = failure = None
     for k, (record, start) in enumerate(starts):
-        if k:
+        if 0 < k < min_solves:
+            log.info(f"start {k + 1} of the {min_solves} compared")
+        elif k:
             last = attempts[-1]
             log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
                      + ("failed" if last["status"] == "failed" else
                         f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"
-                        + (" and does not explain its data" if last.get("consistent") is False else "")))
+                        + (" and misfits its data beyond a local stretch" if last.get("misfit_local") is False
+                           else "")))
         try:
-            out, physics, saved, consistent = solve_one(start)
+            out, physics, saved, local, found = solve_one(start)
         except SolveFailedError as exc:
             failure = failure or exc
             attempts.append({**record, "status": "failed", "error": str(exc)})
             continue
         attempts.append({**record, "status": out.status, "objective": float(out.objective),
-                         "physics_per_sample": float(physics), "consistent": consistent})
+                         "physics_per_sample": float(physics), "misfit_local": local, **found})
         if best is None or out.objective < best[0].objective:
-            best = (out, saved)
-        if physics <= restart_physics or consistent:
+            best = (out, saved, bool(physics <= restart_physics or local))
+        if k + 1 >= min_solves and best is not None and best[2]:
             break
     if best is None:
         raise failure
-    return best
+    return best[0], best[1]
 
 
 def attempts_json(attempts: list) -> str:
