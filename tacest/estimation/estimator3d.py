@@ -41,8 +41,7 @@ from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobi
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
-from tacest.io.h5util import sha256_file
-from tacest.io.run import Run
+from tacest.io.run import Run, run_sha256
 from tacest.model.stage2d import PHYSICS_TERMS
 from tacest.model.stage3d import D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D, impulse_variable
 
@@ -655,7 +654,7 @@ class Estimator3D:
         for run, (pose, vel, imp, res) in zip(self.runs, self.run_results(out.z)):
             src = run.filename or ""
             run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
-                                        source_sha256=sha256_file(src) if src else ""))
+                                        source_sha256=run_sha256(run)))
         params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
         params.update(self.effect_params(out.z))
         info = (observed_information_3d(pr, out.z, self.p_final, *self.bounds_final, sc, mass)
