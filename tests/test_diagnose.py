@@ -936,27 +936,63 @@ def _down_face(vertices, angle):
     return int(np.argmin(ny))
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=(
-    "measured 0.442 for 0.377 (+17 %): the box slides on one face only, so that face's value is the "
-    "ground friction, and the estimator's split of mu (m g + push) between friction and mass is off "
-    "on this object (the clean recording of it: friction 0.307 for 0.237, mass 0.16 kg for 0.23)"))
+def _face_friction_recording():
+    """Three random pokes (tactile only) of the box of seed 4 (0.23 kg), its faces' ground
+    friction 0.377, 0.141, 0.322, 0.159 (drawn); it slides on face 0 only."""
+    return record_sim(SimOptions(seed=4, pokes=3, effects=["face_friction"]))
+
+
 def test_face_friction_augmentation_recovers_the_face_on_the_ground():
-    """face_friction on a poked box: the coefficient of the face the box slides on (the
-    face facing the ground at the start, in the truth and in the estimate) is recovered
-    within 15 % (measured before the estimator's friction/mass split moved: 0.387 for
-    0.377; now 0.442); faces that never touched the ground keep their prior value."""
+    """face_friction on a poked box, the object weighed (mass prior at the scale's
+    reading, log sigma 0.02): the coefficient of the face the box slides on (the face
+    facing the ground at the start, in the truth and in the estimate) is recovered
+    within 15 %.  In steady sliding only mu (m g + push) is observed, so the face's
+    coefficient is as good as the mass: weighed, it is right (measured 0.386 for 0.377;
+    0.378 from six pokes); unweighed, see the next test.  Faces that never touched the
+    ground keep their prior value (the ground friction).  ~6 s."""
     from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
-    run = record_sim(SimOptions(seed=4, pokes=6, effects=["face_friction"]))
+    run = _face_friction_recording()
     values = effects_from_json(run.truth.effects)[0].params["values"]
     truth = values[_down_face(run.truth.vertices, run.truth.pose[0, 2])]
-    est = estimate_runs([run], "box", effects=("face_friction",))
+    cfg = EstimatorConfig().updated({"prior": {"mass": float(run.truth.mass), "mass_log_sigma": 0.02}})
+    est = estimate_runs([run], "box", config=cfg, effects=("face_friction",))
     k = _down_face(est.vertices, est.runs[0].pose[0, 2])
     got = est.params["face_friction.values"][k]
+    # 15 %: the tolerance of the toss test below and of the ground friction in
+    # docs/estimation.md's benchmark
     assert abs(got - truth) <= 0.15 * truth, (got, truth, est.params["face_friction.values"], values)
-    assert est.identifiable[f"face_friction.d{k}"]
+    others = [v for j, v in enumerate(est.params["face_friction.values"]) if j != k]
+    assert np.allclose(others, est.params["friction_ground"], rtol=0.02), est.params
+
+
+def test_face_friction_unweighed_is_biased_by_the_light_object_collapse():
+    """The known limitation, measured and held strictly.  Without a weighed mass the
+    plain fit of this recording is the light-object collapse (docs/estimation.md, "Pose
+    observations and light objects"; tests/test_claims.py, seed 4): slow sliding pushes
+    tell mu (m g + push) only, and the fit puts the weight into the push.  face_friction
+    inherits it: measured, the plain fit 0.004 kg for 0.23 with ground friction 2.0 (its
+    bound), the face_friction fit 0.015 kg with 3.50 for the face's 0.377 (+830 %; on
+    six pokes 1.996, +430 %).  The test asserts the collapse of both fits and a face
+    coefficient above twice the truth; when the estimator stops collapsing here it
+    fails, and docs/diagnosis.md ("Identifiability", face_friction) must then drop the
+    limitation.  (It replaces a non-strict expected failure, "0.442 for 0.377", that had
+    gone on hiding the collapse since the estimator's restarts changed.)  ~10 s."""
+    from tacest.dims import estimate_runs
+    from tacest.sim.effects import effects_from_json
+
+    run = _face_friction_recording()
+    values = effects_from_json(run.truth.effects)[0].params["values"]
+    truth = values[_down_face(run.truth.vertices, run.truth.pose[0, 2])]
+    plain = estimate_runs([run], "box")
+    est = estimate_runs([run], "box", effects=("face_friction",))
+    got = est.params["face_friction.values"][_down_face(est.vertices, est.runs[0].pose[0, 2])]
+    # a tenth of the mass: the collapse, not a fit that is merely off (the weighed fit
+    # above is within 2 %, clean unweighed fits of other seeds within tens of percent)
+    light = 0.1 * run.truth.mass
+    assert plain.params["mass"] < light and est.params["mass"] < light, (plain.params, est.params)
+    assert got > 2 * truth, (got, truth)
 
 
 @pytest.mark.slow
