@@ -723,7 +723,10 @@ def main(argv=None):
                 echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
                      " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
                 res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach)
-                res.update(effect=effect, seed=seed, injected=injected, code=code)
+                # the worker's own "code" is kept: a result whose code differs from this
+                # run's (the tree edited while the benchmark ran) makes the table MIXED
+                res.update(effect=effect, seed=seed, injected=injected)
+                res.setdefault("code", code)
                 out.write_text(json.dumps(res))
             results.append(res)
             verdict = res["verdict"] if res.get("ok") else "FAILED"
