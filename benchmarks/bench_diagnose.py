@@ -5,7 +5,7 @@
                                                               [--pokes 3] [--tip-pokes 0]
                                                               [--cache DIR] [--timeout 1800]
                                                               [--fit-iterations 150] [--known-mass REL]
-                                                              [--refit NAMES] [--reach M] [--quiet] [--json OUT.json]
+                                                              [--reach M] [--quiet] [--json OUT.json]
 
 For every effect named in SPEC (and ``none``) and seeds FIRST..FIRST+N-1 (``--first-seed``, default 0) it records a 2-D box with
 tacest's simulator and the effect at a random strength, writes it twice (with /truth
@@ -58,13 +58,23 @@ times exp(REL · N(0, 1)) (a weighing error of REL; seeded per recording), with
 names).
 
 Every diagnosis runs in its own subprocess (this script with ``--worker``) under a time
-limit; its result is cached as JSON per recording in the cache folder (default
-``$TMPDIR/tacest_bench_diagnose``), so an interrupted benchmark resumes where it stopped
-(delete the folder, or a file in it, to redo a recording).
+limit; its result is cached as JSON per recording, and the recordings with it, in a
+folder named by the code version, ``<cache>/code_<digest>`` (default cache
+``$TMPDIR/tacest_bench_diagnose``; the digest is tacest.provenance.source_digest of
+tacest's sources and this script), so an interrupted benchmark resumes where it stopped
+and a changed line of code (a rule, a threshold, a grid, the simulator) starts a new
+folder: a table is always made by one code version, printed in its header and stored
+in every result (``code``) and in the summary.  Delete a folder, or a file in it, to
+redo a recording.  There is no refit of single candidates into old results (that made
+tables of several versions).
 
-The summary re-derives every verdict from the cached held-out comparisons with the
-current rule (``tacest.diagnosis.diagnose.counts``), so a change of the decision rule
-does not need the fits again (the per-recording lines show the verdict as cached).
+``--seeds``/``--first-seed``: report held-out seeds.  Seeds 0-2 of every effect and
+clean seeds 0-19 were used while the rules, thresholds and the model were changed
+(docs/diagnosis.md, "Tuning and held-out seeds"); a figure meant to say how the
+diagnosis does on new data must come from other seeds (``--first-seed 3`` and, for clean
+recordings, ``--first-seed 20``).  The summary also re-derives every verdict from the
+cached held-out comparisons with the rule of this code version (``counts``): a check
+that the cached verdicts are this version's (a mismatch is reported).
 
 Printed: one line per recording (with what the object did, from its truth: largest
 tilt and fastest vertex impact; an object that never tips hides restitution and
@@ -102,6 +112,10 @@ NOT_IDENTIFIABLE = ("force_scale",)
 WEIGHING_STREAM = 5150
 #: random stream of the tipping pokes (apart from the simulator's own streams)
 TIP_STREAM = 7071
+#: seeds used while the diagnosis' rules, thresholds, grids and models were changed
+#: (docs/diagnosis.md, "Tuning and held-out seeds"): the effect recordings of seeds 0-2
+#: and the clean recordings of seeds 0-19.  Figures from them are not held out.
+TUNING_SEEDS = {"effect": range(0, 3), "none": range(0, 20)}
 TARGET_ACCURACY = 0.90
 TARGET_NONE_BLAMED = 0.10
 TARGET_REDUCTION = 0.50
@@ -146,7 +160,7 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     return {"ok": True, "verdict": obj["verdict"], "reason": obj["reason"], "effects": obj["effects"],
             "where": obj["where"][:10], "heldout": obj["heldout"], "backend": obj["backend"],
             "wall": time.perf_counter() - t0, "samples": sum(r.n_samples for r in runs), "runs": len(runs),
-            "mass_known": mass_is_known(config)}
+            "mass_known": mass_is_known(config), "code": code_version()}
 
 
 #: separates the run files of one recording on the worker's command line
@@ -442,34 +456,6 @@ def record_toss_design(effect: str, seed: int, pairs: int, folder: Path) -> Reco
     return Recording(bare, full, _injected(full[0]), f"_toss{pairs}", json.loads(meta.read_text()))
 
 
-def refit_candidates(res: dict, paths: list, args, known: str) -> dict:
-    """A cached result with the candidates of ``args.refit`` refitted (a diagnosis with
-    only them: the same plain fit, folds and plain held-out objectives, which do not
-    depend on the candidates) and their entries replaced; the verdict is re-derived in
-    the summary.  A failed refit leaves the result as it was, with a note."""
-    names = [n.strip() for n in args.refit.split(",") if n.strip()]
-    # an entry refitted by this estimator version already is kept
-    tag = f"{args.refit} with {estimator_fingerprint().split()[-1]}"
-    if not res.get("ok") or all(any(e["name"] == n and e.get("refit") == tag for e in res["effects"])
-                                for n in names):
-        return res
-    new = run_job(paths, args.fit_iterations, args.timeout, known, ",".join(names), args.reach)
-    if not new.get("ok"):
-        res.setdefault("notes", []).append(f"refit of {args.refit} failed: {new.get('error')}")
-        return res
-    fresh = {e["name"]: dict(e, refit=tag) for e in new["effects"]}
-    plain_then, plain_now = res["heldout"].get("objective_plain"), new["heldout"].get("objective_plain")
-    if plain_then is None or plain_now is None or abs(plain_then - plain_now) > 1e-6 * max(1.0, abs(plain_then)):
-        res.setdefault("notes", []).append(f"refit of {args.refit}: the plain model's held-out objective changed "
-                                           f"({plain_then} -> {plain_now}); entries not replaced")
-        return res
-    res["effects"] = [fresh.get(e["name"], e) for e in res["effects"]]
-    res.setdefault("notes", []).append(f"refit of {args.refit}: 'verdict' and 'reason' are the diagnosis' before it "
-                                       "(the summary re-derives the verdict)")
-    res["effects"].sort(key=lambda e: -(e["score"] if e.get("score") is not None else -math.inf))
-    return res
-
-
 def weighed_mass(rec: Recording, effect: str, seed: int, rel: float) -> str:
     """"MASS,LOG_SIGMA" of --known-mass: the truth's mass times exp(rel · N(0, 1)), a
     weighing error drawn per recording (seeded by effect and seed), and rel."""
@@ -509,18 +495,19 @@ def truth_motion(rec: Recording) -> dict:
 IMPACT_HEIGHT = 1e-3
 
 
-def estimator_fingerprint() -> str:
-    """Where the estimator is imported from and a hash of its sources: the estimator is
-    under active development, and the figures hold for this version only."""
-    import hashlib
+def tacest_location() -> str:
+    """Where tacest is imported from (a worktree or an installed copy)."""
+    import tacest
 
-    import tacest.estimation
+    return str(Path(tacest.__file__).resolve().parent)
 
-    folder = Path(tacest.estimation.__file__).parent
-    h = hashlib.sha256()
-    for f in sorted(folder.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
-    return f"{folder} sha256:{h.hexdigest()[:12]}"
+
+def code_version() -> str:
+    """The code version of the results: tacest.provenance.source_digest of tacest's
+    sources and of this script (its designs and the diagnosis options of its worker)."""
+    from tacest.provenance import source_digest
+
+    return source_digest(Path(__file__).resolve())
 
 
 # ------------------------------------------------------------------------------------
@@ -564,10 +551,14 @@ def rederive_verdict(r: dict) -> str:
 
 
 def summarize(results: list) -> dict:
-    for r in results:
-        if r.get("ok"):
-            r["verdict_cached"] = r["verdict"]
-            r["verdict"] = rederive_verdict(r)
+    # the cache is per code version: every verdict is the diagnosis' own; re-deriving it
+    # from the stored comparisons with this version's rule is a check (a mismatch means
+    # the stored comparisons do not carry what the rule reads)
+    mismatched = [f"{r['effect']} seed {r['seed']}: {r['verdict']} (re-derived: {rederive_verdict(r)})"
+                  for r in results if r.get("ok") and rederive_verdict(r) != r["verdict"]]
+    codes = sorted({str(r.get("code")) for r in results})
+    tuned = sorted({f"{r['effect']} {r['seed']}" for r in results
+                    if r["seed"] in TUNING_SEEDS["none" if r["effect"] == "none" else "effect"]})
     ok = [r for r in results if r.get("ok")]
     names = list(SPEC_EFFECTS)
     conf = {t: {p: 0 for p in names + ["failed"]} for t in names}
@@ -604,6 +595,7 @@ def summarize(results: list) -> dict:
         "unavailable_candidates": unavailable,
         "mass_known": bool(ok) and all(r.get("mass_known") for r in ok),
         "wall_median": _median([r.get("wall") for r in results]), "wall_max": max([r.get("wall", 0) for r in results] or [0]),
+        "codes": codes, "verdicts_not_rederived": mismatched, "tuning_recordings": tuned,
     }
 
 
@@ -621,7 +613,16 @@ def print_summary(s: dict):
         if sum(row.values()) == 0:
             continue
         print(f"{t:>16}" + "".join(f"{row[c]:>8}" for c in cols))
-    print(f"\nrecordings {s['recordings']}, failed diagnoses {s['failures']}")
+    print(f"\nrecordings {s['recordings']}, failed diagnoses {s['failures']}; code version(s) "
+          f"{', '.join(s['codes'])}" + ("" if len(s["codes"]) == 1 else "  -- MIXED: not one table"))
+    if s["tuning_recordings"]:
+        print(f"NOT HELD OUT: {len(s['tuning_recordings'])} recording(s) of seeds used for tuning "
+              f"(TUNING_SEEDS): {', '.join(s['tuning_recordings'][:8])}"
+              + (" ..." if len(s["tuning_recordings"]) > 8 else ""))
+    else:
+        print("held out: no recording of a seed used for tuning")
+    for m in s["verdicts_not_rederived"]:
+        print(f"  WARNING verdict differs from the rule's re-derivation: {m}")
     print(f"top-1 accuracy without {', '.join(NOT_IDENTIFIABLE)} (not identifiable without a known mass"
           + ("; here the mass was known" if s.get("mass_known") else "") + f"): {s['accuracy_identifiable']:.0%}")
     print("top-1 accuracy per effect: " + ", ".join(f"{k} {v:.0%}" for k, v in s["accuracy_per_effect"].items()))
@@ -662,9 +663,6 @@ def main(argv=None):
     ap.add_argument("--fit-iterations", type=int, default=150, help="IPOPT iterations per stage (default 150)")
     ap.add_argument("--known-mass", type=float, default=None, metavar="REL",
                     help="diagnose with the weighed mass (truth x exp(REL N(0,1))) as a prior of log sigma REL")
-    ap.add_argument("--refit", default=None, metavar="NAMES",
-                    help="for recordings with a cached result: refit only these candidates (comma-separated) and "
-                         "replace their entries (after a change to their augmentation)")
     ap.add_argument("--reach", type=float, default=None, metavar="M",
                     help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the diagnosis' "
                          "default, DiagnoseOptions.reach); results with a reach are cached apart (_reach<M>)")
@@ -695,14 +693,15 @@ def main(argv=None):
               f"tip pokes {args.tip_pokes} (0 <= tip < pokes)", file=sys.stderr)
         return 1
     echo = _echo(args.quiet)
-    cache = Path(args.cache or Path(tempfile.gettempdir()) / "tacest_bench_diagnose")
+    code = code_version()
+    cache = Path(args.cache or Path(tempfile.gettempdir()) / "tacest_bench_diagnose") / f"code_{code}"
     cache.mkdir(parents=True, exist_ok=True)
     design = {"toss": f"{args.pairs} pairs of runs (a toss, a fast high poke) each, pose observed at "
                       f"{OBSERVE_POSE * 1e3:g} mm",
               "effects": f"{args.pokes} fast high pokes each, pose observed at {OBSERVE_POSE * 1e3:g} mm",
               "random": f"{args.pokes} random pokes each ({args.tip_pokes} tipping)"}[args.design]
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}; {len(effects)} effects x {args.seeds} seeds, "
-          f"{design}; estimator {estimator_fingerprint()}", flush=True)
+          f"{design}; code {code} (tacest {tacest_location()})", flush=True)
     results = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for effect in effects:
@@ -718,20 +717,19 @@ def main(argv=None):
                 known = weighed_mass(rec, effect, seed, args.known_mass)
             out = cache / (f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}"
                            f"{'' if not args.reach else f'_reach{args.reach:g}'}.json")
-            if out.exists() and args.refit:
-                res = refit_candidates(json.loads(out.read_text()), rec.bare, args, known)
-                out.write_text(json.dumps(res))
-            elif out.exists():
+            if out.exists():
                 res = json.loads(out.read_text())
             else:
                 echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
                      " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
                 res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach)
+                # the worker's own "code" is kept: a result whose code differs from this
+                # run's (the tree edited while the benchmark ran) makes the table MIXED
                 res.update(effect=effect, seed=seed, injected=injected)
+                res.setdefault("code", code)
                 out.write_text(json.dumps(res))
             results.append(res)
-            # the verdict under the current rule (a refit leaves the cached one stale)
-            verdict = rederive_verdict(res) if res.get("ok") else "FAILED"
+            verdict = res["verdict"] if res.get("ok") else "FAILED"
             right = next((e for e in res.get("effects", []) if e["name"] == effect), None)
             extra = ""
             if right is not None and right.get("status") == "ok":
@@ -748,6 +746,8 @@ def main(argv=None):
             print(f"{effect:>16} seed {seed}: verdict {verdict:<16} ({res.get('wall', math.nan):.0f} s{extra})"
                   + ("" if res.get("ok") else f" -- {res.get('error')}"), flush=True)
     s = summarize(results)
+    s["code"] = code
+    s["seeds"] = [args.first_seed, args.first_seed + args.seeds - 1]
     print_summary(s)
     if args.json:
         Path(args.json).write_text(json.dumps({"results": results, "summary": s}, indent=1))

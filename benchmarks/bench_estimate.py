@@ -407,7 +407,8 @@ def main(argv=None) -> int:
     p.add_argument("--config", dest="config_path", default=None, metavar="TOML",
                    help="estimator settings for every estimate (default: the shipped defaults)")
     p.add_argument("--cache", default=None, metavar="DIR",
-                   help="keep the recordings in DIR and reuse them (default: a temporary folder)")
+                   help="keep the recordings in DIR/code_<digest> and reuse them with the same code "
+                        "(default: a temporary folder)")
     p.add_argument("--worker", nargs=5, metavar=("RUN", "SHAPE", "METHOD", "REACH", "CONFIG"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
@@ -433,7 +434,11 @@ def main(argv=None) -> int:
     results, scaling = {}, {}
     t_all = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_estimate_") as tmp:
-        tmp = Path(a.cache) if a.cache else Path(tmp)
+        # a --cache folder keeps the recordings of one code version (tacest's sources
+        # and this script: tacest.provenance.source_digest), never a stale one
+        from tacest.provenance import source_digest
+
+        tmp = Path(a.cache) / f"code_{source_digest(Path(__file__).resolve())}" if a.cache else Path(tmp)
         tmp.mkdir(parents=True, exist_ok=True)
         for case in [c for c in cases if c != "scaling"]:
             for style in styles:

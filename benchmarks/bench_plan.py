@@ -17,7 +17,9 @@ scored against the truth (Chamfer of the placed shapes, parameter errors).
 
 Resumable and parallel-safe: each loop is one job, run in its own subprocess (this script
 with ``--worker``) under a time limit; its result (the explore summary, or the failure)
-goes to ``<cache>/<case>-<seed>-<policy>.json`` (written atomically), and a job whose
+goes to ``<cache>/code_<digest>/<case>-<seed>-<policy>.json`` (written atomically; the digest
+is tacest.provenance.source_digest of tacest's sources and this script, so that a table is
+one code version's), and a job whose
 result exists is not run again.  A job is claimed by creating ``<name>.lock`` exclusively,
 so several copies of this script can share one cache and split the jobs; a lock whose
 process is gone is taken over.  ``--report-only`` prints what the cache holds.
@@ -345,7 +347,11 @@ def main(argv=None):
     if any(c not in CASES for c in cases) or any(p not in POLICIES for p in policies) or args.seeds < 1 \
             or args.pokes < 1:
         ap.error(f"cases from {CASES}, policies from {POLICIES}, seeds and pokes >= 1")
-    cache = Path(args.cache)
+    # results of one code version only (tacest's sources and this script:
+    # tacest.provenance.source_digest): a changed planner never reprints old figures
+    from tacest.provenance import source_digest
+
+    cache = Path(args.cache) / f"code_{source_digest(Path(__file__).resolve())}"
     cache.mkdir(parents=True, exist_ok=True)
     # a terminated benchmark kills its running worker and frees the job's lock
     signal.signal(signal.SIGTERM, lambda *a: sys.exit(143))

@@ -45,3 +45,30 @@ def provenance() -> dict:
 def sha256_text(text: str) -> str:
     """Hex SHA-256 of a text (UTF-8): a commitment to a value a blind file must not show."""
     return hashlib.sha256(str(text).encode("utf-8")).hexdigest()
+
+
+#: what :func:`source_digest` hashes of the package: its code and its shipped settings
+SOURCE_SUFFIXES = (".py", ".toml")
+
+
+def source_digest(*extra_files) -> str:
+    """The code version a result belongs to: the first 12 hex digits of the SHA-256 of
+    every tacest source file (``SOURCE_SUFFIXES`` under the installed package, each by
+    its path relative to the package and its bytes, in sorted order) and of
+    ``extra_files`` (paths, e.g. the benchmark script that made the result, by name and
+    bytes).  Any edit to any of them changes it; a benchmark keys its cache by it, so
+    that a table never mixes results of two versions."""
+    from pathlib import Path
+
+    import tacest
+
+    root = Path(tacest.__file__).resolve().parent
+    h = hashlib.sha256()
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix in SOURCE_SUFFIXES
+                   and "__pycache__" not in p.parts)
+    for p in files:
+        h.update(p.relative_to(root).as_posix().encode() + b"\0" + p.read_bytes() + b"\0")
+    for f in extra_files:
+        p = Path(f)
+        h.update(b"extra:" + p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()[:12]

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from tacest.diagnosis import diagnose as diag_mod
-from tacest.diagnosis.candidates import candidate, latency_mismatch, parse_effect_list
+from tacest.diagnosis.candidates import candidate, parse_effect_list
 from tacest.diagnosis.fitting import FitResult, occam_objective
 from tacest.estimation.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
                                     residual_dof, window_tests)
@@ -202,46 +202,75 @@ def test_undo_latency_and_time_scale(recordings):
     np.testing.assert_allclose(np.diff(s.time), run.dt / 1.04)
 
 
+def _walk(name, f, screening=None, budget=10):
+    """The diagnosis' line search (diagnose._fit_candidate) on an objective f: the values
+    fitted and the value kept (choose_transform_value)."""
+    from tacest.diagnosis.candidates import (TRANSFORM_IDENTITY, choose_transform_value, first_transform_values,
+                                             next_transform_value)
+
+    ident = TRANSFORM_IDENTITY[name]
+    objs = {ident: f(ident)}
+    queue = first_transform_values(name, screening)
+    fitted = []
+    while len(fitted) < budget:
+        v = queue.pop(0) if queue else next_transform_value(name, objs)
+        if v is None:
+            break
+        objs[v] = f(v)
+        fitted.append(v)
+    return fitted, choose_transform_value(name, {k: o for k, o in objs.items() if k != ident})
+
+
 def test_transform_line_search_walks_to_the_minimum():
-    from tacest.diagnosis.candidates import first_transform_values, next_transform_value
-
-    def walk(name, f, screening=None, budget=10):
-        objs = {0 if name == "latency" else 1.0: f(0 if name == "latency" else 1.0)}
-        queue = first_transform_values(name, screening)
-        fitted = []
-        while len(fitted) < budget:
-            v = queue.pop(0) if queue else next_transform_value(name, objs)
-            if v is None:
-                break
-            objs[v] = f(v)
-            fitted.append(v)
-        return fitted, min(objs, key=objs.get)
-
-    fitted, best = walk("latency", lambda k: (k - 4.0) ** 2, screening={1: 0.0, 2: 1.0, 3: 2.0})
-    assert fitted == [1, 2, 3, 4, 5] and best == 4  # stops once 4 is bracketed by 3 and 5
-    fitted, best = walk("latency", lambda k: (k - 4.0) ** 2, screening={1: 0.0}, budget=3)
-    assert best == 3  # the budget ends the walk on the way
-    fitted, best = walk("time_scale", lambda s: (s - 1.04) ** 2)
-    assert fitted[:2] == [0.965, 1.035] and best == 1.035 and 1.05 in fitted
-    fitted, best = walk("time_scale", lambda s: (s - 1.0) ** 2)
-    assert best == 1.0  # the plain model stays best (the walk goes on to its neighbours)
+    fitted, kept = _walk("latency", lambda k: 4 * (k - 4.0) ** 2, screening={1: 0.0, 2: 1.0, 3: 2.0})
+    assert fitted == [1, 2, 3, 4, 5] and kept == 4  # stops once 4 is bracketed by 3 and 5
+    fitted, kept = _walk("latency", lambda k: 4 * (k - 4.0) ** 2, screening={1: 0.0}, budget=3)
+    assert kept == 3  # the budget ends the walk on the way
+    fitted, kept = _walk("time_scale", lambda s: (s - 1.04) ** 2)
+    assert fitted[:2] == [0.955, 1.045] and kept in (1.03, 1.045)
+    fitted, kept = _walk("time_scale", lambda s: (s - 1.0) ** 2)
+    assert kept in (0.985, 1.015)  # no clock error: the values next to 1 (the plain model is best)
 
 
-def _truth_estimate(runs):
-    """A stand-in estimate: the truth shape and poses of the runs."""
-    tr = runs[0].truth
-    return Estimate(dim=2, shape="box", vertices=np.asarray(tr.vertices), params={},
-                    runs=[RunEstimate(pose=r.truth.pose, velocity=np.zeros_like(r.truth.pose)) for r in runs])
+def _hinge(true_k, slope, shelf):
+    """A latency objective as measured on real fits (lat_profile in docs/diagnosis.md):
+    falling by ``slope`` per sample up to the true delay, rising by ``shelf`` per sample
+    beyond it (0.0-1.2 measured: a flag covers the interval (t-1, t], the shape absorbs
+    part of a longer shift)."""
+    return lambda k: 30.0 + slope * max(true_k - k, 0) + shelf * max(k - true_k, 0)
 
 
-def test_latency_signature_finds_the_delay_from_the_true_geometry(recordings):
-    # the screening statistic alone, on the true geometry: its minimum is the delay
-    run = _read(recordings["latency"])
-    mism = latency_mismatch([run], _truth_estimate([run]), SIGMA_GAP, max_shift=5)
-    assert min(mism, key=mism.get) == 2
-    clean = _read(recordings["none"])
-    mism = latency_mismatch([clean], _truth_estimate([clean]), SIGMA_GAP, max_shift=5)
-    assert min(mism, key=mism.get) == 0
+@pytest.mark.parametrize("shelf", [0.0, 0.1, 1.2])
+@pytest.mark.parametrize("slope", [5.0, 20.0])
+def test_latency_search_reaches_every_delay_of_the_grid_within_one_sample(slope, shelf):
+    """Delays of 1 to 20 samples (50-200 ms of a camera-based tactile sensor at 100 Hz:
+    candidates.TRANSFORM_GRIDS) are kept within one sample with the diagnosis' budget of
+    three fits, the screening profile being the same objective at LATENCY_SCREEN (the
+    quick fits see the same data); delays beyond the grid are kept at its end.  Slopes:
+    measured 15-26 per sample on a 2-poke recording, 5 is a weaker effect.  The old
+    walk (one grid step at a time from the start) reached 3 for a true 15."""
+    from tacest.diagnosis.candidates import LATENCY_SCREEN, TRANSFORM_GRIDS
+
+    grid_max = max(TRANSFORM_GRIDS["latency"])
+    assert grid_max >= 20
+    for true_k in list(range(1, grid_max + 1)) + [grid_max + 3]:
+        f = _hinge(true_k, slope, shelf)
+        fitted, kept = _walk("latency", f, screening={k: f(k) for k in LATENCY_SCREEN},
+                             budget=diag_mod.FITS_PER_CANDIDATE)
+        assert abs(kept - min(true_k, grid_max)) <= 1, (true_k, fitted, kept)
+
+
+@pytest.mark.parametrize("true_s", [0.88, 0.90, 0.93, 0.95, 0.97, 0.99, 1.01, 1.03, 1.05, 1.07, 1.10, 1.12])
+def test_time_scale_search_reaches_every_clock_error_of_the_grid(true_s):
+    """Clock errors to ±12 % (the grid's span; candidates.TRANSFORM_GRIDS) are kept within
+    one and a half grid steps (2.25 %) with the diagnosis' budget of three fits, on a
+    misfit that grows as the gravity seen, (s/s_true)^2 - 1, squared (quadratic near the
+    minimum, steeper beyond: the parabola then overshoots by up to a step)."""
+    from tacest.diagnosis.candidates import TIME_SCALE_STEP
+
+    f = lambda s: 2000.0 * ((s / true_s) ** 2 - 1.0) ** 2  # noqa: E731
+    fitted, kept = _walk("time_scale", f, budget=diag_mod.FITS_PER_CANDIDATE)
+    assert abs(kept - true_s) <= 1.5 * TIME_SCALE_STEP + 1e-9, (true_s, fitted, kept)
 
 
 # ------------------------------------------------------------------------------------
@@ -529,17 +558,19 @@ def test_latency_recovered_by_the_transform_path_with_the_estimator():
     assert objs[0] - objs[2] > 3.0, objs  # the delay costs more than one parameter's penalty
 
 
-def _falling_box(scale, T=80, dt=0.01, h=0.06, drop=0.4, sigma=1e-4, seed=0, t_release=0.05):
+def _falling_box(scale, T=80, dt=0.01, h=0.06, drop=0.4, sigma=1e-4, seed=0, t_release=0.05, length=1.0):
     """A box dropped from ``drop`` m above its resting height (plastic landing), seen
     only by pose observations (sigma m), written by a clock that runs at ``scale`` × the
-    true rate (SPEC time_scale): /time and dt are scale × the true ones.  Before
-    ``t_release`` (s) it is held still in the air by a hand the model does not have."""
+    true rate (SPEC time_scale): /time and dt are scale × the true ones; and with its
+    positions ``length`` × the true ones (a length scale error: a camera calibrated with
+    the wrong target size; the angle and the noise as measured).  Before ``t_release``
+    (s) it is held still in the air by a hand the model does not have."""
     from tacest.io.run import Run
 
     g = 9.81
     t = np.arange(T) * dt
     y = np.maximum(h / 2 + drop - 0.5 * g * np.maximum(t - t_release, 0.0) ** 2, h / 2)
-    pose = np.stack([np.zeros(T), y, np.zeros(T)], 1)
+    pose = np.stack([np.zeros(T), length * y, np.zeros(T)], 1)
     rng = np.random.default_rng(seed)
     obs = pose + rng.normal(size=pose.shape) * np.array([sigma, sigma, sigma / 0.05])
     return Run(dim=2, dt=scale * dt, time=scale * t, gravity=np.array([0.0, -g]), pose_obs=obs,
@@ -582,6 +613,40 @@ def test_time_scale_recovered_by_the_transform_path_where_gravity_shows_it(true_
     chosen = choose_transform_value("time_scale", {k: v for k, v in objs.items() if k != 1.0})
     assert abs(chosen - true_scale) <= 0.0151, objs  # one grid step (1.5 %), with rounding
     assert objs[1.0] - objs[chosen] > 3.0, objs  # more than one parameter's penalty
+
+
+@pytest.mark.parametrize("clock,length", [(0.92, 1.0), (1.08, 1.0), (1.0, 0.90), (1.0, 1.10)])
+def test_clock_and_length_errors_to_ten_percent_are_found_by_the_time_scale_search(clock, length):
+    """Clock errors of 8 % (outside the grid of the first versions, 2-5 %) and length
+    errors of 10 % on a falling box seen by motion capture, with the real estimator and
+    the diagnosis' own line search and budget (three fits to all data; fits of 80
+    samples take under a second).  A length error L is the clock error s = 1/sqrt(L) to
+    the model (candidates.TRANSFORM_GRIDS): every acceleration, gravity's included, is L
+    times the true one.  Kept within 1.5 grid steps (2.25 %) of that scale, as the
+    search does on a synthetic objective (test_time_scale_search_reaches_every_clock_
+    error_of_the_grid; the objective leans toward 1 by about a percent,
+    test_time_scale_recovered_by_the_transform_path_where_gravity_shows_it), and the
+    error costs the plain model more than one parameter's penalty."""
+    from tacest.diagnosis.candidates import TIME_SCALE_STEP
+    from tacest.diagnosis.fitting import fit_local, weighted_objective
+
+    cfg = diag_mod.DiagnoseOptions().fit_config(EstimatorConfig())
+    run = _falling_box(clock, t_release=0.0, length=length)
+    base = fit_local([run], "box", cfg)
+    plain = weighted_objective(base.estimate, cfg)
+
+    def objective(s_try):
+        if s_try == 1.0:
+            return plain
+        f = fit_local([undo_time_scale(run, s_try)], "box", cfg, warm=base.estimate,
+                      warm_runs=list(base.estimate.runs))
+        return weighted_objective(f.estimate, cfg)
+
+    objs = {}
+    fitted, kept = _walk("time_scale", lambda v: objs.setdefault(v, objective(v)), budget=diag_mod.FITS_PER_CANDIDATE)
+    expected = clock / math.sqrt(length)
+    assert abs(kept - expected) <= 1.5 * TIME_SCALE_STEP + 1e-9, (expected, objs)
+    assert plain - objs[kept] > 3.0, objs
 
 
 def test_the_reach_term_is_free_on_the_ground_and_the_height_beyond_it_above():
@@ -871,27 +936,61 @@ def _down_face(vertices, angle):
     return int(np.argmin(ny))
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=(
-    "measured 0.442 for 0.377 (+17 %): the box slides on one face only, so that face's value is the "
-    "ground friction, and the estimator's split of mu (m g + push) between friction and mass is off "
-    "on this object (the clean recording of it: friction 0.307 for 0.237, mass 0.16 kg for 0.23)"))
+def _face_friction_recording():
+    """Three random pokes (tactile only) of the box of seed 4 (0.23 kg), its faces' ground
+    friction 0.377, 0.141, 0.322, 0.159 (drawn); it slides on face 0 only."""
+    return record_sim(SimOptions(seed=4, pokes=3, effects=["face_friction"]))
+
+
 def test_face_friction_augmentation_recovers_the_face_on_the_ground():
-    """face_friction on a poked box: the coefficient of the face the box slides on (the
-    face facing the ground at the start, in the truth and in the estimate) is recovered
-    within 15 % (measured before the estimator's friction/mass split moved: 0.387 for
-    0.377; now 0.442); faces that never touched the ground keep their prior value."""
+    """face_friction on a poked box, the object weighed (mass prior at the scale's
+    reading, log sigma 0.02): the coefficient of the face the box slides on (the face
+    facing the ground at the start, in the truth and in the estimate) is recovered
+    within 15 %.  In steady sliding only mu (m g + push) is observed, so the face's
+    coefficient is as good as the mass: weighed, it is right (measured 0.386 for 0.377;
+    0.378 from six pokes); unweighed, see the next test.  Faces that never touched the
+    ground keep their prior value (the ground friction).  ~6 s."""
     from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
-    run = record_sim(SimOptions(seed=4, pokes=6, effects=["face_friction"]))
+    run = _face_friction_recording()
     values = effects_from_json(run.truth.effects)[0].params["values"]
     truth = values[_down_face(run.truth.vertices, run.truth.pose[0, 2])]
-    est = estimate_runs([run], "box", effects=("face_friction",))
+    cfg = EstimatorConfig().updated({"prior": {"mass": float(run.truth.mass), "mass_log_sigma": 0.02}})
+    est = estimate_runs([run], "box", config=cfg, effects=("face_friction",))
     k = _down_face(est.vertices, est.runs[0].pose[0, 2])
     got = est.params["face_friction.values"][k]
+    # 15 %: the tolerance of the toss test below and of the ground friction in
+    # docs/estimation.md's benchmark
     assert abs(got - truth) <= 0.15 * truth, (got, truth, est.params["face_friction.values"], values)
-    assert est.identifiable[f"face_friction.d{k}"]
+    others = [v for j, v in enumerate(est.params["face_friction.values"]) if j != k]
+    assert np.allclose(others, est.params["friction_ground"], rtol=0.02), est.params
+
+
+def test_face_friction_unweighed_no_longer_collapses_to_a_light_object():
+    """The regression that a non-strict expected failure once hid, and then a strict test
+    held as a known limitation: without a weighed mass the plain fit of this recording
+    fell into the light-object collapse (0.004 kg for 0.23, ground friction 2.0 at its
+    bound; face_friction 0.015 kg with 3.50 for the face's 0.377).  Slow sliding pushes
+    tell mu (m g + push) only, so a start in the light basin stays there; the sampling
+    start with two runs and the goodness-of-fit restarts (docs/estimation.md, "Dynamic
+    pokes") begin in the right one.  Measured: plain 0.2330 kg for 0.2308 (+0.9 %),
+    face 0.384 for 0.377 (+1.9 %).  The tolerances are the weighed test's (15 % on the
+    face, the ground friction's in docs/estimation.md's benchmark) and 10 % on the mass
+    (the soft-contact test's); a return of the collapse (a tenth of the mass) fails
+    both.  ~10 s."""
+    from tacest.dims import estimate_runs
+    from tacest.sim.effects import effects_from_json
+
+    run = _face_friction_recording()
+    values = effects_from_json(run.truth.effects)[0].params["values"]
+    truth = values[_down_face(run.truth.vertices, run.truth.pose[0, 2])]
+    plain = estimate_runs([run], "box")
+    est = estimate_runs([run], "box", effects=("face_friction",))
+    got = est.params["face_friction.values"][_down_face(est.vertices, est.runs[0].pose[0, 2])]
+    for fit in (plain, est):
+        assert abs(fit.params["mass"] - run.truth.mass) <= 0.1 * run.truth.mass, fit.params
+    assert abs(got - truth) <= 0.15 * truth, (got, truth, est.params["face_friction.values"])
 
 
 @pytest.mark.slow
@@ -907,7 +1006,9 @@ def test_restitution_is_recovered_from_tumbling_landings():
     from tacest.dims import estimate_runs
     from tacest.sim.effects import effects_from_json
 
-    runs = _tosses(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4, effects=["restitution"]), n=3)
+    # e as it was drawn for seed 0 when the draw was U(0.4, 0.8) (the measurements below)
+    runs = _tosses(SimOptions(object_spec="box", seed=0, pokes=0, observe_pose=5e-4,
+                              effects=["restitution:e=0.41554442483900644"]), n=3)
     truth = effects_from_json(runs[0].truth.effects)[0].params["e"]
     # weighed: unweighed, the fit settles on a light object (0.41 kg for 0.82, e 0.52)
     cfg = EstimatorConfig().updated({"prior": {"mass": float(runs[0].truth.mass), "mass_log_sigma": 0.02}})

@@ -3,6 +3,7 @@ says which tacest and which command line wrote it (item 6)."""
 
 import json
 import shlex
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -171,3 +172,32 @@ def test_the_defaults_ship_with_the_package_and_match_the_code(tmp_path):
     assert res.returncode == 0 and res.stdout == defaults_toml()
     (tmp_path / "defaults.toml").write_text(res.stdout)
     assert load_config(tmp_path / "defaults.toml") == EstimatorConfig()
+
+
+def test_source_digest_names_the_code_version_a_benchmark_result_belongs_to(tmp_path, monkeypatch):
+    """tacest.provenance.source_digest: the same code gives the same digest; an edit to
+    an extra file (a benchmark script) or to any package source gives another (edited
+    in a copy of the package that stands in for it), and compiled caches do not count."""
+    import shutil
+
+    import tacest
+    from tacest.provenance import source_digest
+
+    script = tmp_path / "bench.py"
+    script.write_text("A = 1\n")
+    first = source_digest(script)
+    assert first == source_digest(script) and len(first) == 12
+    script.write_text("A = 2\n")
+    assert source_digest(script) != first
+    assert source_digest() != source_digest(script)
+
+    copy = tmp_path / "tacest"
+    shutil.copytree(Path(tacest.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(tacest, "__file__", str(copy / "__init__.py"))
+    before = source_digest()
+    (copy / "__pycache__").mkdir(exist_ok=True)
+    (copy / "__pycache__" / "x.py").write_text("ignored = True\n")
+    assert source_digest() == before
+    target = copy / "diagnosis" / "diagnose.py"
+    target.write_text(target.read_text().replace("FLOOR_SIGMAS = 2.0", "FLOOR_SIGMAS = 2.5"))
+    assert source_digest() != before

@@ -12,8 +12,8 @@ Screening signatures.  Each effect leaves its mark on some loss terms first (e.g
 force bias on the force residual where the finger does not touch); :func:`signature_scores`
 ranks candidates by the share of the flagged excess on their terms.  This ranking is
 only used to choose which candidates to refit when their number is limited
-(``max_candidates``) and to choose the first latency value to fit; it never decides the
-verdict.
+(``max_candidates``); the first latency value to fit comes from a profile of quick fits
+over the delays (LATENCY_SCREEN).  Neither decides the verdict.
 """
 
 from __future__ import annotations
@@ -26,15 +26,40 @@ from tacest.errors import TacestError
 from tacest.model.effects_contact import RESTITUTION_START
 
 #: data-transform candidates: the values their parameter may take (sorted), and the
-#: value that means "no effect".  Latency: whole samples, SPEC draws 1-4, one more for
-#: margin.  Time scale: SPEC draws 1 ± U(0.02, 0.05); steps of about 1.5 %.
+#: value that means "no effect".  The ranges are set by the sensors and clocks such a
+#: rig has, not by the simulator's draws (which are wider than both, docs/effects.md):
+#:
+#: - latency, whole samples 1..LATENCY_MAX_SAMPLES: a tactile stream reaches the
+#:   recorder through a serial or USB link that buffers a frame or two, and a camera-
+#:   based tactile sensor (a gel imaged at 30-60 frames/s, its flow computed before the
+#:   contact is reported) lags by 2-6 frames, i.e. 50-200 ms; at the rig's and the
+#:   simulator's 100 Hz that is up to 20 samples;
+#: - time scale s (a clock running at s times the true rate) on a grid of 1.5 % steps to
+#:   ±TIME_SCALE_SPAN: an uncalibrated microcontroller RC oscillator is specified to
+#:   ±10 %, and a camera whose frames are stamped at their nominal rate while it drops
+#:   frames in poor light is off by more.  A length scale error L (positions L times
+#:   the true ones: a camera calibrated with the wrong target size) is the same data to
+#:   the model as a clock error s = 1/sqrt(L): both make every acceleration L (= 1/s^2)
+#:   times the true one (gravity, the contacts', the finger's forces over the mass),
+#:   and velocities, sizes and paths are free in the fit; so ±12 % of clock covers
+#:   -20 % .. +29 % of length (tested on synthetic free falls of both kinds).  The
+#:   grid's resolution, 1.5 %, is what the objective resolves on a free fall (one
+#:   step; tests/test_diagnose.py).
+LATENCY_MAX_SAMPLES = 20
+TIME_SCALE_STEP = 0.015
+TIME_SCALE_SPAN = 0.12
 TRANSFORM_GRIDS = {
-    "latency": (1, 2, 3, 4, 5),
-    "time_scale": (0.95, 0.965, 0.98, 1.02, 1.035, 1.05),
+    "latency": tuple(range(1, LATENCY_MAX_SAMPLES + 1)),
+    "time_scale": tuple(sorted({round(1.0 + sign * TIME_SCALE_STEP * j, 6)
+                                for j in range(1, int(round(TIME_SCALE_SPAN / TIME_SCALE_STEP)) + 1)
+                                for sign in (-1.0, 1.0)})),
 }
 TRANSFORM_IDENTITY = {"latency": 0, "time_scale": 1.0}
-#: the first values fitted when no screening orders them (time scale: both sides of 1)
-TRANSFORM_START = {"latency": (1,), "time_scale": (0.965, 1.035)}
+#: the first values fitted when no screening orders them (time scale: both sides of 1,
+#: three steps out, so that a parabola through them and the plain fit (s = 1) resolves a
+#: minimum inside and extrapolates to one outside: next_transform_value)
+TRANSFORM_START = {"latency": (1,), "time_scale": (round(1.0 - 3 * TIME_SCALE_STEP, 6),
+                                                    round(1.0 + 3 * TIME_SCALE_STEP, 6))}
 
 #: effects whose fit started at "no effect" stays in the plain model's basin, with the
 #: strength their extra start is made at (physical units, estimate /params names).  A
@@ -44,6 +69,9 @@ TRANSFORM_START = {"latency": (1,), "time_scale": (0.965, 1.035)}
 #: the fits started at e = 0 ended at objective 2329 with e = 0, the plain fit at 2245;
 #: trajectories from the pose observations with every parameter held and e = 0.5, then
 #: everything freed, reach the basin of the truth (1025-1125).  See typical_start_fit.
+#: The typical strength, 0.5 (model.effects_contact.RESTITUTION_START), is the middle of
+#: the coefficient's physical range [0, 0.95], not a value of the simulator's draws (which
+#: run from 0.05 to 0.9).
 TYPICAL_STARTS = {"restitution": {"restitution.e": RESTITUTION_START}}
 
 #: loss terms where each effect shows first (screening, report)
@@ -130,45 +158,26 @@ def signature_scores(stats: list, names) -> dict:
 
 
 # ------------------------------------------------------------------------------------
-# latency screening: how well the fitted geometry agrees with shifted contact flags
+# latency screening: a profile of quick fits over the delays
+
+#: delays (samples) of the screening profile: quick fits of the plain model to the data
+#: with the tactile streams advanced by k (warm-started from the plain fit, the
+#: diagnosis' fit budget, no restarts; diagnose._latency_profile), every delay up to 4
+#: (a small delay's knee must be found to one sample), then about 30 % apart up to the
+#: grid's end.  Why fits: the objective against k falls steeply up to the true delay and
+#: stays on a shelf beyond it (a flag covers the interval (t-1, t], and the shape absorbs
+#: a little of a longer shift): on a 2-poke recording 275, 230, 180, 86, 38.5 at k = 0,
+#: 3, 6, 10, 14 and 34.5-34.7 from k = 15 to 20 for a true 15.  A geometric signature
+#: from the plain fit (no solve; the screening until the grid went past 5 samples)
+#: ranked k = 0 first for true delays of 8 and 15 samples: the plain fit had moved the
+#: object to meet the unshifted flags.
+LATENCY_SCREEN = (1, 2, 3, 4, 6, 8, 11, 14, 17, 20)
 
 
-def latency_mismatch(runs: list, estimate, sigma_gap: float, max_shift: int = None) -> dict:
-    """{k: mismatch} for tactile shifts k = 0..max_shift (samples), from a fit of the
-    unshifted runs: Σ over fingers and samples of (gap / sigma_gap)² where the shifted
-    flag says contact and the fitted gap is open at both ends of the sample's interval
-    (the smaller of the two counts), and (overlap / sigma_gap)² where it says no
-    contact and the fitted finger is inside the object.
-
-    runs : the runs of ``estimate`` (same order and lengths); estimate : Estimate with
-    vertices and per-run poses; sigma_gap : m.  Cheap (no solve); it ranks latency grid
-    values only.
-    """
-    from tacest.estimation.initial import finger_gaps
-
-    kmax = max(TRANSFORM_GRIDS["latency"]) if max_shift is None else int(max_shift)
-    V = np.asarray(estimate.vertices, float)
-    out = {k: 0.0 for k in range(kmax + 1)}
-    for run, rest in zip(runs, estimate.runs):
-        if run.contact is None:
-            continue
-        pose = np.asarray(rest.pose, float)[:, :3]
-        gaps = finger_gaps(run, V, pose) / sigma_gap  # (T, F)
-        valid = ~run.finger_missing_mask
-        c = run.contact.astype(bool)
-        T = run.n_samples
-        # a flag covers the interval (t-1, t]: touching at either end counts (SPEC)
-        g_int = np.minimum(gaps, np.vstack([gaps[:1], gaps[:-1]]))
-        for k in range(kmax + 1):
-            if k >= T:
-                continue
-            ck = c[k:]
-            ok = valid[k:] & valid[: T - k]
-            on = np.where(ck & ok, np.maximum(g_int[: T - k], 0.0), 0.0)
-            off = np.where(~ck & ok, np.minimum(gaps[: T - k], 0.0), 0.0)
-            # per sample, so that shifts (which drop k samples) compare fairly
-            out[k] += float(np.sum(on ** 2 + off ** 2)) / max(T - k, 1) * T
-    return out
+def latency_screen_values(shortest_run: int) -> tuple:
+    """The screening delays a recording whose shortest run has ``shortest_run`` samples
+    can take (undo_latency needs k < its length)."""
+    return tuple(k for k in LATENCY_SCREEN if k < int(shortest_run))
 
 
 #: objective units (a negative log-likelihood): latency values whose fits to all data are
@@ -191,26 +200,49 @@ def choose_transform_value(name: str, objectives: dict):
 
 
 def first_transform_values(name: str, screening: dict = None) -> list:
-    """The values to fit first: latency, the delay the screening signature ranks best
-    (k >= 1); time scale, both sides of 1."""
+    """The values to fit first: latency, the delay the screening profile ({k: objective
+    of a quick fit}) puts at the knee (the smallest k within LATENCY_TIE of its lowest,
+    as choose_transform_value keeps); time scale, both sides of 1."""
     if name == "latency" and screening:
-        ranked = sorted((k for k in TRANSFORM_GRIDS["latency"] if k in screening), key=lambda k: screening[k])
-        if ranked:
-            return [ranked[0]]
+        prof = {k: o for k, o in screening.items() if k in TRANSFORM_GRIDS["latency"]}
+        if any(o is not None and np.isfinite(o) for o in prof.values()):
+            return [choose_transform_value("latency", prof)]
     return list(TRANSFORM_START[name])
 
 
 def next_transform_value(name: str, objectives: dict):
-    """The next value to fit (a line search on the grid), or None when the best value
-    so far has both grid neighbours fitted (a bracketed minimum) or has none left.
+    """The next value to fit (a line search on the grid), or None when it has nothing
+    left to bracket.
 
     objectives : {value: objective of the fit to all data}, the identity value (no
-    effect: the plain model) included.  From the best value, fit its unfitted neighbour;
-    when both are unfitted, the one farther from the identity (a fit of the plain model
-    pulls the screening toward small effects)."""
+    effect: the plain model) included.
+
+    Latency: the objective falls up to the true delay and stays on a shelf beyond it
+    (LATENCY_SCREEN), and the delay kept is the smallest within LATENCY_TIE of the
+    lowest (choose_transform_value): from that value, fit the delay one sample shorter
+    (is the knee lower?), else one sample longer (is the shelf reached?), else stop.
+
+    Time scale (a smooth minimum): from the best value, on the side of an unfitted grid
+    neighbour, the grid value nearest the vertex of the parabola through the three
+    lowest values fitted, where that parabola is convex and its vertex lies beyond the
+    best value on that side (a minimum not yet bracketed: with a budget of three fits a
+    walk of one grid step at a time reached at most two steps past the starts, so a 7 %
+    clock error was out of reach); otherwise the unfitted neighbour, the one farther
+    from the identity when both are."""
     grid = sorted(set(TRANSFORM_GRIDS[name]) | {TRANSFORM_IDENTITY[name]})
     ok = {v: o for v, o in objectives.items() if o is not None and np.isfinite(o)}
     tried = set(objectives)
+    ident = TRANSFORM_IDENTITY[name]
+    if name == "latency":
+        effect = {v: o for v, o in ok.items() if v != ident}
+        if not effect:  # no delay fitted yet (or every fit failed): the shortest untried
+            left = [v for v in grid if v != ident and v not in tried]
+            return min(left) if left else None
+        anchor = choose_transform_value(name, effect)
+        for v in (anchor - 1, anchor + 1):
+            if v in grid and v not in tried:
+                return v
+        return None
     if not ok:
         return None
     best = min(ok, key=ok.get)
@@ -218,5 +250,29 @@ def next_transform_value(name: str, objectives: dict):
     nbrs = [grid[j] for j in (i - 1, i + 1) if 0 <= j < len(grid) and grid[j] not in tried]
     if not nbrs:
         return None
-    ident = TRANSFORM_IDENTITY[name]
+    vertex = parabola_vertex(ok)
+    if vertex is not None:
+        for side in (-1, 1):
+            n = grid[i + side] if 0 <= i + side < len(grid) else None
+            if n is None or n in tried or (vertex - best) * side <= 0:
+                continue
+            beyond = [g for g in grid if (g - best) * side > 0 and g not in tried]
+            return min(beyond, key=lambda g: (abs(g - vertex), abs(g - best)))
     return max(nbrs, key=lambda v: abs(v - ident))
+
+
+def parabola_vertex(objectives: dict):
+    """Vertex (the minimizing value) of the parabola through the three lowest of
+    {value: objective}, or None with fewer than three values or a parabola that is not
+    convex (a maximum, a line)."""
+    pts = sorted(objectives.items(), key=lambda t: t[1])[:3]
+    if len(pts) < 3:
+        return None
+    x = np.array([p[0] for p in pts], float)
+    y = np.array([p[1] for p in pts], float)
+    if len(set(x)) < 3:
+        return None
+    a, b, _ = np.polyfit(x - x.mean(), y, 2)
+    if not a > 0:
+        return None
+    return float(x.mean() - b / (2 * a))

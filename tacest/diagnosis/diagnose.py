@@ -69,12 +69,17 @@ log = logging.getLogger(__name__)
 #: smallest share of the plain model's held-out gap a candidate must close to be blamed
 MIN_REDUCTION = 0.2
 #: the gap a candidate is measured against is the plain model's held-out gap plus this
-#: many standard deviations of the floor, sqrt(floor): the floor is the expected value of
-#: a sum of n squared whitened residuals, 0.5 s^2 n at level s <= 1, whose standard
-#: deviation s^2 sqrt(n/2) = s sqrt(floor) is at most sqrt(floor).  A plain model within
-#: that spread of the floor may still miss a real effect, which the paired held-out
+#: many standard deviations of the floor, sqrt(floor).  Statistics: where the plain model
+#: has no gap, its held-out objective is a sum of n squared whitened residuals at a level
+#: s <= 1, whose mean is the floor, 0.5 s^2 n, and whose standard deviation s^2 sqrt(n/2)
+#: = s sqrt(floor) is at most sqrt(floor).  So a plain model that leaves nothing
+#: unexplained falls more than FLOOR_SIGMAS sqrt(floor) below the floor with probability
+#: at most Phi(-2) = 2.3 % (normal approximation; a chi-square's lower tail is lighter):
+#: "nothing to explain" is said of such a model at most that often, while a model
+#: within the floor's spread may still miss an effect, which the paired held-out
 #: comparison (noise common to both fits cancels) detects far more precisely than the
-#: floor does (docs/diagnosis.md, "Which")
+#: floor does.  Tested on synthetic whitened residuals at several levels
+#: (tests/test_diagnose_warm.py, test_floor_allowance_...), not on a benchmark recording.
 FLOOR_SIGMAS = 2.0
 #: an effect parameter within this fraction of its range from a hard bound of its
 #: augmentation (problem.NLP_EFFECTS; not the "no effect" end) is "at its bound": the fit
@@ -82,14 +87,20 @@ FLOOR_SIGMAS = 2.0
 #: within its physical range (1 %: far below any parameter's resolution in the tests)
 BOUND_TOLERANCE = 0.01
 #: effect parameters (estimate names) below which a candidate is not blamed: the fitted
-#: effect is within what the plain model's first-order contact discretization leaves
-#: (an effect too small to be the effect).  restitution.e: the impact law frees the
-#: ground's impulse on a vertex that an impact sends up, at any e, and a first-order
-#: model of the simulator's plastic tumbling landings (a box turning onto its next
-#: corner lifts the first one) gains from that: clean toss recordings fitted e 0.087 and
-#: 0.090 with held-out gains of 45 and 81 (3 of 3 folds), where the effect's recordings
-#: fit 0.41-0.45; a rebound at e < 0.2 from a 1 m/s landing is below 0.2 m/s and rises
-#: less than 2 mm (docs/diagnosis.md, "NLP augmentations")
+#: effect is within what the model's own first-order contact discretization leaves.
+#: restitution.e: the impact law relieves the ground's hold on a vertex that an impact
+#: sends up, and that relief does not vanish with e (tacest.model.effects_contact,
+#: Restitution.impacts_2d), so a model with a small e also fits clean tumbling landings
+#: better than the plain model (a box turning onto its next corner lifts the first one,
+#: which the plain model holds against the landing's impulse).  This is a guard against
+#: a known artifact of the model, not a physical range, and its value was set on
+#: *clean* toss recordings of the diagnosis benchmark's tuning seeds (e 0.087 and 0.090,
+#: held-out gains of 45 and 81): a tuning choice, reported as such (docs/diagnosis.md,
+#: "Tuning and held-out seeds"); its false-alarm rate and the restitutions it misses
+#: (the simulator draws e from 0.05) are measured on held-out seeds.  A rebound at
+#: e < 0.2 from a 1 m/s landing leaves at < 0.2 m/s and rises < 2 mm.  Removing it needs
+#: the candidate compared held out with its own augmentation at e = 0 (the nested
+#: model), which the relief then no longer credits.
 MATERIAL_SIZE = {"restitution.e": 0.2}
 #: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
 #: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
@@ -113,9 +124,12 @@ FITS_PER_CANDIDATE = 3
 #: action at a distance"; the estimator's own default is off).  The plain model must not
 #: explain an unmodelled effect with ground impulses at vertices far above the ground:
 #: without a reach it fitted a 4 % clock error (gravity 8 % weak in flight) that way and
-#: left time_scale no held-out gap to close (docs/diagnosis.md, "Measured: the toss
-#: design with the reach").  The estimator keeps it off: there a bounce the plain model
-#: cannot make is better absorbed than a failed solve
+#: left time_scale no held-out gap to close.  Its size is physical: 20 contact-gap sigmas
+#: (noise.contact_gap, 0.5 mm), beyond any real contact's measurement error, and beyond
+#: the sink of a soft ground under its object (m g / k: 5 mm for 0.8 kg on 1500 N/m, the
+#: softest the simulator draws), which soft_contact must be able to fit.  The estimator
+#: keeps it off: there a bounce the plain model cannot make is better absorbed than a
+#: failed solve
 DIAGNOSIS_REACH = 0.01
 
 
@@ -807,7 +821,7 @@ def _transform_task(ctx: _Context, spec, base: FitResult, base_full_obj: float) 
     try:
         screening = None
         if spec.name == "latency":
-            screening = cands.latency_mismatch(ctx.runs, base.estimate, ctx.config.noise.contact_gap)
+            screening = _latency_profile(ctx, base)
         tried = []
         objectives = {cands.TRANSFORM_IDENTITY[spec.name]: base_full_obj}
         queue = cands.first_transform_values(spec.name, screening)
@@ -823,7 +837,7 @@ def _transform_task(ctx: _Context, spec, base: FitResult, base_full_obj: float) 
                                "start": _start_of(f), "wall_time": f.wall_time})
                 tried.append((obj, value, f))
                 objectives[value] = obj
-            except SolveFailedError as exc:
+            except TacestError as exc:  # a failed solve, or a delay as long as a run
                 c.fits.append({"value": value, "objective": None, "status": f"failed: {exc}", "wall_time": None})
         if not tried:
             c.status, c.message = "failed", "every fit to all data failed"
@@ -962,6 +976,23 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, 
     if len(common) < len(base_fold):
         c.message = f"compared on {len(common)} of {len(base_fold)} folds (other fits failed)"
     c.significant = candidate_counts(c, ctx.mass_known)
+
+
+def _latency_profile(ctx: _Context, base: FitResult) -> dict:
+    """{k: objective} of quick fits of the plain model to the runs with their tactile
+    streams advanced by each delay of cands.LATENCY_SCREEN (warm-started from the plain
+    fit, the diagnosis' fit budget, no restarts): where the latency line search starts
+    (cands.first_transform_values).  A screening only: the candidate's own fits decide."""
+    out = {}
+    for k in cands.latency_screen_values(min(r.n_samples for r in ctx.runs)):
+        runs = [apply_transform(r, "latency", k) for r in ctx.runs]
+        try:
+            f = fit_local(runs, ctx.shape, ctx.budget_config, warm=base.estimate, warm_runs=list(base.estimate.runs),
+                          accept_budget=True)
+        except SolveFailedError:
+            continue
+        out[k] = weighted_objective(f.estimate, ctx.config)
+    return out
 
 
 def _theta_of_estimate(est: Estimate, effects, K: int):

@@ -124,14 +124,26 @@ def _uniform(lo, hi):
     return lambda rng, ctx, params: float(rng.uniform(lo, hi))
 
 
+#: random draws of the effects whose diagnosis searches a range (docs/effects.md): wider
+#: than that search on purpose (tacest.diagnosis.candidates.TRANSFORM_GRIDS: latency 1-20
+#: samples, clock ±12 %; restitution is searched from 0), so that a benchmark drawing from
+#: them measures what the diagnosis does at and beyond the edges of its ranges, not only
+#: inside them.  Restitution: from nearly plastic (0.05) to a rubber ball (0.9).
+RESTITUTION_DRAW = (0.05, 0.9)
+#: samples, inclusive (at 100 Hz: 10-250 ms)
+LATENCY_DRAW = (1, 25)
+#: |scale - 1|
+TIME_SCALE_DRAW = (0.02, 0.15)
+
+
 _REGISTRY = [
     EffectSpec(NONE, "nowhere", "The recording follows the estimator's model: no unmodelled effect."),
     EffectSpec(
         "restitution", "contact",
         "Bouncy impacts: the object's contacts (ground and finger) have a coefficient of "
         "restitution e > 0, so the object bounces instead of landing plastically.",
-        (EffectParam("e", "1", (0.0, 0.95), "U(0.4, 0.8)", "coefficient of restitution",
-                     _uniform(0.4, 0.8)),),
+        (EffectParam("e", "1", (0.0, 0.95), "U(0.05, 0.9)", "coefficient of restitution",
+                     _uniform(*RESTITUTION_DRAW)),),
     ),
     EffectSpec(
         "angular_damping", "body",
@@ -172,8 +184,9 @@ _REGISTRY = [
         "latency", "sensor",
         "The tactile streams (contact, force, normal) arrive a whole number of samples late "
         "relative to the fingertip positions; the first samples read 'no contact'.",
-        (EffectParam("samples", "samples", (1, 1000), "integer U{1, 4}", "delay in samples",
-                     lambda rng, ctx, params: int(rng.integers(1, 5)), kind="int"),),
+        (EffectParam("samples", "samples", (1, 1000), "integer U{1, 25}", "delay in samples",
+                     lambda rng, ctx, params: int(rng.integers(LATENCY_DRAW[0], LATENCY_DRAW[1] + 1)),
+                     kind="int"),),
     ),
     EffectSpec(
         "face_friction", "contact",
@@ -203,7 +216,8 @@ _REGISTRY = [
         "time_scale", "clock",
         "The recorder's clock runs fast or slow: the written /time and dt are scale × the "
         "true ones (positions, forces and sample counts are unchanged).",
-        (EffectParam("scale", "1", (0.5, 2.0), "1 ± U(0.02, 0.05)", "clock rate error", _around_one(0.02, 0.05)),),
+        (EffectParam("scale", "1", (0.5, 2.0), "1 ± U(0.02, 0.15)", "clock rate error",
+                     _around_one(*TIME_SCALE_DRAW)),),
     ),
 ]
 
