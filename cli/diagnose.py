@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import click
 
 from tacest.cli.parallel import executor, parallel_options
+from tacest.parallel import machine_workers
 
 
 @click.command()
@@ -62,6 +64,10 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
 
     setup_logging(quiet)
     ex = executor(workers, scheduler)  # the options checked before any work
+    if not ex.distributed and machine_workers() > 1:
+        logging.getLogger("tacest.diagnose").info(
+            f"the fits run in this process; --workers auto runs them on this machine's {machine_workers()} cores "
+            "(docs/parallel.md)")
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     names = parse_effect_list(effects)
     config = load_config(config_path)
