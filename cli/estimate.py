@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import click
 
 from tacest.cli.parallel import executor, parallel_options
@@ -52,6 +54,10 @@ def estimate(runs, output, manifest, shape, method, config_path, quiet, workers,
     loaded = read_runs(runs)
     est = estimate_runs(loaded, shape, config=config, method=method)
     write_estimate(est, output)
+    if est.consistent is False and est.fit_quality:
+        from tacest.estimation.fitquality import quality_summary
+
+        logging.getLogger("tacest.estimate").warning(quality_summary(est.fit_quality))
     if not quiet:
         p = est.params
 

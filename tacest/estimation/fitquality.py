@@ -69,21 +69,27 @@ class FitQuality:
         return self.consistent or (not self.terms and self.flagged_samples <= LOCAL_FRACTION * self.n_samples)
 
     def summary(self) -> str:
-        """One line: consistent, or where it is not."""
-        if self.consistent:
-            return f"consistent with the noise floor ({self.n_tests} tests at {self.alpha:g})"
-        where = "; ".join(f"{w['term']} in run {w['run']} samples {w['start']}-{w['stop']} (p {w['p']:.1e})"
-                          for w in self.worst[:3])
-        terms = ", ".join(f"{t['term']} (p {t['p']:.1e})" for t in self.terms[:3])
-        return ("NOT consistent with the noise floor: " + (where or "")
-                + (f"; term totals {terms}" if terms else "")
-                + ": the fit does not explain these data within the stated noise (a wrong basin, an unmodelled "
-                  "effect, or noise levels set too low); its error bars are not to be trusted")
+        """One line: consistent, or where it is not (quality_summary)."""
+        return quality_summary(self.to_json())
 
     def to_json(self) -> dict:
         return {"consistent": self.consistent, "alpha": self.alpha, "n_tests": self.n_tests,
                 "flagged_samples": self.flagged_samples, "n_samples": self.n_samples, "worst": self.worst,
                 "terms": self.terms}
+
+
+def quality_summary(quality: dict) -> str:
+    """One line of a fit-quality record (FitQuality.to_json, an estimate's fit_quality):
+    consistent, or where it is not."""
+    if quality.get("consistent"):
+        return f"consistent with the noise floor ({quality['n_tests']} tests at {quality['alpha']:g})"
+    where = "; ".join(f"{w['term']} in run {w['run']} samples {w['start']}-{w['stop']} (p {w['p']:.1e})"
+                      for w in quality.get("worst", [])[:3])
+    terms = ", ".join(f"{t['term']} (p {t['p']:.1e})" for t in quality.get("terms", [])[:3])
+    return ("NOT consistent with the noise floor: " + (where or "")
+            + (f"; term totals {terms}" if terms else "")
+            + ": the fit does not explain these data within the stated noise (a wrong basin, an unmodelled "
+              "effect, or noise levels set too low); its error bars are not to be trusted")
 
 
 def release_samples(run) -> np.ndarray:

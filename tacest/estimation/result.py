@@ -198,7 +198,9 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         quality = q.to_json()
         scale = 1.0
         if not q.consistent:
-            log.warning(q.summary())
+            # information here: a diagnosis fits models that misfit on purpose; the
+            # commands that hand this estimate to a user warn (cli/estimate.py)
+            log.info(q.summary())
             scale = q.std_scale
             std = {k: v * scale for k, v in std.items()}
         quality["std_scale"] = scale
