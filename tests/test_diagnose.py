@@ -45,10 +45,12 @@ SIGMA_GAP = 5e-4
 # synthetic whitened residuals
 
 
-def _synthetic(rng, n_runs=2, T=600, K=4, F=1, excess=None):
-    """Residuals (0.5·‖r‖²) of pure whitened noise with the dof of residual_dof, for
-    runs with alternating contact phases; ``excess`` = (run, start, stop, term, amount)
-    adds ``amount`` (‖r‖² units) spread over the window."""
+def _synthetic(rng, n_runs=2, T=600, K=4, F=1, excess=None, level=1.0):
+    """Residuals (0.5·‖r‖²) of pure whitened noise at ``level`` (its variance per degree
+    of freedom) with the dof of residual_dof, for runs with alternating contact phases
+    of 70 samples; ``excess`` = (run, start, stop, term, amount) adds ``amount`` (‖r‖²
+    units) spread over the window.  (residuals, dofs, states) as tacest.estimation.floor
+    takes."""
     residuals, dofs, states = [], [], []
     for i in range(n_runs):
         state = (np.arange(T) // 70) % 2 == 1
@@ -61,7 +63,7 @@ def _synthetic(rng, n_runs=2, T=600, K=4, F=1, excess=None):
         dof["complementarity"][1:] = K
         dof["dissipation"][1:] = F
         dof["cone"][1:] = 2 * F
-        res = {t: 0.5 * rng.chisquare(np.maximum(d, 1e-12)) * (d > 0) for t, d in dof.items()}
+        res = {t: 0.5 * level * rng.chisquare(np.maximum(d, 1e-12)) * (d > 0) for t, d in dof.items()}
         if excess is not None and excess[0] == i:
             _, a, b, term, amount = excess
             res[term][a:b] += 0.5 * amount / (b - a)

@@ -19,7 +19,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.sim.record import SimOptions, record_sim
 
-from test_diagnose import _bouncing_box
+from test_diagnose import _bouncing_box, _synthetic
 
 
 def _theta(effects, values, K=4):
@@ -86,28 +86,6 @@ def test_counts_credits_an_effect_within_the_floors_spread():
                                name="angular_damping")
 
 
-def _whitened(rng, level, n_runs, T, K=4, F=1):
-    """Per-sample residuals (0.5·‖r‖²) of whitened noise at ``level`` (its variance per
-    degree of freedom) with the dof of residual_dof, for runs with alternating contact
-    phases of 70 samples: (residuals, dofs, states) as tacest.estimation.floor takes."""
-    residuals, dofs, states = [], [], []
-    for _ in range(n_runs):
-        state = (np.arange(T) // 70) % 2 == 1
-        dof = {t: np.zeros(T) for t in TERMS}
-        dof["force"][1:] = 2 * F
-        dof["normal"][1:] = state[1:] * F
-        dof["contact"][:] = F
-        dof["dynamics"][:] = 3
-        dof["penetration"][:] = K
-        dof["complementarity"][1:] = K
-        dof["dissipation"][1:] = F
-        dof["cone"][1:] = 2 * F
-        residuals.append({t: 0.5 * level * rng.chisquare(np.maximum(d, 1e-12)) * (d > 0) for t, d in dof.items()})
-        dofs.append(dof)
-        states.append(state)
-    return residuals, dofs, states
-
-
 @pytest.mark.parametrize("level", [0.3, 1.0])
 def test_floor_allowance_bounds_how_often_a_plain_model_without_a_gap_falls_below_it(level):
     """FLOOR_SIGMAS as a one-sided test (diagnose.FLOOR_SIGMAS): the plain model's
@@ -124,7 +102,7 @@ def test_floor_allowance_bounds_how_often_a_plain_model_without_a_gap_falls_belo
     rng = np.random.default_rng(12)
     z, z_true = [], []
     for _ in range(400):
-        res, dofs, states = _whitened(rng, level, n_runs=3, T=280)
+        res, dofs, states = _synthetic(rng, n_runs=3, T=280, level=level)
         floor_model = fit_floor(res[:2], dofs[:2], states[:2])
         held = sum(float(np.sum(v)) for v in res[2].values())
         floor = floor_model.objective_floor(dofs[2], states[2])
