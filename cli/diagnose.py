@@ -64,10 +64,6 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
 
     setup_logging(quiet)
     ex = executor(workers, scheduler)  # the options checked before any work
-    if not ex.distributed and machine_workers() > 1:
-        logging.getLogger("tacest.diagnose").info(
-            f"the fits run in this process; --workers auto runs them on this machine's {machine_workers()} cores "
-            "(docs/parallel.md)")
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     names = parse_effect_list(effects)
     config = load_config(config_path)
@@ -86,6 +82,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         with ex:
             diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, executor=ex)
         _report(diag, write_report_3d, out, as_json, quiet)
+        _hint_workers(ex)
         return
     est = read_estimate(estimate_path) if estimate_path else None
     shape = shape or (est.shape if est is not None else "box")
@@ -98,6 +95,16 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     with ex:
         diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, executor=ex)
     _report(diag, write_report, out, as_json, quiet)
+    _hint_workers(ex)
+
+
+def _hint_workers(ex):
+    """One information line after a diagnosis whose fits ran in this process on a
+    machine with more cores (after the report: an error stays the command's one line)."""
+    if not ex.distributed and machine_workers() > 1:
+        logging.getLogger("tacest.diagnose").info(
+            f"the fits ran in this process; --workers auto runs them on this machine's {machine_workers()} cores "
+            "(docs/parallel.md)")
 
 
 def _report(diag, write, out, as_json: bool, quiet: bool):
