@@ -6,6 +6,8 @@ import json
 
 import click
 
+from tacest.cli.parallel import executor, parallel_options
+
 
 @click.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
@@ -37,11 +39,14 @@ import click
               "costs its height (noise.complementarity_reach; default 0.01; 0: off). 2-D runs.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
+@parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, reach, as_json, quiet):
+             max_candidates, floor_mode, reach, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
-    the verdict (an effect or none).  See docs/diagnosis.md."""
+    the verdict (an effect or none).  The fits run in this process unless --workers or
+    --scheduler sends them to a Dask cluster (same results).  See docs/diagnosis.md
+    and docs/parallel.md."""
     from tacest.diagnosis.candidates import parse_effect_list
     from tacest.diagnosis.diagnose import DiagnoseOptions, check_heldout_data
     from tacest.diagnosis.diagnose import diagnose as run_diagnosis
@@ -56,6 +61,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
+    ex = executor(workers, scheduler)  # the options checked before any work
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     names = parse_effect_list(effects)
     config = load_config(config_path)
@@ -71,7 +77,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
                 setattr(opts3, key, val)
-        diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3)
+        with ex:
+            diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, executor=ex)
         _report(diag, write_report_3d, out, as_json, quiet)
         return
     est = read_estimate(estimate_path) if estimate_path else None
@@ -82,7 +89,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         if val is not None:
             setattr(opts, key, val)
     check_heldout_data(loaded)  # before any fit: without held-out data nothing can be decided
-    diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est)
+    with ex:
+        diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, executor=ex)
     _report(diag, write_report, out, as_json, quiet)
 
 

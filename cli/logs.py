@@ -3,6 +3,10 @@
 
 The library itself only logs (``logging.getLogger(__name__)``); a command calls
 :func:`setup_logging` once with its ``--quiet`` flag (quiet: warnings and errors only).
+
+The executor's progress records (tacest.parallel, attribute PROGRESS_ATTR: tasks done,
+total, time left) are drawn as one bar, redrawn in place, when stderr is a terminal,
+and printed as lines otherwise (a log file, a pipe).
 """
 
 from __future__ import annotations
@@ -19,6 +23,51 @@ class _Format(logging.Formatter):
         return f"warning: {msg}" if record.levelno >= logging.WARNING else msg
 
 
+#: characters of the progress bar
+BAR_WIDTH = 24
+
+
+def progress_bar(p: dict) -> str:
+    """``diagnosis [#########---------------] 12/43  28 %  1:20 elapsed, ~3:25 left``."""
+    from tacest.parallel import format_seconds
+
+    done, total = int(p["done"]), max(int(p["total"]), 1)
+    filled = int(round(BAR_WIDTH * done / total))
+    return (f"{p.get('what', 'tasks')} [{'#' * filled}{'-' * (BAR_WIDTH - filled)}] {done}/{total} "
+            f"{done / total:4.0%}  {format_seconds(p['elapsed'])} elapsed, ~{format_seconds(p['eta'])} left")
+
+
+class _Handler(logging.StreamHandler):
+    """The CLI's handler: progress records as a bar redrawn in place on a terminal."""
+
+    _tacest_cli = True
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._bar = False  # a bar is on the screen, without its newline
+
+    def emit(self, record):
+        from tacest.parallel import PROGRESS_ATTR
+
+        progress = getattr(record, PROGRESS_ATTR, None)
+        tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        if progress is None or not tty:
+            if self._bar:
+                self.stream.write("\n")
+                self._bar = False
+            super().emit(record)
+            return
+        try:
+            self.acquire()
+            line = progress_bar(progress)
+            last = progress["done"] >= progress["total"]
+            self.stream.write("\r" + line + ("\n" if last else "\x1b[K"))
+            self.stream.flush()
+            self._bar = not last
+        finally:
+            self.release()
+
+
 def setup_logging(quiet: bool = False, stream=None) -> logging.Logger:
     """Send the ``tacest`` loggers' records to ``stream`` (stderr), at INFO (WARNING
     when ``quiet``); called again, it replaces its own handler."""
@@ -26,8 +75,7 @@ def setup_logging(quiet: bool = False, stream=None) -> logging.Logger:
     for h in list(logger.handlers):
         if getattr(h, "_tacest_cli", False):
             logger.removeHandler(h)
-    handler = logging.StreamHandler(stream or sys.stderr)
-    handler._tacest_cli = True
+    handler = _Handler(stream or sys.stderr)
     handler.setFormatter(_Format())
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)

@@ -18,13 +18,14 @@ ROOT = Path(__file__).resolve().parents[1]
 #: own package and from packages of lower layers
 LAYERS = (
     ("tacest", "tacest.errors", "tacest.constants", "tacest.interrupt"),
-    ("tacest.geometry", "tacest.provenance", "tacest.linear_solver"),
+    ("tacest.geometry", "tacest.provenance", "tacest.linear_solver", "tacest.parallel"),
     ("tacest.io", "tacest.dynamics"),
     ("tacest.model", "tacest.sim", "tacest.sensors", "tacest.evaluation", "tacest.view"),
     ("tacest.estimation", "tacest.sim3d"),
     ("tacest.information", "tacest.export"),
     ("tacest.planning", "tacest.diagnosis"),
     ("tacest.dims",),
+    ("tacest.batch",),
     ("tacest.cli",),
     ("tacest.__main__",),
 )

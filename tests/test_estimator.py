@@ -313,6 +313,21 @@ def test_restarts_keep_the_lowest_objective_and_skip_consistent_fits(monkeypatch
         load_config(None, overrides={"solver": {"restarts": -1}})
 
 
+@pytest.mark.parametrize("T", [4, 9, 10, 57])
+def test_the_local_quadratic_smoother_is_savitzky_golay(T):
+    """initial.smooth_quadratic (numpy) equals SciPy's savgol_filter of order 2 with
+    mode "interp" to rounding (1e-12 of the values' scale), also at a window as long as
+    the data, and leaves data shorter than its window alone."""
+    from scipy.signal import savgol_filter
+
+    from tacest.estimation.initial import smooth_quadratic
+
+    x = np.random.default_rng(T).normal(size=(T, 3)).cumsum(axis=0)
+    got = smooth_quadratic(x, 0.01, 0.07)  # a 9-sample window
+    want = savgol_filter(x, 9, 2, axis=0, mode="interp") if T >= 9 else x
+    np.testing.assert_allclose(got, want, atol=1e-12 * np.abs(x).max())
+
+
 def test_observed_trajectory_interpolates_unwraps_and_smooths_without_bias():
     from tacest.estimation.initial import OBSERVED_SMOOTHING_S, observed_trajectory
 

@@ -62,6 +62,7 @@ from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import CORE_PARAMS, Estimate
+from tacest.parallel import Executor
 
 log = logging.getLogger(__name__)
 
@@ -355,7 +356,8 @@ def check_estimate_matches(estimate: Estimate, runs: list):
 
 
 class _Context:
-    """Shared state of one diagnosis: runs, shape, configs, back end, base fits."""
+    """Shared state of one diagnosis: runs, shape, configs, back end (what every task of
+    the diagnosis reads: scattered once to the workers, docs/parallel.md)."""
 
     def __init__(self, runs, shape, config, options, backend):
         self.runs = runs
@@ -370,38 +372,49 @@ class _Context:
         self.mass_known = mass_is_known(config)
         self.notes = []
 
-    def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
-        """Candidate fit to all runs (a transform applied first), warm-started from ``warm``."""
-        runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
-        extra = {"effects": tuple(effects), "information": True} if effects else {}
+    def candidate_runs(self, name: str, value) -> list:
+        """The runs a candidate is fitted to: with its transform applied (value not None)."""
+        return [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
 
-        def warm_fit():
-            return fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
-                             warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
-
+    def starts(self, effects=(), warm: FitResult = None) -> tuple:
+        """How a candidate's fits to all data start (see :meth:`start_fit`): the warm
+        start alone (None: it leaves no note), or with the warm back end the warm start
+        from the plain fit, the estimator's own starts (``cold``, as the plain fit had)
+        and, for the effects of cands.TYPICAL_STARTS, a start at a typical strength; the
+        lowest objective is kept (:func:`best_start`; the plain model gets the chosen
+        start too: see the control in :func:`_fold_task`)."""
         if self.backend != "warm" or not self.options.cold_starts:
-            return warm_fit()
-        # warm back end: the warm start from the plain fit, the estimator's own starts
-        # (estimate_runs, as the plain fit had) and, for the effects of
-        # cands.TYPICAL_STARTS, a start at a typical strength; the lowest objective kept
-        # (the plain model gets the chosen start too: see the control in _fit_candidate)
-        fits, errors = [], []
-        starts = ("warm", "cold") + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
-        for how in starts:
+            return (None,)
+        return ("warm", "cold") + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
+
+    def start_fit(self, how, runs, effects=(), warm: FitResult = None) -> tuple:
+        """(weighted objective, FitResult) of one start of a fit to all ``runs``: ``warm``
+        (or None) from the warm fit, ``cold`` the estimator's own fit with the
+        configuration's budget (as the plain fit had), ``typical`` from the effect at a
+        typical strength.  Raises SolveFailedError."""
+        extra = {"effects": tuple(effects), "information": True} if effects else {}
+        if how == "typical":
+            f = typical_start_fit(runs, self.shape, self.budget_config, effects[0], warm.estimate, extra)
+        elif how == "cold":
+            f = fit_estimator(runs, self.shape, self.config, effects=effects)
+        else:
+            f = fit_local(runs, self.shape, self.budget_config, warm=warm.estimate if warm else None,
+                          warm_runs=list(warm.estimate.runs) if warm else None, accept_budget=True, **extra)
+        if how is not None:
+            f.notes.append(f"start: {how}")
+        return weighted_objective(f.estimate, self.config), f
+
+    def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
+        """Candidate fit to all runs (a transform applied first), from every start of
+        :meth:`starts` one after another; the best (:func:`best_start`)."""
+        runs = self.candidate_runs(name, value)
+        done, errors = [], []
+        for how in self.starts(effects, warm):
             try:
-                if how == "typical":
-                    f = typical_start_fit(runs, self.shape, self.budget_config, effects[0], warm.estimate, extra)
-                elif how == "warm":
-                    f = warm_fit()
-                else:  # the plain fit's own budget (the configuration's), as the plain fit had
-                    f = fit_estimator(runs, self.shape, self.config, effects=effects)
-                f.notes.append(f"start: {how}")
-                fits.append((weighted_objective(f.estimate, self.config), f))
+                done.append(self.start_fit(how, runs, effects, warm))
             except SolveFailedError as exc:
                 errors.append(exc)
-        if not fits:
-            raise errors[0]
-        return min(fits, key=lambda t: t[0])[1]
+        return best_start(done, errors)[1]
 
     def fold_objective(self, fold: Fold, name: str, value, effects, cfit: FitResult) -> tuple:
         """(held-out objective, status text, its Occam part) of one candidate in one fold.
@@ -411,7 +424,7 @@ class _Context:
         constant of the held-out data given them (the price of the trajectory's freedom
         in the marginal likelihood), and it is returned apart so that the noise floor can
         carry the plain model's (see diagnose, step 4)."""
-        tr_runs = [apply_transform(r, name, value) for r in self.runs] if value is not None else self.runs
+        tr_runs = self.candidate_runs(name, value)
         train = [p.cut(tr_runs) for p in fold.train]
         held = [p.cut(tr_runs) for p in fold.heldout]
         # training fit warm-started from the candidate's fit to all data; held out: the
@@ -426,6 +439,15 @@ class _Context:
                        pin="physics", accept_budget=True, **extra)
         status = f"train {tf.estimate.solver_status}, held-out {hf.estimate.solver_status}"
         return weighted_objective(hf.estimate, self.config), status, occam_objective(hf.estimate, self.config)
+
+
+def best_start(done: list, errors: list) -> tuple:
+    """(objective, FitResult) of the lowest objective among ``done`` [(objective, fit)] in
+    the order of the starts (the first of equal ones); the first of ``errors`` raised
+    when no start succeeded."""
+    if not done:
+        raise errors[0]
+    return min(done, key=lambda t: t[0])
 
 
 def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str, plain: Estimate,
@@ -444,12 +466,14 @@ def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str
 
 
 def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, options: DiagnoseOptions = None,
-             estimate: Estimate = None) -> Diagnosis:
+             estimate: Estimate = None, executor: Executor = None) -> Diagnosis:
     """Diagnose where and why the model (the estimator) disagrees with ``runs``.
 
     runs : list of 2-D Run (one object); shape : ``box`` or ``polygon:K``;
     estimate : an estimate of exactly these runs with the plain model (optional: saves
-    the first fit; checked by :func:`check_estimate_matches`).  Progress: the module's logger.
+    the first fit; checked by :func:`check_estimate_matches`); executor : where the fits
+    run (tacest.parallel; None: in this process, one after another).  The result does not
+    depend on the executor.  Progress: the module's logger and tacest.parallel's.
     Raises TacestError for bad input and SolveFailedError when the plain model's fit
     to all data fails.
     """
@@ -470,15 +494,22 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     check_heldout_data(runs)
     K = make_shape(shape, dim=2).n_vertices
     names = cands.parse_effect_list(options.effects)
-    wanted = [cands.candidate(n, n_vertices=K) for n in names]
+    specs = [cands.candidate(n, n_vertices=K) for n in names]
     # warm: candidates inside the NLP get the estimator's own starts beside the warm one
-    backend = "warm" if any(c.kind == "nlp" for c in wanted) else "local"
+    backend = "warm" if any(c.kind == "nlp" for c in specs) else "local"
     ctx = _Context(runs, shape, config, options, backend)
     mass_prior = {"mass": float(choose_scales(runs, config).m0), "log_sigma": float(config.prior.mass_log_sigma),
                   "known": ctx.mass_known}
+    ex = executor or Executor()
+    graph = _Graph(ex, ctx, specs)
+    pieces = make_pieces(runs)
+    folds = make_folds(pieces, options.max_folds)
+    ex.plan(graph.n_tasks(len(folds), estimate is None), what="diagnosis")
+    if options.max_candidates is None:  # the estimator's own starts do not need the plain fit: at once
+        graph.submit_cold_starts(range(len(specs)))
 
     # 1. the plain model on all data -------------------------------------------------
-    base = _plain_fit(ctx, estimate)
+    base = _plain_fit(ctx, graph, estimate)
     base_est = base.estimate
     base_full_obj = weighted_objective(base.estimate, config)
 
@@ -497,14 +528,10 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     screening = cands.signature_scores(stats, names)
 
     # 3. held-out design -----------------------------------------------------------
-    pieces = make_pieces(runs)
-    folds = make_folds(pieces, options.max_folds)
-    results = [cands.candidate(n, n_vertices=K) for n in names]
     cres = [CandidateResult(name=c.name, kind=c.kind, n_params=c.n_params, screening=screening.get(c.name, 0.0))
-            for c in results]
+            for c in specs]
     heldout_info = {"design": describe_pieces(pieces, runs), "folds": len(folds),
                     "pieces": [[p.run, p.start, p.stop] for p in pieces]}
-
     # which candidates are refitted (screening only when their number is limited)
     order = sorted(range(len(cres)), key=lambda i: -cres[i].screening)
     if options.max_candidates is not None:
@@ -513,28 +540,33 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                 cres[i].status = "screened"
                 cres[i].message = (f"not refitted: screening signature {cres[i].screening:.0%} ranked "
                                    f"{rank + 1} of {len(order)} (max_candidates {options.max_candidates})")
-    # 4. the plain model, held out ---------------------------------------------------
-    held = _plain_heldout(ctx, folds, pieces, base, floor, heldout_info, K)
-    base_fold, floor_fold, base_fold_occam = held["objective"], held["floor"], held["occam"]
-    penalty_per_param, fold_share = held["penalty_per_param"], held["fold_share"]
+        ok = [c.status == "ok" for c in cres]
+        ex.plan(graph.n_tasks(len(folds), estimate is None, ok), what="diagnosis", reset=False)
+        graph.submit_cold_starts([i for i in range(len(cres)) if ok[i]])
 
-    # 5. candidates ------------------------------------------------------------------
-    for c, spec in zip(cres, results):
+    # 4. and 5. the plain model held out and the candidates: every fit submitted at once
+    plain_folds = [ex.submit(_plain_fold_task, graph.ctx, fold, graph.base, name=f"plain-fold{fold.index}")
+                   for fold in folds]
+    pending = {}
+    for i, c in enumerate(cres):
+        if c.status == "ok":
+            fit = graph.submit_candidate(i, base_full_obj)
+            pending[i] = (fit, [ex.submit(_fold_task, graph.ctx, fold, specs[i], fit, plain, name=f"{c.name}-fold")
+                                for fold, plain in zip(folds, plain_folds)])
+    held = _plain_heldout(ctx, folds, pieces, ex.gather(plain_folds), floor, heldout_info, K)
+    base_fold, floor_fold, base_fold_occam = held["objective"], held["floor"], held["occam"]
+    for i, c in enumerate(cres):
         if c.status != "ok":
             log.info(f"{c.name}: {c.status} ({c.message})")
             continue
-        t0 = time.perf_counter()
-        try:
-            _fit_candidate(ctx, c, spec, base, base_full_obj, folds, base_fold, floor_fold, base_fold_occam,
-                           penalty_per_param, fold_share)
-        except CandidateUnavailable as exc:
-            c.status, c.message = "unavailable", str(exc)
-        c.wall_time = time.perf_counter() - t0
+        fit, fold_outs = ex.gather([pending[i][0]])[0], ex.gather(pending[i][1])
+        _fit_candidate(ctx, c, specs[i], fit, fold_outs, folds, base_fold, floor_fold, base_fold_occam,
+                       held["penalty_per_param"], held["fold_share"])
         log.info(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
                  + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
                     + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
                     + f"), score {c.score:.3g}" if c.status == "ok" else "")
-             + f", {c.wall_time:.0f} s")
+                 + f", {c.wall_time:.0f} s")
 
     # 6. verdict ---------------------------------------------------------------------
     verdict, reason, ranked = _verdict(ctx, cres, held, heldout_info)
@@ -543,32 +575,77 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
                      wall_time=time.perf_counter() - t_start, options=options, mass_prior=mass_prior)
 
 
-def _plain_fit(ctx, estimate) -> FitResult:
+class _Graph:
+    """The tasks of one diagnosis on an executor: the scattered context, the plain fit,
+    the candidates' starts and fits (handles), and how many tasks the diagnosis has."""
+
+    def __init__(self, ex: Executor, ctx: _Context, specs: list):
+        self.ex, self.local, self.specs = ex, ctx, specs
+        self.ctx = ex.scatter(ctx)  # runs and settings: once to each worker that needs them
+        self.base = None  # handle of the plain fit (FitResult)
+        self.cold = {}  # candidate index -> handle of its cold start
+
+    def starts(self, spec) -> tuple:
+        """The starts of an NLP candidate's fit to all data (_Context.starts); () for a
+        transform (its line search runs its starts itself, one value after another)."""
+        return self.local.starts((spec.name,), warm=True) if spec.kind == "nlp" else ()
+
+    def n_tasks(self, n_folds: int, plain_fit: bool, ok=None) -> int:
+        """Tasks of the diagnosis: the plain fit, its held-out folds, and per candidate
+        (``ok[i]``: refitted; None: all) its fit to all data (a transform: one task; an
+        NLP candidate: its starts and their choice) and its folds."""
+        n = int(plain_fit) + n_folds
+        for i, spec in enumerate(self.specs):
+            if ok is None or ok[i]:
+                n += (1 if spec.kind == "transform" else len(self.starts(spec)) + 1) + n_folds
+        return n
+
+    def submit_cold_starts(self, indices):
+        """The estimator's own starts of NLP candidates ``indices``: they do not need the
+        plain fit, so they run beside it."""
+        for i in indices:
+            spec = self.specs[i]
+            if "cold" in self.starts(spec) and i not in self.cold:
+                self.cold[i] = self.ex.submit(_start_task, self.ctx, spec, "cold", None, name=f"{spec.name}-cold")
+
+    def submit_candidate(self, i: int, base_full_obj: float):
+        """The handle of candidate ``i``'s fit to all data (a _CandidateFit)."""
+        spec = self.specs[i]
+        if spec.kind == "transform":
+            return self.ex.submit(_transform_task, self.ctx, spec, self.base, base_full_obj, name=f"{spec.name}-fit")
+        starts = [self.cold[i] if how == "cold" and i in self.cold else
+                  self.ex.submit(_start_task, self.ctx, spec, how, self.base, name=f"{spec.name}-{how or 'warm'}")
+                  for how in self.starts(spec)]
+        return self.ex.submit(_nlp_task, self.ctx, spec, starts, name=f"{spec.name}-choose")
+
+
+def _lean(fit: FitResult) -> FitResult:
+    """A fit as a task returns it: without the runs (the tasks have them already; a fit
+    is sent to every worker that continues from it)."""
+    return dataclasses.replace(fit, runs=[])
+
+
+def _plain_fit(ctx: _Context, graph: _Graph, estimate) -> FitResult:
     """The plain model's fit to all data: the given estimate (checked against the runs),
-    or the estimator's own fit (or, where that fails, its fit at the iteration budget:
-    what a diagnosis is for; step 1 of :func:`diagnose`)."""
+    or the estimator's own fit (:func:`_plain_fit_task`); sets ``graph.base`` (step 1
+    of :func:`diagnose`)."""
     from tacest.geometry.shapes import make_shape
 
-    runs, shape, config = ctx.runs, ctx.shape, ctx.config
+    runs, shape = ctx.runs, ctx.shape
     if estimate is not None:
         check_estimate_matches(estimate, runs)
         if make_shape(estimate.shape, dim=2).name != make_shape(shape, dim=2).name:
             raise TacestError(f"{estimate.filename or 'estimate'}: shape {estimate.shape}, "
                               f"but --shape {shape} was asked for")
         log.info(f"plain model: the given estimate ({estimate.solver_status}, objective {estimate.objective:.4g})")
-        return FitResult(estimate=estimate, runs=list(runs))
+        base = FitResult(estimate=estimate, runs=[])
+        graph.base = graph.ex.scatter(base)
+        return base
     log.info("plain model: fitting all runs")
-    base = None
-    if ctx.backend == "warm":
-        try:
-            base = fit_estimator(runs, shape, config)
-        except SolveFailedError as exc:
-            # a plain model that cannot fit the data (a bounce it cannot make, with
-            # no ground impulses in the air to fake it) is what a diagnosis is for:
-            # its fit at the iteration budget is the baseline the candidates improve
-            log.info(f"plain model: {exc}; its fit at the iteration budget is the baseline")
-    if base is None:
-        base = fit_local(runs, shape, config, accept_budget=True)
+    graph.base = graph.ex.submit(_plain_fit_task, graph.ctx, name="plain-fit", priority=10)
+    base = graph.ex.result(graph.base)
+    for message in base.log:
+        log.info(message)
     base_est = base.estimate
     log.info(f"plain model: {base_est.solver_status}, objective {base_est.objective:.4g}, "
              f"{base.wall_time:.1f} s")
@@ -579,23 +656,50 @@ def _plain_fit(ctx, estimate) -> FitResult:
     return base
 
 
-def _plain_heldout(ctx, folds, pieces, base, floor, heldout_info, K) -> dict:
-    """The plain model held out: per fold its objective, status and Occam part, the noise
-    floor of the held-out pieces, the penalty per parameter and each fold's share of it
-    (step 4 of :func:`diagnose`)."""
+def _plain_fit_task(ctx: _Context) -> FitResult:
+    """The estimator's own fit of the plain model to all runs (or, where that fails, its
+    fit at the iteration budget: what a diagnosis is for)."""
+    base, said = None, []
+    if ctx.backend == "warm":
+        try:
+            base = fit_estimator(ctx.runs, ctx.shape, ctx.config)
+        except SolveFailedError as exc:
+            # a plain model that cannot fit the data (a bounce it cannot make, with
+            # no ground impulses in the air to fake it) is what a diagnosis is for:
+            # its fit at the iteration budget is the baseline the candidates improve
+            said.append(f"plain model: {exc}; its fit at the iteration budget is the baseline")
+    if base is None:
+        base = fit_local(ctx.runs, ctx.shape, ctx.config, accept_budget=True)
+    return dataclasses.replace(_lean(base), log=said)
+
+
+def _plain_fold_task(ctx: _Context, fold: Fold, base: FitResult) -> dict:
+    """The plain model held out in one fold: {objective, status, occam}, or {failed}."""
+    try:
+        obj, status, occam = ctx.fold_objective(fold, "none", None, (), base)
+    except (SolveFailedError, CandidateUnavailable) as exc:
+        return {"failed": str(exc)}
+    return {"objective": obj, "status": status, "occam": occam}
+
+
+def _plain_heldout(ctx, folds, pieces, outs, floor, heldout_info, K) -> dict:
+    """The plain model held out (``outs``: the :func:`_plain_fold_task` of each fold):
+    per fold its objective, status and Occam part, the noise floor of the held-out
+    pieces, the penalty per parameter and each fold's share of it (step 4 of
+    :func:`diagnose`)."""
     runs = ctx.runs
     log.info(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
     base_fold = {}
     base_fold_status = {}
     base_fold_occam = {}
-    for fold in folds:
-        try:
-            obj, st, base_fold_occam[fold.index] = ctx.fold_objective(fold, "none", None, (), base)
-            base_fold[fold.index] = obj
-            base_fold_status[fold.index] = st
-        except (SolveFailedError, CandidateUnavailable) as exc:
-            base_fold_status[fold.index] = f"failed: {exc}"
-            ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({exc}); fold dropped")
+    for fold, out in zip(folds, outs):
+        if "failed" in out:
+            base_fold_status[fold.index] = f"failed: {out['failed']}"
+            ctx.notes.append(f"fold {fold.index}: the plain model's held-out fit failed ({out['failed']}); "
+                             "fold dropped")
+        else:
+            base_fold[fold.index], base_fold_status[fold.index] = out["objective"], out["status"]
+            base_fold_occam[fold.index] = out["occam"]
         log.info(f"plain model, fold {fold.index}: {base_fold_status[fold.index]}"
                  + (f", held-out objective {base_fold[fold.index]:.4g}" if fold.index in base_fold else ""))
     floor_fold = {}
@@ -675,18 +779,39 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
 
 
 
-def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, base_full_obj, folds, base_fold,
-                   floor_fold, occam_fold, penalty_per_param, fold_share):
-    """Fill ``c``: choose parameters on all data, then the held-out comparison."""
-    opts = ctx.options
-    if spec.kind == "transform":
+@dataclass
+class _CandidateFit:
+    """What a candidate's fit to all data gives the held-out comparison and the report:
+    its status, the fits tried, the chosen value (a transform's), its effect parameters
+    and the chosen fit (FitResult, its objective); seconds: the tasks' compute time."""
+
+    status: str = "ok"
+    message: str = ""
+    fits: list = field(default_factory=list)
+    value: object = None
+    params: dict = field(default_factory=dict)
+    params_std: dict = field(default_factory=dict)
+    at_bound: list = field(default_factory=list)
+    immaterial: list = field(default_factory=list)
+    full_objective: float = float("nan")
+    fit: Optional[FitResult] = None
+    effects: tuple = ()
+    seconds: float = 0.0
+
+
+def _transform_task(ctx: _Context, spec, base: FitResult, base_full_obj: float) -> _CandidateFit:
+    """A transform candidate's fits to all data: a line search over its value (one fit,
+    from every start, after another), the value chosen and its one-sigma uncertainty."""
+    t0 = time.perf_counter()
+    c = _CandidateFit()
+    try:
         screening = None
         if spec.name == "latency":
             screening = cands.latency_mismatch(ctx.runs, base.estimate, ctx.config.noise.contact_gap)
         tried = []
         objectives = {cands.TRANSFORM_IDENTITY[spec.name]: base_full_obj}
         queue = cands.first_transform_values(spec.name, screening)
-        while len(c.fits) < opts.fits_per_candidate:
+        while len(c.fits) < ctx.options.fits_per_candidate:
             value = queue.pop(0) if queue else cands.next_transform_value(spec.name, objectives)
             if value is None:
                 break
@@ -695,69 +820,127 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, base: FitResult, bas
                 f = ctx.fit_all(spec.name, value, warm=base)
                 obj = weighted_objective(f.estimate, ctx.config)
                 c.fits.append({"value": value, "objective": obj, "status": f.estimate.solver_status,
-                               "start": _start_of(f),
-                               "wall_time": f.wall_time})
+                               "start": _start_of(f), "wall_time": f.wall_time})
                 tried.append((obj, value, f))
                 objectives[value] = obj
             except SolveFailedError as exc:
                 c.fits.append({"value": value, "objective": None, "status": f"failed: {exc}", "wall_time": None})
         if not tried:
             c.status, c.message = "failed", "every fit to all data failed"
-            return
-        value = cands.choose_transform_value(spec.name, {v: o for o, v, _ in tried})
-        obj, _, cfit = next(t for t in tried if t[1] == value)
-        c.value = value
-        pname = spec.param_names[0]
-        c.params = {pname: value}
-        profile = [(cands.TRANSFORM_IDENTITY[spec.name], base_full_obj)] + [(v, o) for o, v, _ in tried]
-        c.params_std = {pname: _profile_std(profile, spec.name, value)}
-        effects = ()
-    else:
-        effects = (spec.name,)
-        try:
-            cfit = ctx.fit_all(spec.name, None, effects=effects, warm=base)
-        except SolveFailedError as exc:
-            c.status, c.message = "failed", f"fit to all data failed: {exc}"
-            return
-        obj = weighted_objective(cfit.estimate, ctx.config)
-        c.fits.append({"value": None, "objective": obj, "status": cfit.estimate.solver_status,
-                       "start": _start_of(cfit),
-                       "wall_time": cfit.wall_time})
-        c.params = {k: v for k, v in cfit.estimate.params.items() if k not in CORE_PARAMS and np.ndim(v) == 0}
-        c.params_std = {k: float(cfit.estimate.std.get(k, float("nan"))) for k in c.params}
-        K = len(np.asarray(cfit.estimate.vertices))
-        theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, effects, K)
-        c.at_bound = params_at_bound(theta, effects, K=K)
-        c.immaterial = params_immaterial(c.params)
-        value = None
-    c.full_objective = obj
-    # held-out comparison on the folds where the plain model's fit succeeded
+        else:
+            value = cands.choose_transform_value(spec.name, {v: o for o, v, _ in tried})
+            c.full_objective, _, cfit = next(t for t in tried if t[1] == value)
+            c.value, c.fit = value, _lean(cfit)
+            pname = spec.param_names[0]
+            c.params = {pname: value}
+            profile = [(cands.TRANSFORM_IDENTITY[spec.name], base_full_obj)] + [(v, o) for o, v, _ in tried]
+            c.params_std = {pname: _profile_std(profile, spec.name, value)}
+    except CandidateUnavailable as exc:
+        c.status, c.message = "unavailable", str(exc)
+    c.seconds = time.perf_counter() - t0
+    return c
+
+
+def _start_task(ctx: _Context, spec, how, base: Optional[FitResult]) -> dict:
+    """One start of an NLP candidate's fit to all data (_Context.start_fit): {how,
+    objective, fit}, {how, error} (a failed solve) or {how, unavailable}; and seconds."""
+    t0 = time.perf_counter()
+    try:
+        obj, f = ctx.start_fit(how, ctx.runs, (spec.name,), base)
+        out = {"objective": obj, "fit": _lean(f)}
+    except SolveFailedError as exc:
+        out = {"error": exc}
+    except CandidateUnavailable as exc:
+        out = {"unavailable": str(exc)}
+    return dict(out, how=how, seconds=time.perf_counter() - t0)
+
+
+def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
+    """An NLP candidate's fit to all data: the best of its starts (``starts``: the
+    :func:`_start_task` results in the order of _Context.starts), its effect parameters,
+    their uncertainty and which of them sit at a bound."""
+    c = _CandidateFit(effects=(spec.name,), seconds=sum(s["seconds"] for s in starts))
+    unavailable = [s["unavailable"] for s in starts if "unavailable" in s]
+    if unavailable:
+        c.status, c.message = "unavailable", unavailable[0]
+        return c
+    done = [(s["objective"], s["fit"]) for s in starts if "fit" in s]
+    errors = [s["error"] for s in starts if "error" in s]
+    if not done:
+        c.status, c.message = "failed", f"fit to all data failed: {errors[0]}"
+        return c
+    obj, cfit = best_start(done, errors)
+    c.fits.append({"value": None, "objective": obj, "status": cfit.estimate.solver_status,
+                   "start": _start_of(cfit), "wall_time": cfit.wall_time})
+    c.params = {k: v for k, v in cfit.estimate.params.items() if k not in CORE_PARAMS and np.ndim(v) == 0}
+    c.params_std = {k: float(cfit.estimate.std.get(k, float("nan"))) for k in c.params}
+    K = len(np.asarray(cfit.estimate.vertices))
+    theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, c.effects, K)
+    c.at_bound = params_at_bound(theta, c.effects, K=K)
+    c.immaterial = params_immaterial(c.params)
+    c.full_objective, c.fit = obj, cfit
+    return c
+
+
+def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict) -> Optional[dict]:
+    """One candidate in one fold (None where its fit to all data or the plain model's
+    held-out fit of the fold failed): the held-out objective with the candidate, and the
+    control, the plain model from the candidate's start (its fit to all data with the
+    effect removed: same shape, mass, frictions, trajectories and impulses): the plain
+    reference of the fold is the lower of the plain model's own held-out objective and
+    this one, so that a candidate is not credited with a better basin its fit happened to
+    find (on a clean recording a com_offset fit of 0.5 mm found one and "improved" by
+    35).  {heldout, control: objective or None, heldout_error, control_error: a failed
+    solve's message, unavailable, seconds}."""
+    if cand.status != "ok" or "failed" in plain:
+        return None
+    t0 = time.perf_counter()
+    out = {"heldout": None, "control": None, "heldout_error": None, "control_error": None, "unavailable": None}
     name = spec.name if spec.kind == "transform" else "none"
-    for fold in folds:
-        if fold.index not in base_fold:
-            continue
+    try:
+        out["heldout"] = ctx.fold_objective(fold, name, cand.value, cand.effects, cand.fit)[0]
+        control = FitResult(estimate=dataclasses.replace(cand.fit.estimate, model=[]), runs=[])
         try:
-            o, _, _ = ctx.fold_objective(fold, name, value, effects, cfit)
-            c.heldout[fold.index] = o
+            out["control"] = ctx.fold_objective(fold, "none", None, (), control)[0]
         except SolveFailedError as exc:
-            ctx.notes.append(f"{c.name}, fold {fold.index}: held-out comparison failed ({exc}); fold not counted")
+            out["control_error"] = str(exc)
+    except SolveFailedError as exc:
+        out["heldout_error"] = str(exc)
+    except CandidateUnavailable as exc:
+        out["unavailable"] = str(exc)
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, outs: list, folds, base_fold,
+                   floor_fold, occam_fold, penalty_per_param, fold_share):
+    """Fill ``c`` (candidate ``spec``) from its fit to all data and its folds (``outs``,
+    :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
+    (module doc)."""
+    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial"):
+        setattr(c, key, getattr(fit, key))
+    c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
+    if fit.status != "ok":
+        return
+    c.full_objective = fit.full_objective
+    by_fold = {fold.index: o for fold, o in zip(folds, outs) if o is not None and fold.index in base_fold}
+    for j, o in by_fold.items():
+        if o["unavailable"] is not None:
+            c.status, c.message = "unavailable", o["unavailable"]
+            return
+        if o["heldout"] is not None:
+            c.heldout[j] = o["heldout"]
+        else:
+            ctx.notes.append(f"{c.name}, fold {j}: held-out comparison failed ({o['heldout_error']}); fold not counted")
     common = [j for j in c.heldout if j in base_fold]
     if not common:
         c.status, c.message = "failed", "every held-out fit failed"
         return
-    # the plain model from the candidate's start (its fit to all data with the effect
-    # removed: same shape, mass, frictions, trajectories and impulses): the plain
-    # reference of each fold is the lower of its own held-out objective and this one, so
-    # that a candidate is not credited with a better basin its fit happened to find
-    # (on a clean recording a com_offset fit of 0.5 mm found one and "improved" by 35)
-    control = FitResult(estimate=dataclasses.replace(cfit.estimate, model=[]), runs=list(ctx.runs))
     for j in common:
-        fold = next(f for f in folds if f.index == j)
-        try:
-            o, _, _ = ctx.fold_objective(fold, "none", None, (), control)
-            c.control[j] = o
-        except SolveFailedError as exc:
-            ctx.notes.append(f"{c.name}, fold {j}: the plain model from its start failed ({exc})")
+        if by_fold[j]["control"] is not None:
+            c.control[j] = by_fold[j]["control"]
+        else:
+            ctx.notes.append(f"{c.name}, fold {j}: the plain model from its start failed ({by_fold[j]['control_error']})")
     plain = {j: min(base_fold[j], c.control.get(j, math.inf)) for j in common}
     before = sum(plain[j] for j in common)
     after = sum(c.heldout[j] for j in common)

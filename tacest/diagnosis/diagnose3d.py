@@ -201,9 +201,34 @@ def flag_windows(res_runs, window, alpha, floor):
     return flags, stretches
 
 
-def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None) -> Diagnosis3D:
-    """Diagnose 3-D pose-observed runs (see the module docstring)."""
+def _model_task(name, cfg, shape, train, held) -> tuple:
+    """One model of a 3-D diagnosis, a task: its fit to the training runs, then to the
+    held-out runs with its parameters held; (Fit3D, (residuals of the training runs, the
+    flight floor, flight samples) for the plain model, else None)."""
+    from tacest.estimation.data import choose_scales
+
+    t0 = time.perf_counter()
+    est, out = _fit(train, shape, cfg)
+    res, per = _losses(est, out.z)
+    extra = (res,) + flight_floor(est, out.z, res) if name == "none" else None
+    fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
+    theta, sc = out.z[: est.problem.n_theta].copy(), est.scales
+    sh = choose_scales(held, cfg)
+    if not (np.isclose(sh.L, sc.L) and np.isclose(sh.m0, sc.m0)):
+        raise TacestError("diagnose: the held-out runs have other length or mass scales (/prior) than the "
+                          "training runs; give runs of one object with one prior")
+    est, out = _fit(held, shape, cfg, fixed_theta=theta)
+    fit.heldout_loss_per_sample = _losses(est, out.z)[1]
+    fit.heldout_status = out.status
+    fit.seconds = time.perf_counter() - t0
+    return fit, extra
+
+
+def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None, executor=None) -> Diagnosis3D:
+    """Diagnose 3-D pose-observed runs (see the module docstring).  executor : where the
+    fits run (tacest.parallel; None: in this process); the result does not depend on it."""
     from tacest.estimation.config import EstimatorConfig
+    from tacest.parallel import Executor
 
     config = config or EstimatorConfig()
     opts = options or Options3D()
@@ -216,33 +241,19 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     n_train = (len(runs) + 1) // 2
     train, held = runs[:n_train], runs[n_train:]
     names = [r.filename or f"run{i}" for i, r in enumerate(runs)]
-    fits, held_theta = {}, {}
-    res_plain = None
-    for name, ov in [("none", PLAIN)] + list(AUGMENTATIONS.items()):
-        t0 = time.perf_counter()
-        cfg = _config(config, ov, opts.fit_iterations)
-        log.info(f"fit {name} on {len(train)} training runs ...")
-        est, out = _fit(train, shape, cfg)
-        res, per = _losses(est, out.z)
+    ex = executor or Executor()
+    models = [("none", PLAIN)] + list(AUGMENTATIONS.items())
+    ex.plan(len(models), what="diagnosis")
+    train_h, held_h = ex.scatter(train), ex.scatter(held)
+    handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), shape, train_h, held_h,
+                         name=f"3d-{name}") for name, ov in models]
+    fits = {}
+    for (name, _), (fit, extra) in zip(models, ex.gather(handles)):
+        fits[name] = fit
+        log.info(f"{name}: trained on {len(train)} runs ({fit.status}), held out on {len(held)} runs "
+                 f"({fit.heldout_status}), {fit.seconds:.0f} s")
         if name == "none":
-            res_plain = res
-            floor, n_flight = flight_floor(est, out.z, res)
-        fits[name] = Fit3D(name=name, params=_params(est, out.z), status=out.status,
-                           seconds=time.perf_counter() - t0, train_loss_per_sample=per)
-        held_theta[name] = (cfg, out.z[: est.problem.n_theta].copy(), est.scales)
-    for name, (cfg, theta, sc) in held_theta.items():
-        t0 = time.perf_counter()
-        log.info(f"held-out evaluation of {name} on {len(held)} runs ...")
-        from tacest.estimation.data import choose_scales
-
-        sh = choose_scales(held, cfg)
-        if not (np.isclose(sh.L, sc.L) and np.isclose(sh.m0, sc.m0)):
-            raise TacestError("diagnose: the held-out runs have other length or mass scales (/prior) than the "
-                              "training runs; give runs of one object with one prior")
-        est, out = _fit(held, shape, cfg, fixed_theta=theta)
-        fits[name].heldout_loss_per_sample = _losses(est, out.z)[1]
-        fits[name].heldout_status = out.status
-        fits[name].seconds += time.perf_counter() - t0
+            res_plain, floor, n_flight = extra
     flags, where = flag_windows(res_plain, opts.window, opts.alpha, floor)
     for w in where:
         w["run"] = names[w["run"]]

@@ -54,8 +54,10 @@ def occam_objective(est: Estimate, config: EstimatorConfig) -> float:
 
 @dataclass
 class FitResult:
-    """One fit: the estimate, the runs it was fitted to (after any transform), its scaled
-    theta (what a later fit can pin), its wall time (s)."""
+    """One fit: the estimate, the runs it was fitted to (after any transform; [] in a fit
+    a task returns, whose runs its caller has), its scaled theta (what a later fit can
+    pin), its wall time (s), notes for the report, and ``log``: progress messages of a fit
+    made where it ran (a Dask worker), for the log of the process that asked for it."""
 
     estimate: Estimate
     runs: list
@@ -63,6 +65,7 @@ class FitResult:
     wall_time: float = 0.0
     effects: tuple = ()
     notes: list = field(default_factory=list)
+    log: list = field(default_factory=list)
 
 
 def observed_warm_runs(runs: list, fallback: list) -> list:

@@ -34,8 +34,7 @@ from tacest.estimation.solver import (BuiltSolver, SolverCache, plan_stages, pin
 from tacest.estimation.uncertainty import information_names_2d, observed_information_2d, vertex_jacobian
 from tacest.geometry.shapes import make_shape, numeric_vertices, polygon_area_centroid_j
 from tacest.io.estimate import Estimate, RunEstimate
-from tacest.io.h5util import sha256_file
-from tacest.io.run import Run
+from tacest.io.run import Run, run_sha256
 from tacest.model.stage2d import PHYS_NAMES, PHYSICS_TERMS, SQUARED_TERMS, TERMS
 
 log = logging.getLogger(__name__)
@@ -406,7 +405,7 @@ class ImplicitEstimator:
             pose, vel, imp = self.trajectories(z, i)
             src = run.filename or ""
             out.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=self.per_sample_residuals(z, i),
-                                   source_file=src, source_sha256=sha256_file(src) if src else ""))
+                                   source_file=src, source_sha256=run_sha256(run)))
         return out
 
     def result(self, out: SolveOutcome, wall_time: float, information=True, held=None, notes=(),

@@ -41,8 +41,7 @@ from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobi
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
-from tacest.io.h5util import sha256_file
-from tacest.io.run import Run
+from tacest.io.run import Run, run_sha256
 from tacest.model.stage2d import PHYSICS_TERMS
 from tacest.model.stage3d import D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D, impulse_variable
 
@@ -114,6 +113,53 @@ def solver_for_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, eff
 
 # ---------------------------------------------------------------------------------
 # data
+
+
+#: box_extents_from_poses: an extent counts as measured when the samples that touch the
+#: ground hold this much of its direction along the vertical (Σ |u_i|, u the ground
+#: normal in the body frame: five samples resting on a face perpendicular to it)
+MEASURED_AXIS_WEIGHT = 5.0
+
+
+def box_extents_from_poses(runs: list, L: float, cube: float) -> np.ndarray:
+    """(3,) starting extents of a box (units of L) from its observed poses: wherever the
+    box touches the ground (resting on a face, pivoting on an edge or a corner while it
+    tips), its centre's height over the ground is its support along the ground normal,
+    Σ_i (e_i / 2)·|u_i| with u = Rᵀ·up, linear in the extents e; samples in flight lie
+    above that.  The lower envelope: non-negative least squares over the samples, then
+    again over those within three position sigmas of the fit (the flights drop out),
+    until the set settles.  A box that topples rests on two faces and shows two extents;
+    an extent whose axis never points along the ground normal (MEASURED_AXIS_WEIGHT) is
+    ``cube`` (the cube-like start's scale)."""
+    from scipy.optimize import nnls
+
+    U, h = [], []
+    sigma = 1e-3
+    for run in runs:
+        poses, ok = observed_poses(run)
+        if poses is None or not ok.any():
+            continue
+        up = np.asarray(run.up, float) / np.linalg.norm(run.up)
+        R = quat_to_matrix(poses[ok, 3:])
+        U.append(np.abs(np.einsum("tji,j->ti", R, up)))  # (T, 3): |Rᵀ up|
+        h.append((poses[ok, :3] @ up - run.ground_height) / L)
+        sigma = float(run.sigma_position) if getattr(run, "sigma_position", None) else sigma
+    if not U:
+        return np.full(3, cube)
+    U, h = np.concatenate(U), np.concatenate(h)
+    A = 0.5 * U
+    sel = np.ones(len(h), bool)
+    e = np.full(3, cube)
+    for _ in range(20):
+        if sel.sum() < 3:
+            break
+        e, _ = nnls(A[sel], h[sel])
+        new = h - A @ e < 3.0 * sigma / L
+        if np.array_equal(new, sel):
+            break
+        sel = new
+    measured = U[sel].sum(axis=0) >= MEASURED_AXIS_WEIGHT
+    return np.where(measured & (e > 0), e, cube)
 
 
 def observed_poses(run: Run):
@@ -357,14 +403,17 @@ class Estimator3D:
         hist = np.convolve(hist, np.ones(3), mode="same")  # a cluster split by a bin edge still wins
         k = int(np.argmax(hist))
         mode = float(np.median(c[(c >= edges[max(k - 1, 0)]) & (c < edges[min(k + 2, len(edges) - 1)])]))
+        base = np.full(3, mode)
+        if self.shape.name == "box":
+            base = box_extents_from_poses(self.runs, self.scales.L, mode)
         # the mode is biased low: orientation noise tilts the observed resting object, and
         # a tilted shape reaches lower; refine on a grid above it by the loss after
         # non-negative least squares impulses (too small: impulses act at a distance;
         # too large: penetration)
         p = self.params(*self.config.solver3d.homotopy[-1])
-        candidates = mode * START_SCALE_REFINE
-        losses = [self.nnls_loss(self.initial_guess(self.shape.initial(np.full(3, c_))), p) for c_ in candidates]
-        return self.shape.initial(np.full(3, float(candidates[int(np.argmin(losses))])))
+        candidates = [base * f for f in START_SCALE_REFINE]
+        losses = [self.nnls_loss(self.initial_guess(self.shape.initial(c_)), p) for c_ in candidates]
+        return self.shape.initial(candidates[int(np.argmin(losses))])
 
     def nnls_loss(self, z, p) -> float:
         """The loss 0.5 |r|² of the dynamic intervals after :meth:`ground_impulses_nnls`."""
@@ -611,7 +660,7 @@ class Estimator3D:
         for run, (pose, vel, imp, res) in zip(self.runs, self.run_results(out.z)):
             src = run.filename or ""
             run_ests.append(RunEstimate(pose=pose, velocity=vel, impulses=imp, residuals=res, source_file=src,
-                                        source_sha256=sha256_file(src) if src else ""))
+                                        source_sha256=run_sha256(run)))
         params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
         params.update(self.effect_params(out.z))
         info = (observed_information_3d(pr, out.z, self.p_final, *self.bounds_final, sc, mass)

@@ -101,12 +101,33 @@ def observed_trajectory(run: Run):
         return None
     t_all = np.arange(run.n_samples)
     poses = np.stack([np.interp(t_all, t_obs, obs[t_obs, j]) for j in range(3)], axis=1)
-    window = 2 * int(round(OBSERVED_SMOOTHING_S / run.dt / 2)) + 1
-    if window >= 5 and run.n_samples >= window:
-        from scipy.signal import savgol_filter
+    return smooth_quadratic(poses, run.dt, OBSERVED_SMOOTHING_S)
 
-        poses = savgol_filter(poses, window, 2, axis=0, mode="interp")
-    return poses
+
+def smooth_quadratic(x, dt: float, window_s: float) -> np.ndarray:
+    """x (T, n) smoothed by a local quadratic over window_s seconds (the odd number of
+    samples nearest window_s / dt): a least-squares quadratic through each window's
+    samples, evaluated at its centre (Savitzky–Golay of order 2), and within half a
+    window of either end the quadratic of the first or last whole window evaluated
+    there; x unchanged when the window would be under 5 samples or longer than x."""
+    x = np.asarray(x, float)
+    T = x.shape[0]
+    window = 2 * int(round(window_s / dt / 2)) + 1
+    if window < 5 or T < window:
+        return x.copy()
+    h = window // 2
+    u = np.arange(-h, h + 1, dtype=float)
+    A = np.vander(u, 3, increasing=True)  # columns 1, u, u²
+    fit = np.linalg.pinv(A)  # (3, window): coefficients of the least-squares quadratic
+    out = x.copy()
+    # interior: the fitted value at the centre, i.e. a correlation with fit[0]
+    windows = np.lib.stride_tricks.sliding_window_view(x, window, axis=0)  # (T - 2h, n, window)
+    out[h: T - h] = windows @ fit[0]
+    # ends: the first and last windows' quadratics evaluated at their outer samples
+    for start, edge in ((0, np.arange(h)), (T - window, np.arange(T - h, T))):
+        coef = fit @ x[start: start + window]  # (3, n)
+        out[edge] = np.vander(edge - (start + h), 3, increasing=True).astype(float) @ coef
+    return out
 
 
 def _rotations(angles):

@@ -13,12 +13,20 @@ system C compiler (``$CC``, else ``cc`` or ``gcc``) into
 under a name that hashes the generated source, and loads it with ``casadi.external``.
 Without a compiler, when ``TACEST_NO_COMPILE=1`` or when compiling fails, the functions are
 returned as they are (same results, slower).
+
+Several processes may ask for the same kernel at once (the workers of a Dask cluster on
+one machine, docs/parallel.md): one compiles it, under an exclusive lock on
+``NAME.so.lock`` beside it, into a temporary file of its own that it renames into place
+(atomic); the others wait for the lock, find the kernel there and load it.  A kernel
+file that exists is therefore always complete, and each is compiled once per machine
+(per cache folder).
 """
 
 from __future__ import annotations
 
 import logging
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -52,6 +60,48 @@ def _compiler():
     return None
 
 
+@contextlib.contextmanager
+def _exclusive(lock_path: Path):
+    """Hold an exclusive lock on ``lock_path`` (created if missing) for the block: one
+    process (or thread) at a time.  Without fcntl (not POSIX) the block runs unlocked:
+    the atomic rename alone keeps kernel files complete, at the price of compiling twice."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(lock_path, "a+b") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _build(src: Path, target: Path, tag: str) -> bool:
+    """Compile ``src`` into ``target`` unless another process did meanwhile (under the
+    lock of the module doc); False when compiling is not possible."""
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with _exclusive(target.with_name(target.name + ".lock")):
+            if target.exists():  # compiled by another process while this one waited
+                return True
+            log.info(f"compiling {tag} kernels (once per machine) ...")
+            fd, part = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+            os.close(fd)
+            try:
+                subprocess.run([_compiler(), *CFLAGS, "-o", part, str(src), "-lm"], check=True,
+                               capture_output=True, timeout=COMPILE_TIMEOUT)
+                os.chmod(part, 0o755)
+                os.replace(part, target)
+            finally:
+                if os.path.exists(part):
+                    os.unlink(part)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return True
+
+
 def compile_functions(funs, tag: str, derivatives=()):
     """{name: Function}: the functions ``funs`` (SX), compiled and loaded, or as given
     when compiling is not possible.
@@ -74,16 +124,8 @@ def compile_functions(funs, tag: str, derivatives=()):
         code = src.read_bytes()
         key = hashlib.sha256(code + ca.__version__.encode() + " ".join(CFLAGS).encode()).hexdigest()[:16]
         target = cache_dir() / f"{tag}_{key}.so"
-        if not target.exists():
-            log.info(f"compiling {tag} kernels (once per machine) ...")
-            try:
-                target.parent.mkdir(parents=True, exist_ok=True)
-                part = target.with_suffix(f".{os.getpid()}.part")
-                subprocess.run([_compiler(), *CFLAGS, "-o", str(part), str(src), "-lm"], check=True,
-                               capture_output=True, timeout=COMPILE_TIMEOUT)
-                os.replace(part, target)
-            except (OSError, subprocess.SubprocessError):
-                return plain
+        if not target.exists() and not _build(src, target, tag):
+            return plain
     try:
         return {name: ca.external(name, str(target)) for name in plain}
     except RuntimeError:

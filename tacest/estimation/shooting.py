@@ -732,7 +732,7 @@ def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: Estimato
     Raises TacestError for 3-D runs or bad input, SolveFailedError when IPOPT does not
     return a solution (Maximum_Iterations_Exceeded included).
     """
-    from tacest.io.h5util import sha256_file
+    from tacest.io.run import run_sha256
 
     t_start = time.perf_counter()
     est = ShootingEstimator(runs, shape_spec, config, hessian=hessian)
@@ -749,7 +749,7 @@ def estimate_shooting(runs: list[Run], shape_spec: str = "box", config: Estimato
             imp[f"finger_{f}"] = o["finger_force"][:, f] * run.dt
         src = run.filename or ""
         run_ests.append(RunEstimate(pose=o["pose"], velocity=o["velocity"], impulses=imp, residuals=res,
-                                    source_file=src, source_sha256=sha256_file(src) if src else ""))
+                                    source_file=src, source_sha256=run_sha256(run)))
     try:
         info = est.information(z)
     except (np.linalg.LinAlgError, RuntimeError):

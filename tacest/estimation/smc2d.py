@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.estimation.data import finger_velocity, touching
-from tacest.estimation.initial import initial_extents, initial_pose
+from tacest.estimation.initial import initial_extents, initial_pose, smooth_quadratic
 from tacest.io.run import Run
 from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypotheses, finger_geometry
 
@@ -265,15 +265,10 @@ SMOOTHING_S = 0.07
 def _as_start(run: Run, poses) -> np.ndarray:
     """(T, 3) a lineage as a start: lifted out of the forward model's ground sink (the
     estimator's ground is rigid) and smoothed by a local quadratic over SMOOTHING_S."""
-    from scipy.signal import savgol_filter
-
     P = np.array(poses, float)
     P[:, :2] += GROUND_SINK * np.asarray(run.up, float)[None]
     P[:, 2] = np.unwrap(P[:, 2])
-    window = 2 * int(round(SMOOTHING_S / run.dt / 2)) + 1
-    if window >= 5 and len(P) >= window:
-        P = savgol_filter(P, window, 2, axis=0, mode="interp")
-    return P
+    return smooth_quadratic(P, run.dt, SMOOTHING_S)
 
 
 def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCSettings()) -> SMCResult:

@@ -39,7 +39,7 @@ import numpy as np
 
 from tacest.errors import FileFormatError
 from tacest.geometry.transforms import pose_size
-from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5
+from tacest.io.h5util import Reader, atomic_h5, attr_str, open_h5, sha256_file
 from tacest.provenance import PROVENANCE_ATTRS, provenance, sha256_text
 
 FORMAT = "tacest.run"
@@ -137,6 +137,10 @@ class Run:
     extra_attrs: dict = field(default_factory=dict)
     #: where it was read from (not written)
     filename: Optional[str] = None
+    #: SHA-256 (hex) of the file it was read from, taken when it was read (not written):
+    #: an estimate names its source by it even where the file is not at hand (a Dask
+    #: worker on another machine, docs/parallel.md)
+    sha256: Optional[str] = None
 
     # -- derived sizes -------------------------------------------------------------
     @property
@@ -547,7 +551,16 @@ def read_run(path) -> Run:
     _validate(run, path)
     for note in notes:
         print(note, file=sys.stderr)
+    run.sha256 = sha256_file(path)
     return run
+
+
+def run_sha256(run: Run) -> str:
+    """The SHA-256 of the file ``run`` came from: the one taken when it was read, else
+    the file's own (read now); "" for a run that came from no file."""
+    if not run.filename:
+        return ""
+    return run.sha256 or sha256_file(run.filename)
 
 
 def read_runs(paths) -> list:
@@ -557,12 +570,11 @@ def read_runs(paths) -> list:
     error: its samples would count twice.
     """
     from tacest.errors import TacestError
-    from tacest.io.h5util import sha256_file
 
     runs, seen = [], {}
     for path in paths:
         run = read_run(path)
-        sha = sha256_file(path)
+        sha = run.sha256
         if sha in seen:
             raise TacestError(f"{path}: is the same run as {seen[sha]} (SHA-256 {sha[:12]}...); give each run once")
         seen[sha] = path
