@@ -526,7 +526,7 @@ class _PointArgs:
 def _dense(fun):
     """``fun`` with dense outputs (for :class:`_Buffered`)."""
     ins = fun.mx_in()
-    return ca.Function(f"dense_{fun.name()}", ins, [ca.densify(o) for o in fun(*ins)])
+    return ca.Function(f"dense_{fun.name()}", ins, [ca.densify(o) for o in fun.call(ins)])
 
 
 def _row_terms(fun, terms) -> np.ndarray:
