@@ -409,18 +409,19 @@ class ExpectedInformation3D:
         prior[n_X:] = impulse_prior(np.concatenate([pt.U.T.reshape(-1), pt.LF.T.reshape(-1)]))
         lin = Linearized(Ja=Ja, Jx=Jfull[:, idx], r=np.concatenate([r_s.T.reshape(-1), r0]), measured=measured,
                          driving=~measured, sample=sample, S_identity=sp.csc_matrix(S)[idx], n_theta=nt,
-                         x_prior=prior[idx], extra={"term": term})
+                         x_prior=prior[idx], extra={"term": term, "U": pt.U, "LF": pt.LF})
         lin.residual_at = lambda dx: self._residual_at(pt, idx, n_X, n_U, dx)
         return lin
 
     def _residual_at(self, pt, idx, n_X, n_U, dx) -> np.ndarray:
-        """(R,) residuals at the nuisance variables moved by dx (the ground impulses held:
-        no measured row depends on them)."""
+        """(R,) residuals at the nuisance variables (poses, ground and finger impulses)
+        moved by dx (n_x,)."""
         full = np.zeros(n_X + n_U + pt.LF.size)
         full[idx] = dx
         X = pt.X + full[:n_X].reshape(-1, NP).T
+        U = pt.U + full[n_X: n_X + n_U].reshape(-1, pt.U.shape[0]).T
         LF = pt.LF + full[n_X + n_U:].reshape(-1, pt.LF.shape[0]).T
-        q = _PointArgs(X, pt.U, LF, pt.theta, pt.D, pt.g, pt.w)
+        q = _PointArgs(X, U, LF, pt.theta, pt.D, pt.g, pt.w)
         M = X.shape[1] - 2
         (r,) = self._call("res", M, *q.stage())
         (r0,) = self._call("res0", 1, *q.start())
