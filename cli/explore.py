@@ -55,7 +55,8 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
     from tacest.geometry.shapes3d import make_shape_3d
     from tacest.io.outputs import check_output, replacing_files
     from tacest.linear_solver import check_linear_solver
-    from tacest.planning.explore import ExploreOptions, explore as run_loop
+    from tacest.dims import dimension
+    from tacest.planning.explore import ExploreOptions
 
     object_file = object_spec if Path(object_spec).is_file() else None
     check_output(out_dir, inputs=[object_file, config_path], folder=True)
@@ -82,7 +83,7 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
 
     # an earlier loop's files are removed, never mistaken for this one's (put back on Ctrl-C)
     with replacing_files(out_dir, EXPLORE_FILES) as out:
-        summary = run_loop(opts, out, progress=progress)
+        summary = dimension(opts.dim).implementation("explore")(opts, out, progress=progress)
     last = summary["steps"][-1]
     ch = last.get("chamfer")
     if not quiet:

@@ -239,3 +239,16 @@ def test_plan_3d_cli(estimate_1, tmp_path):
     bad = subprocess.run([TACEST, "plan", est, run, "--method", "identity", "--information", "marginal", "-o",
                           str(tmp_path / "p.h5")], capture_output=True, text=True)
     assert bad.returncode == 2 and "goes with method eig" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--dim", "3", "--object", "nonsense"], "nonsense"),
+    (["--dim", "2", "--information", "marginal"], "3-D estimates only"),
+    (["--dim", "3", "--shape", "polygon:8"], "polygon"),
+])
+def test_explore_3d_bad_input_is_one_line_exit_2(tmp_path, args, message):
+    res = subprocess.run([TACEST, "explore", *args, "--pokes", "2", "-o", str(tmp_path / "out")], capture_output=True,
+                         text=True)
+    assert res.returncode == 2, res.stderr
+    assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert not (tmp_path / "out" / "run.h5").exists()

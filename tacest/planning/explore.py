@@ -133,15 +133,16 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     each poke (the CLI's progress bar).  Raises TacestError for bad options or an
     output folder that is a file.
     """
-    from tacest.dims import dimension, estimate_runs, record_sim
     from tacest.estimation.config import load_config
     from tacest.evaluation.metrics import evaluate, to_jsonable
     from tacest.io.estimate import read_estimate, write_estimate
     from tacest.io.plan import write_plan
     from tacest.io.run import read_run, write_run
+    from tacest.planning.planner import plan_next
     from tacest.sim.record import SimOptions
 
     opts.validate()
+    record_sim, estimate = _world_of(int(opts.dim))
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise TacestError(f"{out}: exists and is not a folder")
@@ -153,7 +154,6 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     sim = SimOptions(dim=int(opts.dim), object_spec=opts.object_spec, seed=int(opts.seed), pokes=1,
                      fingers=int(opts.fingers), force_stream=opts.records_force, noise_force=opts.noise_force,
                      noise_position=opts.noise_position, noise_normal=opts.noise_normal).validate()
-    plan_impl = dimension(opts.dim).implementation("plan")
     run_path = out / "run.h5"
     for stale in [run_path, out / "summary.json", out / "learning_curve.png", out / "view_3d.png",
                   out / "view_3d.html", *out.glob("estimate_*.h5"), *out.glob("plan_*.h5")]:
@@ -178,7 +178,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
         t0 = time.perf_counter()
         est = None
         try:
-            est_obj = estimate_runs([run], shape, config=config)
+            est_obj = estimate([run], shape, config=config)
             est_path = out / f"estimate_{n}.h5"
             write_estimate(est_obj, est_path)
             est = read_estimate(est_path)
@@ -207,7 +207,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
             if est is None:
                 source = start_guess_estimate([run], shape, config)
                 step["planned_from"] = "start guess"
-            plan = plan_impl(source, [run], opts.plan_settings(n))
+            plan = plan_next(source, [run], opts.plan_settings(n))
             write_plan(plan, plan_path)
             step["plan_time"] = float(plan.extra_attrs["wall_time"])
             step["plan_score"] = float(plan.scores[np.argmax(np.all(plan.candidates == plan.chosen, 1))])
@@ -230,6 +230,17 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
         summary.update(_views_3d(out, run_path, N))
     _write_json(out / "summary.json", to_jsonable(summary))
     return summary
+
+
+def _world_of(dim: int):
+    """(record_sim, estimate) of the simulated world and the estimator of ``dim``."""
+    if dim == 3:
+        from tacest.estimation.estimator3d import estimate_3d as estimate
+        from tacest.sim3d.record import record_sim
+    else:
+        from tacest.estimation.estimator import estimate_2d as estimate
+        from tacest.sim.record import record_sim
+    return record_sim, estimate
 
 
 def _check_object(object_spec: str, dim: int) -> None:
@@ -267,6 +278,24 @@ def _views_3d(out: Path, run_path: Path, N: int) -> dict:
         except (TacestError, OSError, ValueError) as exc:
             log.warning(f"{out / name}: not written ({exc})")
     return views
+
+
+def _step_values(group: list, key: str, scale: float) -> np.ndarray:
+    """(n_summaries, n_max) ``scale`` × each step's ``key`` by poke count; NaN where missing."""
+    n_max = max(len(s["steps"]) for s in group)
+    vals = np.full((len(group), n_max), np.nan)
+    for i, s in enumerate(group):
+        for st in s["steps"]:
+            v = st.get(key)
+            if v is not None and 1 <= st["pokes"] <= n_max:
+                vals[i, st["pokes"] - 1] = scale * v
+    return vals
+
+
+def _median_columns(vals: np.ndarray) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(vals, 0)
 
 
 def start_guess_estimate(runs, shape: str, config):
@@ -328,11 +357,14 @@ def _pct(v):
 
 
 def plot_learning_curve(path, summaries: list, labels=None) -> None:
-    """Chamfer (mm) and relative parameter errors (%) against the number of pokes.
+    """Chamfer (mm) and relative parameter errors (%) against the number of pokes, and
+    (a second row, where every step has ``data_time``) against the seconds of recorded
+    data.
 
     summaries : explore summaries (one line each; with several per label, e.g. from a
     benchmark, the median over them with the 25–75 % band, over the estimates that
-    succeeded: a failed one leaves a gap); labels : one per summary
+    succeeded: a failed one leaves a gap; on the seconds row, each poke count is drawn
+    at the median seconds of data it took); labels : one per summary
     (default: its policy).
     """
     import matplotlib
@@ -350,35 +382,39 @@ def plot_learning_curve(path, summaries: list, labels=None) -> None:
     keys = [("chamfer", "Chamfer (mm)", 1e3), ("mass_rel", "mass error (%)", 100.0),
             ("friction_ground_rel", "ground friction error (%)", 100.0),
             ("friction_finger_rel", "finger friction error (%)", 100.0)]
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6))
-    for ax, (key, title, scale) in zip(axes, keys):
-        drawn = []
-        for lab, group in groups.items():
-            n_max = max(len(s["steps"]) for s in group)
-            x = np.arange(1, n_max + 1)
-            vals = np.full((len(group), n_max), np.nan)
-            for i, s in enumerate(group):
-                for st in s["steps"]:
-                    v = st.get(key)
-                    if v is not None and 1 <= st["pokes"] <= n_max:
-                        vals[i, st["pokes"] - 1] = scale * v
-            with warnings.catch_warnings():  # an all-NaN column (every estimate failed) stays NaN
-                warnings.simplefilter("ignore", RuntimeWarning)
-                med = np.nanmedian(vals, 0)
-                lo, hi = np.nanpercentile(vals, 25, 0), np.nanpercentile(vals, 75, 0)
-            line, = ax.plot(x, med, marker="o", ms=3, label=f"{lab} (n={len(group)})" if len(group) > 1 else lab)
-            drawn += [med, lo, hi] if len(group) > 1 else [med]
-            if len(group) > 1:
-                ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, lw=0)
-        ax.set_xlabel("pokes")
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # a poke count is a whole number
-        ax.set_title(title, fontsize=10)
-        ax.grid(alpha=0.3)
-        if key == "chamfer":
-            ax.set_yscale("log")
-            plain_log_axis(ax)
-        else:
-            readable_linear_axis(ax, np.concatenate(drawn) if drawn else [])
+    by_time = all(st.get("data_time") is not None for s in summaries for st in s["steps"])
+    rows = ["pokes", "data_time"] if by_time else ["pokes"]
+    fig, axes = plt.subplots(len(rows), len(keys), figsize=(4.2 * len(keys), 3.6 * len(rows)), squeeze=False)
+    for row, x_key in zip(axes, rows):
+        for ax, (key, title, scale) in zip(row, keys):
+            drawn = []
+            for lab, group in groups.items():
+                vals = _step_values(group, key, scale)
+                x = np.arange(1, vals.shape[1] + 1, dtype=float)
+                if x_key == "data_time":
+                    x = _median_columns(_step_values(group, "data_time", 1.0))
+                with warnings.catch_warnings():  # an all-NaN column (every estimate failed) stays NaN
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    med = np.nanmedian(vals, 0)
+                    lo, hi = np.nanpercentile(vals, 25, 0), np.nanpercentile(vals, 75, 0)
+                line, = ax.plot(x, med, marker="o", ms=3,
+                                label=f"{lab} (n={len(group)})" if len(group) > 1 else lab)
+                drawn += [med, lo, hi] if len(group) > 1 else [med]
+                if len(group) > 1:
+                    ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, lw=0)
+            if x_key == "pokes":
+                ax.set_xlabel("pokes")
+                ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # a poke count is a whole number
+            else:
+                ax.set_xlabel("recorded data (s)")
+            ax.set_title(title, fontsize=10)
+            ax.grid(alpha=0.3)
+            if key == "chamfer":
+                ax.set_yscale("log")
+                plain_log_axis(ax)
+            else:
+                readable_linear_axis(ax, np.concatenate(drawn) if drawn else [])
+    axes = axes[0]
     axes[0].legend(fontsize=8)
     fig.tight_layout()
     path = Path(path)
