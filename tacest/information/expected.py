@@ -98,6 +98,35 @@ MEASUREMENT_TERMS = ("force", "normal", "contact", "pose")
 # the estimate as a model
 
 
+def planning_inputs(est, runs: list, dim: int, shape_of) -> tuple:
+    """(shape, vertices (K, dim) m body frame, the last run) of an estimate to plan from,
+    after the checks of both dimensions: a ``dim``-D estimate, its runs given (same
+    number, dimension and lengths), fingers to poke with, vertices of its shape
+    (``shape_of(spec)``).  TacestError (one line, naming the file) otherwise."""
+    name = est.filename or "estimate"
+    if est.dim != dim:
+        raise TacestError(f"{name}: is a {est.dim}-D estimate; the {dim}-D planner needs a {dim}-D one")
+    if len(runs) != len(est.runs):
+        raise TacestError(f"{name} holds {len(est.runs)} run(s) but {len(runs)} run file(s) were given; give the "
+                          "runs it was estimated from")
+    for i, (re_, run) in enumerate(zip(est.runs, runs)):
+        if run.dim != dim:
+            raise TacestError(f"{run.filename or 'run'}: is a {run.dim}-D run; a {dim}-D estimate needs {dim}-D runs")
+        if re_.pose.shape[0] != run.n_samples:
+            raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of {name} has "
+                              f"{re_.pose.shape[0]}; it is not the run the estimate was made from (re-estimate "
+                              "after appending)")
+    run = runs[-1]
+    if run.n_fingers == 0:
+        raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
+    shape = shape_of(est.shape)
+    V = np.asarray(est.vertices, float)
+    if V.shape != (shape.n_vertices, dim):
+        raise TacestError(f"{name}: /params/vertices has shape {V.shape}, expected ({shape.n_vertices}, {dim}) "
+                          f"for shape {est.shape}")
+    return shape, V, run
+
+
 @dataclass
 class ModelState:
     """What an estimate says about the object now.
@@ -142,24 +171,7 @@ class ModelState:
         runs : the run files it was estimated from (same number and order), for the
         fingers, dt and streams.  TacestError when they do not fit together.
         """
-        if est.dim != 2:
-            raise TacestError(f"{est.filename or 'estimate'}: planning is available for 2-D estimates only")
-        if len(runs) != len(est.runs):
-            raise TacestError(f"{est.filename or 'estimate'} holds {len(est.runs)} run(s) but "
-                              f"{len(runs)} run file(s) were given; give the runs it was estimated from")
-        for i, (re_, run) in enumerate(zip(est.runs, runs)):
-            if re_.pose.shape[0] != run.n_samples:
-                raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of "
-                                  f"{est.filename or 'the estimate'} has {re_.pose.shape[0]}; it is not the run "
-                                  "the estimate was made from (re-estimate after appending)")
-        run = runs[-1]
-        if run.n_fingers == 0:
-            raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
-        shape = make_shape(est.shape)
-        V = np.asarray(est.vertices, float)
-        if V.shape != (shape.n_vertices, 2):
-            raise TacestError(f"{est.filename or 'estimate'}: /params/vertices has shape {V.shape}, "
-                              f"expected ({shape.n_vertices}, 2) for shape {est.shape}")
+        shape, V, run = planning_inputs(est, runs, 2, make_shape)
         p = est.params
         for k in ("mass", "inertia", "friction_ground", "friction_finger"):
             v = float(p[k])

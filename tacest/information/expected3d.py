@@ -52,7 +52,7 @@ from tacest.estimation.rollout3d import shape_parameters
 from tacest.estimation.uncertainty import effect_factors, information_names_3d
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d
 from tacest.geometry.transforms import quat_to_matrix
-from tacest.information.expected import HOLD_TIME, PREDICT_SUBSTEPS, PredictedPoke, _Buffered
+from tacest.information.expected import HOLD_TIME, PREDICT_SUBSTEPS, PredictedPoke, _Buffered, planning_inputs
 from tacest.information.sensitivity import Linearized, impulse_prior, information
 from tacest.io.run import Run
 from tacest.model.stage3d import NP, START_TERMS, STAGE_TERMS, TERMS3D, Layout3D, impulse_variable
@@ -128,17 +128,7 @@ class ModelState3:
         """The object of a 3-D Estimate at the end of its last run; ``runs`` the run files
         it was estimated from (same number, lengths and order).  TacestError otherwise."""
         name = est.filename or "estimate"
-        if est.dim != 3:
-            raise TacestError(f"{name}: is a {est.dim}-D estimate; the 3-D planner needs a 3-D one")
-        _check_runs(est, runs)
-        run = runs[-1]
-        if run.n_fingers == 0:
-            raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
-        shape = make_shape_3d(est.shape)
-        V = np.asarray(est.vertices, float)
-        if V.shape != (shape.n_vertices, 3):
-            raise TacestError(f"{name}: /params/vertices has shape {V.shape}, expected ({shape.n_vertices}, 3) "
-                              f"for shape {est.shape}")
+        shape, V, run = planning_inputs(est, runs, 3, make_shape_3d)
         p = est.params
         for k in ("mass", "friction_ground", "friction_finger"):
             v = float(np.asarray(p.get(k, float("nan"))))
@@ -164,20 +154,6 @@ class ModelState3:
                    finger_radius=np.asarray(run.finger_radius, float).copy(), dt=float(run.dt),
                    has_force=bool(run.has_force), up=np.asarray(run.up, float), ground_height=float(run.ground_height),
                    gravity=float(np.linalg.norm(run.gravity)), config=config)
-
-
-def _check_runs(est, runs):
-    name = est.filename or "estimate"
-    if len(runs) != len(est.runs):
-        raise TacestError(f"{name} holds {len(est.runs)} run(s) but {len(runs)} run file(s) were given; give the "
-                          "runs it was estimated from")
-    for i, (re_, run) in enumerate(zip(est.runs, runs)):
-        if run.dim != 3:
-            raise TacestError(f"{run.filename or 'run'}: is a {run.dim}-D run; a 3-D estimate needs 3-D runs")
-        if re_.pose.shape[0] != run.n_samples:
-            raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of {name} has "
-                              f"{re_.pose.shape[0]}; it is not the run the estimate was made from (re-estimate "
-                              "after appending)")
 
 
 def theta_of_estimate(shape: Shape3D, effects: tuple, vertices, params: dict, inertia, scales: Scales) -> np.ndarray:
