@@ -28,7 +28,7 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
 @click.option("--shape", default=None, help="Estimator shape (default: box for box objects, else polygon:8).")
 @click.option("--information", type=click.Choice(["schur", "identity", "diffsim", "marginal"]), default=None,
               help="How eig builds the information (tacest plan --information; default schur in 2-D, marginal "
-                   "in 3-D; diffsim and marginal are 3-D only).")
+                   "in 3-D).")
 @click.option("--score", type=click.Choice(["logdet", "A", "D", "E"]), default="logdet", show_default=True,
               help="Scalarization of the information (docs/planning.md).")
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),

@@ -19,7 +19,7 @@ import click
 @click.option("--information", type=click.Choice(["schur", "identity", "diffsim", "marginal"]), default=None,
               help="How the information of a poke and of the past is built (docs/planning.md): schur (the "
                    "estimator's own, 2-D default), identity, diffsim (differentiating the simulation) or "
-                   "marginal (past states marginalized by sampling, 3-D default); diffsim and marginal are 3-D only.")
+                   "marginal (past states marginalized by sampling, 3-D default).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed of the search.")
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
               help="Also choose the poke's depth and/or speed (repeatable); default: 2 cm, a 1 s approach.")

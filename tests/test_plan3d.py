@@ -243,7 +243,7 @@ def test_plan_3d_cli(estimate_1, tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--dim", "3", "--object", "nonsense"], "nonsense"),
-    (["--dim", "2", "--information", "marginal"], "3-D estimates only"),
+    (["--dim", "3", "--policy", "identity", "--information", "marginal"], "goes with method eig"),
     (["--dim", "3", "--shape", "polygon:8"], "polygon"),
 ])
 def test_explore_3d_bad_input_is_one_line_exit_2(tmp_path, args, message):
@@ -252,3 +252,18 @@ def test_explore_3d_bad_input_is_one_line_exit_2(tmp_path, args, message):
     assert res.returncode == 2, res.stderr
     assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert not (tmp_path / "out" / "run.h5").exists()
+
+
+def test_a_failed_3d_estimate_is_planned_from_the_start_guess(estimate_1):
+    """The loop's fallback when a 3-D estimate fails: the estimator's initial guess as an
+    Estimate (status "start guess", no information) that the planner can aim with."""
+    from tacest.io.run import read_run
+    from tacest.planning.explore import start_guess_estimate
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    run = read_run(estimate_1[1])
+    est = start_guess_estimate([run], "box", CONFIG)
+    assert est.dim == 3 and est.solver_status == "start guess" and est.information is None
+    assert est.runs[0].pose.shape == (run.n_samples, 7) and np.all(np.isfinite(est.runs[0].pose))
+    plan = plan_next(est, [run], PlanSettings(method="identity", iterations=1, population=3))
+    assert plan.candidates.shape == (9, 8) and np.all(np.isfinite(plan.scores))

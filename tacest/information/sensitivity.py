@@ -39,7 +39,10 @@ evolves).  The information about a, in the units of the kept columns:
     (∂x_t/∂s = I) ``identity``'s.  Where it is wide (a push of uncertain strength, a
     topple), m_t says less about a: for a linear model E_n[g gᵀ] = G_tᵀ(J_t Σ J_tᵀ + I)⁻¹G_t,
     the information of m_t with x_t integrated out.  Each sample is marginalized on its
-    own (the other samples' measurements do not narrow its transition).
+    own (the other samples' measurements do not narrow its transition).  The weighted
+    residual of a sample is never longer than its noise draw (exact for the linear
+    model; longer ones are Monte Carlo error of degenerate weights, cut to that length:
+    :func:`_clip_to_noise`).
 
 The kept columns' units are the caller's (the dimension's information model converts to
 physical units).  tests/test_sensitivity.py checks the limits above.
@@ -211,8 +214,26 @@ def marginal_information(lin: Linearized, samples: int = MARGINAL_SAMPLES, draws
     w = np.exp(logw)
     w /= w.sum(axis=1, keepdims=True)  # (n_t, N, K): softmax over the state samples
     resid = np.einsum("rik,rik->rk", w[t_of_row], dR[:, :, None] - n[:, None, :])  # (R_m, K)
+    resid = _clip_to_noise(resid, n, A)
     # g_tk = -Σ_{rows r of t} G_r resid_rk; F = Σ_t mean_k g_tk g_tkᵀ
     contrib = G[:, None, :] * resid[:, :, None]  # (R_m, K, n_a)
     g = np.asarray(A @ contrib.reshape(len(m_rows), -1)).reshape(len(groups), int(draws), lin.n_a)
     F = np.einsum("tki,tkj->ij", g, g) / int(draws)
     return _sym(F)
+
+
+def _clip_to_noise(resid: np.ndarray, n: np.ndarray, A) -> np.ndarray:
+    """(R_m, K) the weighted residuals e_tk = Σ_i w_ti (r_t(x^i) − r_t(x̄)) − n_tk, each
+    sample's vector shortened to at most the length of its noise draw |n_tk|.
+
+    For a linear model the exact posterior mean gives e = −(C_t + I)⁻¹ n with C_t ≽ 0 the
+    state's spread seen in the measurement, so |e| <= |n| always: marginalizing the state
+    never adds information about a sample beyond what its noise allows.  Longer vectors
+    come from Monte Carlo error when the weights degenerate (a transition much wider than
+    the measurement noise leaves every state sample far from the data) and would inflate
+    F by the spread of the samples instead of shrinking it; they are cut to |n|.
+    A : (n_t, R_m) 0/1 map of rows to their sample."""
+    e2 = np.asarray(A @ resid ** 2)  # (n_t, K) squared lengths per sample and draw
+    n2 = np.asarray(A @ n ** 2)
+    scale = np.sqrt(np.minimum(1.0, n2 / np.maximum(e2, 1e-300)))
+    return resid * np.asarray(A.T @ scale)

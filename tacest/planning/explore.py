@@ -117,7 +117,7 @@ class ExploreOptions:
 
         return PlanSettings(method=self.policy, score=self.score, seed=plan_seed(self.seed, n), vary=tuple(self.vary),
                             iterations=self.iterations, population=self.population,
-                            information=None if self.policy == "identity" else self.information).validate()
+                            information=self.information).validate()
 
 
 def _write_json(path: Path, obj) -> None:
@@ -339,8 +339,12 @@ def start_guess_estimate_3d(runs, shape: str, config):
     e = Estimator3D(runs, shape, config)
     z0 = e.initial_guess()
     V, mass, inertia, mu_g, mu_f = e.physical(z0)
-    run_ests = [RunEstimate(pose=np.asarray(pose, float), velocity=np.asarray(vel, float))
-                for pose, vel, _, _ in e.run_results(z0)]
+    _, X, _, _ = e.problem.split(z0)  # (7, samples of every run) scaled poses
+    run_ests = []
+    for i, run in enumerate(runs):
+        Xi = np.asarray(X, float)[:, e.layout.run_samples(i)]
+        run_ests.append(RunEstimate(pose=np.concatenate([Xi[:3].T * e.scales.L, Xi[3:].T], 1),
+                                    velocity=np.zeros((run.n_samples, 6))))
     return Estimate(dim=3, shape=e.shape.name, vertices=V,
                     params={"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f},
                     runs=run_ests, solver_status="start guess", success=False, information=None,

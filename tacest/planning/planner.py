@@ -17,8 +17,9 @@ tacest.io.plan.Plan (candidates, scores, chosen action).
 action space (tacest.planning.actions.ActionSpace3: azimuth, elevation), with the
 information of a predicted poke and of the past built by ``information``
 (tacest.information.sensitivity: ``schur``, ``identity``, ``diffsim`` or ``marginal``;
-default ``marginal``; the ``identity`` method uses ``identity``).  In 2-D ``information``
-is ``schur`` (the default) or ``identity`` (the ``identity`` method).
+default ``marginal``; the ``identity`` method uses ``identity``).  In 2-D every
+construction is offered for the candidates (default ``schur``); the past stays the
+estimate's observed information (its Schur complement) plus the prior.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ log = logging.getLogger(__name__)
 
 METHODS = ("eig", "random", "identity")
 #: the information constructions ``PlanSettings.information`` offers per dimension
-INFORMATION_BY_DIM = {2: ("schur", "identity"), 3: INFORMATION_METHODS}
+INFORMATION_BY_DIM = {2: INFORMATION_METHODS, 3: INFORMATION_METHODS}
 #: the information used when ``PlanSettings.information`` is None, per dimension
 DEFAULT_INFORMATION = {2: "schur", 3: "marginal"}
 
@@ -99,8 +100,8 @@ class PlanSettings:
             return "identity"
         info = self.information or DEFAULT_INFORMATION[int(dim)]
         if info not in INFORMATION_BY_DIM[int(dim)]:
-            raise TacestError(f"--information {info} is available for 3-D estimates only in this version "
-                              f"(2-D: {' or '.join(INFORMATION_BY_DIM[2])})")
+            raise TacestError(f"--information {info} is not available for {int(dim)}-D estimates "
+                              f"(use {' or '.join(INFORMATION_BY_DIM[int(dim)])})")
         return info
 
 
@@ -191,7 +192,6 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
 
     if int(est.dim) == 3:
         return make_scorer_3d(est, runs, settings)
-    settings.information_for(2)
     config = config_of_estimate(est)
     model = ModelState.from_estimate(est, runs)
     scales = choose_scales(runs, config)
@@ -201,7 +201,7 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
                   (("noise_force", config.noise.force), ("noise_normal", config.noise.normal),
                    ("noise_position", 1e-4)))
     return Scorer(info=info, model=model, I_past=I_past, kind=settings.score,
-                  approximation="identity" if settings.method == "identity" else "fisher",
+                  approximation=settings.information_for(2),
                   substeps=settings.substeps, noise_samples=settings.noise_samples, noise=noise)
 
 
