@@ -118,3 +118,26 @@ def test_unknown_method_is_one_clear_error():
     lin, _ = _stretch(sigma_d=1e-3)
     with pytest.raises(TacestError, match="unknown information method 'fisher'"):
         information(lin, "fisher")
+
+
+def test_2d_rows_classed_as_the_2d_identity_approximation_has_them():
+    """The 2-D prediction's Linearized (ExpectedInformation.linearized): the generic
+    identity construction on its measured rows and S_identity is the 2-D identity
+    approximation (ExpectedInformation.identity) to rounding, and ``schur`` on it is the
+    Fisher (Schur) information; diffsim and marginal are finite and positive semi-definite."""
+    from test_planning import _box_model, _info, _poke
+
+    from tacest.information.expected import predict_poke
+
+    model, info = _box_model(), _info("box")
+    pred = predict_poke(model, _poke(model, 30))
+    lin = info.linearized(model, pred)
+    F_id = info.identity(model, pred)
+    # the same sums in another order: 1e-9 of the largest entry
+    np.testing.assert_allclose(info.to_physical(information(lin, "identity"), model), F_id,
+                               atol=1e-9 * np.abs(F_id).max())
+    F_s = info.fisher(model, pred)
+    np.testing.assert_allclose(info.sensitivity_information(model, pred, "schur"), F_s, atol=1e-9 * np.abs(F_s).max())
+    for method in ("diffsim", "marginal"):
+        F = info.sensitivity_information(model, pred, method)
+        assert np.all(np.isfinite(F)) and np.linalg.eigvalsh(F).min() >= -1e-9 * np.abs(F).max()
