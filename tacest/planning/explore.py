@@ -164,7 +164,8 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     summary = {"object": opts.object_spec, "dim": int(opts.dim), "fingers": int(opts.fingers),
                "force": opts.records_force, "seed": int(opts.seed), "policy": opts.policy, "pokes": N,
                "shape": shape, "score": opts.score,
-               "information": opts.plan_settings(1).information_for(int(opts.dim)), "options": {**asdict(opts), "vary": list(opts.vary)},
+               "information": opts.plan_settings(1).information_for(int(opts.dim)),
+               "options": {**asdict(opts), "vary": list(opts.vary)},
                "steps": steps}
 
     t0 = time.perf_counter()
@@ -227,7 +228,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     summary["learning_curve"] = "learning_curve.png"
     plot_learning_curve(out / "learning_curve.png", [summary])
     if int(opts.dim) == 3:
-        summary.update(_views_3d(out, run_path, N))
+        summary.update(_views_3d(out, run_path, N, f"{opts.object_spec}, seed {opts.seed}, policy {opts.policy}"))
     _write_json(out / "summary.json", to_jsonable(summary))
     return summary
 
@@ -260,16 +261,17 @@ def describe_approach(action: dict) -> str:
             f"elevation {math.degrees(action['approach_elevation']):.0f} deg")
 
 
-def _views_3d(out: Path, run_path: Path, N: int) -> dict:
+def _views_3d(out: Path, run_path: Path, N: int, what: str) -> dict:
     """view_3d.png and view_3d.html of the last estimate that exists (else the run
-    alone); the summary's entries naming them.  A failed view is logged, not fatal:
-    the loop's results are already on disk."""
+    alone), titled ``what`` and the estimate's name; the summary's entries naming them.
+    A failed view is logged, not fatal: the loop's results are already on disk."""
     from tacest.view.html3d import write_html_3d
     from tacest.view.png3d import write_png_3d
     from tacest.view.scene import load_scene
 
     last = next((out / f"estimate_{n}.h5" for n in range(N, 0, -1) if (out / f"estimate_{n}.h5").exists()), None)
     scene = load_scene(last, run_path) if last is not None else load_scene(run_path)
+    scene.title = f"{what}: truth (green), {last.name if last else 'no estimate'} (blue), fingers, touched points (red)"
     views = {}
     for name, write in (("view_3d.png", write_png_3d), ("view_3d.html", write_html_3d)):
         try:

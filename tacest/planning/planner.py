@@ -36,7 +36,7 @@ from tacest.errors import TacestError
 from tacest.information.expected import (PREDICT_SUBSTEPS, ExpectedInformation, ModelState, config_of_estimate,
                                          past_information, predict_poke)
 from tacest.information.scores import SCORES, score
-from tacest.io.plan import POKE_NAMES, Plan
+from tacest.io.plan import Plan
 from tacest.information.sensitivity import INFORMATION_METHODS
 from tacest.planning.actions import ActionSpace, ActionSpace3
 from tacest.planning.cem import cem_maximize

@@ -66,8 +66,8 @@ def write_png_3d(sc: Scene, path, title: str | None = None) -> None:
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
         if sc.est_vertices is not None and sc.est_pose is not None:
             V, tri, _ = _placed_mesh(sc.est_vertices, sc.est_pose[-1])
-            ax.add_collection3d(Poly3DCollection(V[tri], facecolor=(0.3, 0.5, 0.9, 0.35), edgecolor=(0.2, 0.3, 0.7, 0.5),
-                                                 linewidths=0.3, label="estimate"))
+            ax.add_collection3d(Poly3DCollection(V[tri], facecolor=(0.3, 0.5, 0.9, 0.35),
+                                                 edgecolor=(0.2, 0.3, 0.7, 0.5), linewidths=0.3, label="estimate"))
             pts.append(V)
         if sc.true_vertices is not None and sc.true_pose is not None:
             V, _, edges = _placed_mesh(sc.true_vertices, sc.true_pose[-1])
