@@ -224,7 +224,7 @@ def test_plan_3d_cli(estimate_1, tmp_path):
                               "3", "-o", str(plan_path)], capture_output=True, text=True)
         assert res.returncode == 0, res.stderr
         plan = read_plan(plan_path)
-        assert list(plan.names) == list(POKE3_NAMES) and plan.candidates.shape == (9, 8)
+        assert list(plan.names) == list(POKE3_NAMES) and plan.candidates.shape == (3, 8)
         assert json.loads(plan.extra_attrs["planner"])["information"] == info
         assert plan.scores.max() == plan.scores[np.all(plan.candidates == plan.chosen, 1)][0]
     appended = tmp_path / "appended.h5"
@@ -266,4 +266,21 @@ def test_a_failed_3d_estimate_is_planned_from_the_start_guess(estimate_1):
     assert est.dim == 3 and est.solver_status == "start guess" and est.information is None
     assert est.runs[0].pose.shape == (run.n_samples, 7) and np.all(np.isfinite(est.runs[0].pose))
     plan = plan_next(est, [run], PlanSettings(method="identity", iterations=1, population=3))
-    assert plan.candidates.shape == (9, 8) and np.all(np.isfinite(plan.scores))
+    assert plan.candidates.shape == (3, 8) and np.all(np.isfinite(plan.scores))
+
+
+def test_one_search_pokes_each_direction_with_the_nearest_finger():
+    """ActionSpace3 with the fingertips known: one search, and a direction is poked by
+    the finger nearest its approach; the poke vector is POKE3_NAMES'."""
+    from tacest.planning.actions import ActionSpace3
+    from tacest.sim3d.pokes import POKE3_NAMES
+
+    tips = np.array([[0.2, 0.0, 0.1], [-0.2, 0.0, 0.1], [0.0, 0.2, 0.1]])
+    space = ActionSpace3(n_fingers=3, p_finger__world=tips)
+    assert space.searched_fingers() == [None] and ActionSpace3(n_fingers=3).searched_fingers() == [0, 1, 2]
+    target = np.array([0.0, 0.0, 0.03])
+    for az, finger in ((0.0, 0), (math.pi, 1), (math.pi / 2, 2)):
+        a = dict(zip(POKE3_NAMES, space.action(None, [az, 0.3], target)))
+        assert a["finger"] == finger and a["approach_azimuth"] == az and a["target_z"] == 0.03
+    lo, hi = space.bounds()
+    np.testing.assert_allclose([lo, hi], [[-math.pi, math.radians(10)], [math.pi, math.radians(90)]])

@@ -44,6 +44,9 @@ VARIABLES = ("depth", "speed")
 ELEVATION_RANGE = (math.radians(10.0), math.radians(90.0))
 #: rad, 3-D approach azimuths (every side of the object)
 AZIMUTH_RANGE = (-math.pi, math.pi)
+#: m, how far out along the approach line the nearest finger is looked for (about an
+#: object's size: where the approach of a poke starts)
+APPROACH_REACH = 0.1
 
 
 @dataclass
@@ -76,6 +79,10 @@ class ActionSpace:
 
     def _direction_bounds(self):
         return [self.angle_range[0]], [self.angle_range[1]]
+
+    def searched_fingers(self) -> list:
+        """The fingers the planner searches one by one (each its own search)."""
+        return list(range(self.n_fingers))
 
     @property
     def poke_names(self) -> tuple:
@@ -116,6 +123,29 @@ class ActionSpace3(ActionSpace):
     finger, optionally depth and speed; poke vectors of tacest.sim3d.pokes.POKE3_NAMES."""
 
     elevation_range: tuple = ELEVATION_RANGE
+    #: (F, 3) m, the fingertips now; given, one search covers every finger: a direction
+    #: is poked by the finger nearest its approach (:meth:`nearest_finger`)
+    p_finger__world: np.ndarray | None = None
+
+    def searched_fingers(self) -> list:
+        """[None] (one search, the nearest finger per direction) when the fingertips are
+        known: the fingers are alike and the idle ones are parked above the object, so
+        the same direction informs the same whichever finger pokes; else each finger."""
+        return [None] if self.p_finger__world is not None else super().searched_fingers()
+
+    def nearest_finger(self, u, target__world) -> int:
+        """The finger nearest the approach line's point APPROACH_REACH out from the
+        target (the shortest transit to the poke's start)."""
+        az, el = float(u[0]), float(u[1])
+        d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        start = np.asarray(target__world, float) + APPROACH_REACH * d
+        return int(np.argmin(np.linalg.norm(np.asarray(self.p_finger__world, float) - start, axis=1)))
+
+    def action(self, finger, u, target__world) -> np.ndarray:
+        """As ActionSpace.action; finger None: :meth:`nearest_finger`."""
+        if finger is None:
+            finger = self.nearest_finger(u, target__world)
+        return super().action(finger, u, target__world)
 
     @property
     def names(self) -> list:

@@ -216,7 +216,10 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
-    space = (ActionSpace3 if int(est.dim) == 3 else ActionSpace)(n_fingers=model.n_fingers, vary=tuple(settings.vary))
+    if int(est.dim) == 3:
+        space = ActionSpace3(n_fingers=model.n_fingers, vary=tuple(settings.vary), p_finger__world=model.p_finger__world)
+    else:
+        space = ActionSpace(n_fingers=model.n_fingers, vary=tuple(settings.vary))
     target = model.centroid__world
     rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 4]))
     cands, scores = [], []
@@ -226,13 +229,14 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
         scores.append(scorer(a))
     else:
         lo, hi = space.bounds()
-        for f in range(model.n_fingers):
+        for f in space.searched_fingers():
             res = cem_maximize(lambda u: scorer(space.action(f, u, target)), lo, hi, rng,
                                iterations=settings.iterations, population=settings.population,
                                elite=settings.elite or max(1, settings.population // 3))
             cands += [space.action(f, u, target) for u in res.samples]
             scores += list(res.scores)
-            log.info(f"finger {f}: best {settings.score} {np.max(res.scores):.4g} of {len(res.scores)} candidates")
+            log.info(f"finger {'nearest' if f is None else f}: best {settings.score} {np.max(res.scores):.4g} of "
+                     f"{len(res.scores)} candidates")
     cands = np.asarray(cands, float).reshape(-1, len(space.poke_names))
     scores = np.asarray(scores, float)
     if not np.any(np.isfinite(scores)):
