@@ -11,7 +11,8 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
 
 @click.command()
 @click.option("-o", "--output", "out_dir", type=click.Path(file_okay=False), required=True,
-              help="Folder for run.h5, estimate_<n>.h5, plan_<n>.h5, summary.json, learning_curve.png.")
+              help="Folder for run.h5, estimate_<n>.h5, plan_<n>.h5, summary.json, learning_curve.png "
+                   "(3-D: also view_3d.png, view_3d.html).")
 @click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True,
               help="World: 2 (pymunk) or 3 (MuJoCo).")
 @click.option("--object", "object_spec", default="box", show_default=True,
@@ -25,7 +26,8 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
 @click.option("--policy", type=click.Choice(["eig", "random", "identity"]), default="eig", show_default=True,
               help="How every poke after the first is chosen (tacest plan --method).")
 @click.option("--pokes", type=click.IntRange(1, 100), default=8, show_default=True, help="Number of pokes.")
-@click.option("--shape", default=None, help="Estimator shape (default: box for box objects, else polygon:8).")
+@click.option("--shape", default=None, help="Estimator shape (default: box for box objects, else polygon:8; "
+                                            "3-D: polytope:12).")
 @click.option("--information", type=click.Choice(["schur", "identity", "diffsim", "marginal"]), default=None,
               help="How eig builds the information (tacest plan --information; default schur in 2-D, marginal "
                    "in 3-D).")
@@ -34,7 +36,7 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
               help="Also choose the depth and/or speed of each poke (repeatable).")
 @click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
-              help="Cross-entropy iterations per finger (eig, identity).")
+              help="Cross-entropy iterations (eig, identity; per finger in 2-D, one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
@@ -42,9 +44,9 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, pokes, shape, information, score, vary,
             iterations, population, config_path, quiet):
-    """Explore a simulated object: record a poke, estimate, plan the next poke with
-    POLICY, repeat until POKES pokes; write per-step files, summary.json and a
-    learning-curve plot to OUTPUT."""
+    """Explore a simulated object (2-D, or 3-D with --dim 3): record a poke, estimate,
+    plan the next poke with POLICY, repeat until POKES pokes; write per-step files,
+    summary.json and a learning-curve plot (3-D: and views) to OUTPUT."""
     import sys
     import time
     from pathlib import Path

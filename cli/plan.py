@@ -24,7 +24,7 @@ import click
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
               help="Also choose the poke's depth and/or speed (repeatable); default: 2 cm, a 1 s approach.")
 @click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
-              help="Cross-entropy iterations per finger.")
+              help="Cross-entropy iterations (per finger in 2-D; one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
 @click.option("--quiet", is_flag=True, help="No progress output.")

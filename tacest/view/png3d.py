@@ -90,7 +90,10 @@ def write_png_3d(sc: Scene, path, title: str | None = None) -> None:
         ax.view_init(elev=elev, azim=azim)
         ax.set_xlabel("x (m)", fontsize=7)
         ax.set_ylabel("y (m)", fontsize=7)
-        ax.set_zlabel("z (m)", fontsize=7)
+        if elev < 80:
+            ax.set_zlabel("z (m)", fontsize=7)
+        else:  # seen from above, the height axis is a smear of labels
+            ax.set_zticks([])
         ax.tick_params(labelsize=6)
         if i == 0:
             ax.legend(fontsize=7, loc="upper left")
