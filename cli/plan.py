@@ -56,7 +56,6 @@ def plan(estimate, runs, output, method, score, information, seed, vary, iterati
         logging.getLogger("tacest.plan").warning(
             f"{estimate}: its fit is NOT consistent with its data (fit_quality): the plan rests on an estimate "
             "whose error bars are not to be trusted")
-    settings.information_for(est.dim)  # a construction the estimate's dimension lacks: one line, before any work
     result = dimension(est.dim).implementation("plan")(est, loaded, settings)
     # the runs the poke was planned from: `tacest record --plan` continues only the last
     result.extra_attrs[RUNS_SHA256] = json.dumps([sha256_file(p) for p in runs])

@@ -63,7 +63,8 @@ class ExploreOptions:
     information construction (tacest.planning.planner.PlanSettings; None: its default);
     seed : the simulator's seed (object, first poke, noise); policy : eig | random |
     identity; pokes : N >= 1; shape : estimator shape (default ``box`` for boxes,
-    ``polygon:8`` otherwise, ``polytope:12`` in 3-D); score : logdet | A | D | E; config_path : estimator TOML;
+    ``polygon:8`` otherwise, ``polytope:12`` in 3-D); score : logdet | A | D | E;
+    config_path : estimator TOML;
     vary : planner variables besides the angle; noise_* : sensor noise of the simulator
     (tacest record's defaults); iterations, population : CEM settings.
     """
@@ -147,7 +148,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     if out.exists() and not out.is_dir():
         raise TacestError(f"{out}: exists and is not a folder")
     _check_object(opts.object_spec, int(opts.dim))  # a bad --object is an error before any file is touched
-    opts.plan_settings(1).information_for(int(opts.dim))  # so is an --information the dimension lacks
+    opts.plan_settings(1)  # so are planner settings that do not go together
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(opts.config_path)
     shape = opts.estimator_shape

@@ -44,8 +44,6 @@ from tacest.planning.cem import cem_maximize
 log = logging.getLogger(__name__)
 
 METHODS = ("eig", "random", "identity")
-#: the information constructions ``PlanSettings.information`` offers per dimension
-INFORMATION_BY_DIM = {2: INFORMATION_METHODS, 3: INFORMATION_METHODS}
 #: the information used when ``PlanSettings.information`` is None, per dimension
 DEFAULT_INFORMATION = {2: "schur", 3: "marginal"}
 
@@ -94,15 +92,10 @@ class PlanSettings:
         return self
 
     def information_for(self, dim: int) -> str:
-        """The information construction used for an estimate of ``dim`` (TacestError
-        where that dimension does not offer it)."""
+        """The information construction used for an estimate of ``dim``."""
         if self.method == "identity":
             return "identity"
-        info = self.information or DEFAULT_INFORMATION[int(dim)]
-        if info not in INFORMATION_BY_DIM[int(dim)]:
-            raise TacestError(f"--information {info} is not available for {int(dim)}-D estimates "
-                              f"(use {' or '.join(INFORMATION_BY_DIM[int(dim)])})")
-        return info
+        return self.information or DEFAULT_INFORMATION[int(dim)]
 
 
 _INFO_CACHE: dict = {}
@@ -177,6 +170,8 @@ def make_scorer_3d(est, runs, settings: PlanSettings) -> Scorer3:
     the candidates' F (tacest.information.expected3d.ExpectedInformation3D.past_information)."""
     from tacest.information.expected3d import ModelState3
 
+    if int(settings.noise_samples) > 0:
+        raise TacestError("noise_samples (noisy sensor draws of a prediction) is offered in 2-D only")
     config = config_of_estimate(est)
     model = ModelState3.from_estimate(est, runs, config)
     info = expected_information_model_3d(model.shape.name, model.n_fingers, config, model.effects, model.scales)
@@ -208,8 +203,8 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
 def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     """The next poke for the object of ``est`` (an Estimate) recorded in ``runs``.
 
-    Returns a Plan: candidates (N, n) poke vectors (POKE_NAMES, or POKE3_NAMES in 3-D) with their scores, the chosen
-    one, method, score, estimate_sha256 and attrs ``planner`` (settings JSON),
+    Returns a Plan: candidates (N, n) poke vectors (POKE_NAMES, or POKE3_NAMES in 3-D)
+    with their scores, the chosen one, method, score, estimate_sha256 and attrs ``planner`` (settings JSON),
     ``wall_time`` (s), ``evaluations``, ``target`` (the estimated centroid, m).
     """
     settings = (settings or PlanSettings()).validate()
