@@ -166,9 +166,11 @@ def test_a_poke_at_a_known_face_scores_lower(truth_model, method):
     I_past = info.prior_information(model) + F_known
     s_known, s_new = score(F_known, I_past), score(F_new, I_past)
     assert s_known < s_new, (s_known, s_new)
-    # and before any poke both faces are worth about as much (the box is nearly a cube)
-    s0_known, s0_new = score(F_known, info.prior_information(model)), score(F_new, info.prior_information(model))
-    assert s_new > 0.5 * s0_new and s_known < 0.8 * s0_known
+    # by a wide margin (measured 6-15x): the poke at the known face repeats what the
+    # past holds, and before that poke it was worth as much as the other (measured
+    # within 10 %: the box is nearly a cube)
+    s0_known = score(F_known, info.prior_information(model))
+    assert 3 * s_known < s_new and s_known < 0.2 * s0_known
 
 
 @pytest.fixture(scope="module")
