@@ -84,7 +84,7 @@ def stubs():
         ModelState.from_estimate(est, runs)
         raise Reached
 
-    def diagnose(runs, shape="box", config=None, options=None, estimate=None):
+    def diagnose(runs, shape="box", config=None, options=None, estimate=None, **_):
         diagnose_mod.check_heldout_data(runs)
         if estimate is not None:
             diagnose_mod.check_estimate_matches(estimate, runs)
