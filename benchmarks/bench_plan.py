@@ -82,10 +82,12 @@ def case_object(case: str, seed: int) -> tuple:
 def worker(case: str, seed: int, policy: str, pokes: int, out_dir: str) -> dict:
     from tacest.planning.explore import ExploreOptions, explore
 
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)  # the loop's progress lines
     obj, shape = case_object(case, seed)
     t0 = time.perf_counter()
-    summary = explore(ExploreOptions(object_spec=obj, seed=seed, policy=policy, pokes=pokes, shape=shape), out_dir,
-                      echo=lambda msg: print(msg, file=sys.stderr, flush=True))
+    summary = explore(ExploreOptions(object_spec=obj, seed=seed, policy=policy, pokes=pokes, shape=shape), out_dir)
     return {"ok": True, "case": case, "seed": seed, "policy": policy, "wall": time.perf_counter() - t0,
             "summary": summary}
 

@@ -16,15 +16,19 @@ import click
                    "direction; identity: the quasi-static identity-Jacobian approximation.")
 @click.option("--score", type=click.Choice(["logdet", "A", "D", "E"]), default="logdet", show_default=True,
               help="Scalarization of the information (docs/planning.md).")
+@click.option("--information", type=click.Choice(["schur", "identity", "diffsim", "marginal"]), default=None,
+              help="How the information of a poke and of the past is built (docs/planning.md): schur (the "
+                   "estimator's own, 2-D default), identity, diffsim (differentiating the simulation) or "
+                   "marginal (past states marginalized by sampling, 3-D default).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed of the search.")
 @click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
               help="Also choose the poke's depth and/or speed (repeatable); default: 2 cm, a 1 s approach.")
 @click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
-              help="Cross-entropy iterations per finger.")
+              help="Cross-entropy iterations (per finger in 2-D; one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def plan(estimate, runs, output, method, score, seed, vary, iterations, population, quiet):
+def plan(estimate, runs, output, method, score, information, seed, vary, iterations, population, quiet):
     """Plan the next poke of the object in ESTIMATE (an estimate file) from the RUNS it
     was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
     centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
@@ -36,14 +40,15 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
     from tacest.io.outputs import check_output
     from tacest.io.plan import RUNS_SHA256, write_plan
     from tacest.io.run import read_runs
-    from tacest.planning.planner import PlanSettings, plan_next
+    from tacest.dims import dimension
+    from tacest.planning.planner import PlanSettings
 
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
     output = check_output(output, inputs=[estimate, *runs])
     settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
-                            population=population).validate()
+                            population=population, information=information).validate()
     est = read_estimate(estimate)
     loaded = read_runs(runs)
     check_runs_match(est, runs)
@@ -51,14 +56,19 @@ def plan(estimate, runs, output, method, score, seed, vary, iterations, populati
         logging.getLogger("tacest.plan").warning(
             f"{estimate}: its fit is NOT consistent with its data (fit_quality): the plan rests on an estimate "
             "whose error bars are not to be trusted")
-    result = plan_next(est, loaded, settings)
+    result = dimension(est.dim).implementation("plan")(est, loaded, settings)
     # the runs the poke was planned from: `tacest record --plan` continues only the last
     result.extra_attrs[RUNS_SHA256] = json.dumps([sha256_file(p) for p in runs])
     write_plan(result, output)
     if not quiet:
         a = result.chosen_dict()
+        if "approach_angle" in a:
+            towards = f"approach {math.degrees(a['approach_angle']):.1f} deg"
+        else:
+            towards = (f"approach azimuth {math.degrees(a['approach_azimuth']):.1f} deg, elevation "
+                       f"{math.degrees(a['approach_elevation']):.1f} deg")
+        target = ", ".join(f"{a[k]:.4f}" for k in ("target_x", "target_y", "target_z") if k in a)
         click.echo(f"wrote {output}: {method} ({score} {result.scores.max() if method != 'random' else result.scores[0]:.4g}, "
                    f"{len(result.scores)} candidates, {float(result.extra_attrs['wall_time']):.1f} s): finger "
-                   f"{int(a['finger'])}, approach {math.degrees(a['approach_angle']):.1f} deg toward "
-                   f"({a['target_x']:.4f}, {a['target_y']:.4f}) m, depth {1e3 * a['depth']:.0f} mm, "
+                   f"{int(a['finger'])}, {towards} toward ({target}) m, depth {1e3 * a['depth']:.0f} mm, "
                    f"speed {1e3 * a['speed']:.0f} mm/s", err=True)

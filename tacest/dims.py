@@ -70,9 +70,8 @@ DIMENSIONS = {
                  explore="tacest.planning.explore:explore", diagnose="tacest.diagnosis.diagnose:diagnose"),
     3: Dimension(dim=3, shapes=("box", "polytope:K"), default_shape="box",
                  methods={"implicit": "tacest.estimation.estimator3d:estimate_3d"},
-                 record="tacest.sim3d.record:record_sim", diagnose="tacest.diagnosis.diagnose3d:diagnose_3d",
-                 notes={"plan": "planning is available for 2-D estimates only",
-                        "explore": "exploration is available in 2-D only"}),
+                 record="tacest.sim3d.record:record_sim", plan="tacest.planning.planner:plan_next",
+                 explore="tacest.planning.explore:explore", diagnose="tacest.diagnosis.diagnose3d:diagnose_3d"),
 }
 
 

@@ -220,6 +220,16 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
     return D
 
 
+def global_vector_3d(config: EstimatorConfig, scales: Scales, eps, comp_mult, dyn_mult=1.0) -> np.ndarray:
+    """(len(G3_NAMES),) shared settings of the 3-D stage functions: the scales, the noise
+    levels of ``config`` and one homotopy stage's (eps, comp_mult, dyn_mult)."""
+    nz = config.noise
+    gvals = dict(L=scales.L, m0=scales.m0, sig_proc=nz.process, sig_pen=nz.penetration, sig_gap=nz.contact_gap,
+                 sig_comp=nz.complementarity, eps=eps, comp_mult=comp_mult, dyn_mult=dyn_mult,
+                 sig_force=nz.force, sig_normal=nz.normal, sig_diss=nz.dissipation, sig_rest=nz.rest)
+    return np.array([gvals[n] for n in G3_NAMES], float)
+
+
 class Estimator3D:
     """Implicit estimator for a set of 3-D runs of one object."""
 
@@ -264,11 +274,7 @@ class Estimator3D:
         cfg, sc = self.config, self.scales
         pr3 = self.problem
         D = np.concatenate([data_matrix_3d(r, self.F, sc) for r in self.runs], axis=1)
-        nz = cfg.noise
-        gvals = dict(L=sc.L, m0=sc.m0, sig_proc=nz.process, sig_pen=nz.penetration, sig_gap=nz.contact_gap,
-                     sig_comp=nz.complementarity, eps=eps, comp_mult=comp_mult, dyn_mult=dyn_mult,
-                     sig_force=nz.force, sig_normal=nz.normal, sig_diss=nz.dissipation, sig_rest=nz.rest)
-        g = np.array([gvals[n] for n in G3_NAMES], float)
+        g = global_vector_3d(cfg, sc, eps, comp_mult, dyn_mult)
         w = np.array([getattr(cfg.weights, t) for t in TERMS3D], float)
         pr = cfg.prior
         prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,

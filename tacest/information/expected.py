@@ -59,7 +59,7 @@ from tacest.interrupt import deferred_interrupts
 from tacest.io.run import Run
 from tacest.model.jacobians2d import (KINEMATICS_SIGMA, contact_state_function, stage_active_weights,
                                       stage_residual_jacobian, start_residual_jacobian)
-from tacest.model.stage2d import SQUARED_TERMS, TERMS, StageModel2D, stage_local_variables
+from tacest.model.stage2d import START_TERM_OUTPUTS, SQUARED_TERMS, TERMS, StageModel2D, stage_local_variables
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
 #: physics substeps per sample of a prediction: 1 ms at 100 Hz.  The recorder uses at
@@ -96,6 +96,35 @@ MEASUREMENT_TERMS = ("force", "normal", "contact", "pose")
 
 # ---------------------------------------------------------------------------------
 # the estimate as a model
+
+
+def planning_inputs(est, runs: list, dim: int, shape_of) -> tuple:
+    """(shape, vertices (K, dim) m body frame, the last run) of an estimate to plan from,
+    after the checks of both dimensions: a ``dim``-D estimate, its runs given (same
+    number, dimension and lengths), fingers to poke with, vertices of its shape
+    (``shape_of(spec)``).  TacestError (one line, naming the file) otherwise."""
+    name = est.filename or "estimate"
+    if est.dim != dim:
+        raise TacestError(f"{name}: is a {est.dim}-D estimate; the {dim}-D planner needs a {dim}-D one")
+    if len(runs) != len(est.runs):
+        raise TacestError(f"{name} holds {len(est.runs)} run(s) but {len(runs)} run file(s) were given; give the "
+                          "runs it was estimated from")
+    for i, (re_, run) in enumerate(zip(est.runs, runs)):
+        if run.dim != dim:
+            raise TacestError(f"{run.filename or 'run'}: is a {run.dim}-D run; a {dim}-D estimate needs {dim}-D runs")
+        if re_.pose.shape[0] != run.n_samples:
+            raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of {name} has "
+                              f"{re_.pose.shape[0]}; it is not the run the estimate was made from (re-estimate "
+                              "after appending)")
+    run = runs[-1]
+    if run.n_fingers == 0:
+        raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
+    shape = shape_of(est.shape)
+    V = np.asarray(est.vertices, float)
+    if V.shape != (shape.n_vertices, dim):
+        raise TacestError(f"{name}: /params/vertices has shape {V.shape}, expected ({shape.n_vertices}, {dim}) "
+                          f"for shape {est.shape}")
+    return shape, V, run
 
 
 @dataclass
@@ -142,24 +171,7 @@ class ModelState:
         runs : the run files it was estimated from (same number and order), for the
         fingers, dt and streams.  TacestError when they do not fit together.
         """
-        if est.dim != 2:
-            raise TacestError(f"{est.filename or 'estimate'}: planning is available for 2-D estimates only")
-        if len(runs) != len(est.runs):
-            raise TacestError(f"{est.filename or 'estimate'} holds {len(est.runs)} run(s) but "
-                              f"{len(runs)} run file(s) were given; give the runs it was estimated from")
-        for i, (re_, run) in enumerate(zip(est.runs, runs)):
-            if re_.pose.shape[0] != run.n_samples:
-                raise TacestError(f"{run.filename or 'run'}: has {run.n_samples} samples but run {i} of "
-                                  f"{est.filename or 'the estimate'} has {re_.pose.shape[0]}; it is not the run "
-                                  "the estimate was made from (re-estimate after appending)")
-        run = runs[-1]
-        if run.n_fingers == 0:
-            raise TacestError(f"{run.filename or 'run'}: has no fingers, so there is nothing to poke with")
-        shape = make_shape(est.shape)
-        V = np.asarray(est.vertices, float)
-        if V.shape != (shape.n_vertices, 2):
-            raise TacestError(f"{est.filename or 'estimate'}: /params/vertices has shape {V.shape}, "
-                              f"expected ({shape.n_vertices}, 2) for shape {est.shape}")
+        shape, V, run = planning_inputs(est, runs, 2, make_shape)
         p = est.params
         for k in ("mass", "inertia", "friction_ground", "friction_finger"):
             v = float(p[k])
@@ -446,6 +458,12 @@ class ExpectedInformation:
                                       [ca.densify(ca.horzcat(ca.jacobian(rm, q) + ca.jacobian(rm, qp),
                                                              ca.jacobian(rm, phys)))])
         self.start_rj = start_residual_jacobian(start)
+        # the term of every row of stage_rj (then its kinematics and active-set rows) and
+        # of start_rj, as jacobians2d stacks them
+        size = lambda f, name: int(np.prod(f.size_out(name)))  # noqa: E731
+        self.row_terms = (np.array([t for t in SQUARED_TERMS for _ in range(size(stage, t))]
+                                   + ["kinematics"] * int(out["g_kin"].numel()) + ["active"] * (2 * self.K), object),
+                          np.array([t for t, name in START_TERM_OUTPUTS for _ in range(size(start, name))], object))
         th = ca.SX.sym("theta", self.n_theta)
         self.phys_of_theta = ca.Function("phys_jac", [th], [pr.phys_sx(th, self.L, self.m0),
                                                             ca.densify(ca.jacobian(pr.phys_sx(th, self.L, self.m0),
@@ -611,6 +629,43 @@ class ExpectedInformation:
         lin = self.linearize(model, pred, run)
         return self.to_physical(schur_information(lin.Ja, lin.Jx), model)
 
+    def linearized(self, model: ModelState, pred: PredictedPoke, run: Run | None = None):
+        """The prediction's residuals as a tacest.information.sensitivity.Linearized:
+        rows measured (MEASUREMENT_TERMS) or driving (the physics, kinematics and
+        active-set rows); ∂x/∂s of the identity approximation: every later pose moves
+        with the start pose (∂q_t/∂s = I), velocities and impulses do not; the
+        transition's weak prior on the contact impulses (sensitivity.impulse_prior).
+        The residuals are used linearized (no ``residual_at``)."""
+        from tacest.information.sensitivity import Linearized, impulse_prior
+
+        lin = self.linearize(model, pred, run)
+        T = pred.n_samples
+        N = T - 1
+        stage_terms, start_terms = self.row_terms
+        term = np.concatenate([np.tile(stage_terms, N), start_terms])
+        sample = np.concatenate([np.repeat(np.arange(1, T), len(stage_terms)), np.zeros(len(start_terms), int)])
+        iLG = 6 * T - 3  # nuisance layout of Linearization: V (3T), Q[1:] (3(T-1)), LG, LF
+        iLF = iLG + self.n_lg * N
+        free = np.ones(iLF + 2 * self.F * N, bool)
+        free[iLF:] = np.repeat(touching(lin.run)[1:], 2, axis=1).reshape(-1)
+        S = sp.lil_matrix((len(free), 3))
+        for t in range(1, T):
+            S[3 * T + 3 * (t - 1) + np.arange(3), np.arange(3)] = 1.0
+        prior = np.zeros(len(free))
+        prior[iLG:] = impulse_prior(np.concatenate([lin.LG.T.reshape(-1), lin.LF.T.reshape(-1)]))
+        measured = np.isin(term, MEASUREMENT_TERMS)
+        return Linearized(Ja=lin.Ja, Jx=lin.Jx, r=lin.r, measured=measured, driving=~measured, sample=sample,
+                          S_identity=sp.csr_matrix(S)[np.nonzero(free)[0]], n_theta=self.n_theta,
+                          x_prior=prior[free], extra={"term": term})
+
+    def sensitivity_information(self, model: ModelState, pred: PredictedPoke, method: str, run: Run | None = None,
+                                seed: int = 0) -> np.ndarray:
+        """F (n, n), physical units, by a construction of tacest.information.sensitivity
+        (``diffsim``, ``marginal``, or ``schur`` / ``identity`` on the same rows)."""
+        from tacest.information.sensitivity import information
+
+        return self.to_physical(information(self.linearized(model, pred, run), method, seed=seed), model)
+
     def identity(self, model: ModelState, pred: PredictedPoke, run: Run | None = None) -> np.ndarray:
         """F_id (n, n), physical units: the quasi-static identity-Jacobian approximation
         (module docstring): Σ_t J_tᵀJ_t of the measurement rows, ∂q_t/∂s = I."""
@@ -699,10 +754,18 @@ def config_of_estimate(est) -> EstimatorConfig:
 
 def expected_information(info: ExpectedInformation, model: ModelState, pred: PredictedPoke,
                          method: str = "fisher", noise_samples: int = 0, noise=None, seed: int = 0) -> np.ndarray:
-    """F of one predicted poke: ``method`` ``fisher`` (Schur complement) or ``identity``;
-    with ``noise_samples`` > 0, the mean over that many noisy sensor draws (noise =
-    (force N, normal rad, position m) sigmas) instead of the noiseless closed form."""
-    fun = info.fisher if method == "fisher" else info.identity
+    """F of one predicted poke: ``method`` ``fisher`` or ``schur`` (Schur complement),
+    ``identity``, or ``diffsim`` / ``marginal`` (tacest.information.sensitivity, common
+    random numbers ``seed``); with ``noise_samples`` > 0, the mean over that many noisy
+    sensor draws (noise = (force N, normal rad, position m) sigmas) instead of the
+    noiseless closed form."""
+    if method in ("fisher", "schur"):
+        fun = info.fisher
+    elif method == "identity":
+        fun = info.identity
+    else:
+        def fun(model_, pred_, run_=None):
+            return info.sensitivity_information(model_, pred_, method, run_, seed=seed)
     if noise_samples <= 0:
         return fun(model, pred)
     rng = np.random.default_rng(seed)

@@ -12,6 +12,11 @@ planner chooses, per finger:
   :data:`SPEED_RANGE`.  Otherwise depth is :data:`DEFAULT_DEPTH` (the middle of the
   random pokes' range) and the speed makes the approach last :data:`APPROACH_TIME`
   (1 s), as the random pokes do.
+
+In 3-D (:class:`ActionSpace3`, tacest.sim3d.pokes.POKE3_NAMES) the approach angle
+becomes an approach direction: ``approach_azimuth`` in [-π, π] (any side) and
+``approach_elevation`` in :data:`ELEVATION_RANGE` (10° .. 90°: from the side to straight
+down onto the top face), with the same optional depth and speed.
 """
 
 from __future__ import annotations
@@ -34,6 +39,14 @@ DEPTH_RANGE = (0.005, 0.04)
 #: approaches at the default depth)
 SPEED_RANGE = (0.02, 0.1)
 VARIABLES = ("depth", "speed")
+#: rad, 3-D approach elevations the planner may choose (0: horizontal; flatter than 10°
+#: the finger would drag along the table; 90°: straight down onto the top face)
+ELEVATION_RANGE = (math.radians(10.0), math.radians(90.0))
+#: rad, 3-D approach azimuths (every side of the object)
+AZIMUTH_RANGE = (-math.pi, math.pi)
+#: m, how far out along the approach line the nearest finger is looked for (about an
+#: object's size: where the approach of a poke starts)
+APPROACH_REACH = 0.1
 
 
 @dataclass
@@ -57,33 +70,96 @@ class ActionSpace:
         return ["approach_angle", *self.vary]
 
     def bounds(self):
-        lo, hi = [self.angle_range[0]], [self.angle_range[1]]
+        lo, hi = self._direction_bounds()
         for v in self.vary:
             r = DEPTH_RANGE if v == "depth" else SPEED_RANGE
             lo.append(r[0])
             hi.append(r[1])
         return np.array(lo), np.array(hi)
 
+    def _direction_bounds(self):
+        return [self.angle_range[0]], [self.angle_range[1]]
+
+    def searched_fingers(self) -> list:
+        """The fingers the planner searches one by one (each its own search)."""
+        return list(range(self.n_fingers))
+
+    @property
+    def poke_names(self) -> tuple:
+        """The names of the poke vector (the plan file's names)."""
+        return POKE_NAMES
+
     def action(self, finger: int, u, target__world) -> np.ndarray:
-        """(6,) poke vector (POKE_NAMES) of searched coordinates u aimed at target (2,) m."""
+        """Poke vector (:attr:`poke_names`) of searched coordinates u aimed at target (D,) m."""
         u = np.asarray(u, float).reshape(-1)
         vals = dict(zip(self.names, u))
         depth = float(vals.get("depth", self.depth))
         speed = float(vals.get("speed", (CLEARANCE + depth) / APPROACH_TIME))
         t = np.asarray(target__world, float)
-        named = {"finger": finger, "approach_angle": vals["approach_angle"], "target_x": t[0], "target_y": t[1],
-                 "depth": depth, "speed": speed}
-        return np.array([named[n] for n in POKE_NAMES], float)
+        named = {**vals, "finger": finger, "depth": depth, "speed": speed,
+                 **{f"target_{c}": float(v) for c, v in zip("xyz", t)}}
+        return np.array([named[n] for n in self.poke_names], float)
+
+    def _random_direction(self, rng: np.random.Generator) -> list:
+        angle = float(rng.uniform(*RANDOM_ANGLE_RANGE))
+        if rng.random() < 0.5:
+            angle = math.pi - angle
+        return [angle]
 
     def random_action(self, rng: np.random.Generator, target__world) -> np.ndarray:
         """The random baseline: a random finger and approach angle, as the simulator's
         random pokes draw it (U(10°, 65°) from the right or its mirror from the left);
         depth and speed as :meth:`action` (random within their ranges if varied)."""
         finger = int(rng.integers(self.n_fingers))
-        angle = float(rng.uniform(*RANDOM_ANGLE_RANGE))
-        if rng.random() < 0.5:
-            angle = math.pi - angle
-        u = [angle]
+        u = self._random_direction(rng)
         for v in self.vary:
             u.append(float(rng.uniform(*(DEPTH_RANGE if v == "depth" else SPEED_RANGE))))
         return self.action(finger, u, target__world)
+
+
+@dataclass
+class ActionSpace3(ActionSpace):
+    """The 3-D action space (module docstring): approach azimuth and elevation per
+    finger, optionally depth and speed; poke vectors of tacest.sim3d.pokes.POKE3_NAMES."""
+
+    elevation_range: tuple = ELEVATION_RANGE
+    #: (F, 3) m, the fingertips now; given, one search covers every finger: a direction
+    #: is poked by the finger nearest its approach (:meth:`nearest_finger`)
+    p_finger__world: np.ndarray | None = None
+
+    def searched_fingers(self) -> list:
+        """[None] (one search, the nearest finger per direction) when the fingertips are
+        known: the fingers are alike and the idle ones are parked above the object, so
+        the same direction informs the same whichever finger pokes; else each finger."""
+        return [None] if self.p_finger__world is not None else super().searched_fingers()
+
+    def nearest_finger(self, u, target__world) -> int:
+        """The finger nearest the approach line's point APPROACH_REACH out from the
+        target (the shortest transit to the poke's start)."""
+        az, el = float(u[0]), float(u[1])
+        d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        start = np.asarray(target__world, float) + APPROACH_REACH * d
+        return int(np.argmin(np.linalg.norm(np.asarray(self.p_finger__world, float) - start, axis=1)))
+
+    def action(self, finger, u, target__world) -> np.ndarray:
+        """As ActionSpace.action; finger None: :meth:`nearest_finger`."""
+        if finger is None:
+            finger = self.nearest_finger(u, target__world)
+        return super().action(finger, u, target__world)
+
+    @property
+    def names(self) -> list:
+        return ["approach_azimuth", "approach_elevation", *self.vary]
+
+    @property
+    def poke_names(self) -> tuple:
+        from tacest.sim3d.pokes import POKE3_NAMES
+
+        return POKE3_NAMES
+
+    def _direction_bounds(self):
+        return [AZIMUTH_RANGE[0], self.elevation_range[0]], [AZIMUTH_RANGE[1], self.elevation_range[1]]
+
+    def _random_direction(self, rng: np.random.Generator) -> list:
+        """As the 3-D simulator's random pokes: azimuth U(-π, π), elevation U(10°, 65°)."""
+        return [float(rng.uniform(*AZIMUTH_RANGE)), float(rng.uniform(*RANDOM_ANGLE_RANGE))]

@@ -12,6 +12,14 @@
 
 Every method aims at the estimated centroid.  :func:`plan_next` returns a
 tacest.io.plan.Plan (candidates, scores, chosen action).
+
+3-D estimates (tacest.information.expected3d) are planned the same way over the 3-D
+action space (tacest.planning.actions.ActionSpace3: azimuth, elevation), with the
+information of a predicted poke and of the past built by ``information``
+(tacest.information.sensitivity: ``schur``, ``identity``, ``diffsim`` or ``marginal``;
+default ``marginal``; the ``identity`` method uses ``identity``).  In 2-D every
+construction is offered for the candidates (default ``schur``); the past stays the
+estimate's observed information (its Schur complement) plus the prior.
 """
 
 from __future__ import annotations
@@ -28,13 +36,16 @@ from tacest.errors import TacestError
 from tacest.information.expected import (PREDICT_SUBSTEPS, ExpectedInformation, ModelState, config_of_estimate,
                                          past_information, predict_poke)
 from tacest.information.scores import SCORES, score
-from tacest.io.plan import POKE_NAMES, Plan
-from tacest.planning.actions import ActionSpace
+from tacest.io.plan import Plan
+from tacest.information.sensitivity import INFORMATION_METHODS
+from tacest.planning.actions import ActionSpace, ActionSpace3
 from tacest.planning.cem import cem_maximize
 
 log = logging.getLogger(__name__)
 
 METHODS = ("eig", "random", "identity")
+#: the information used when ``PlanSettings.information`` is None, per dimension
+DEFAULT_INFORMATION = {2: "schur", 3: "marginal"}
 
 
 @dataclass
@@ -45,7 +56,10 @@ class PlanSettings:
     iterations, population, elite : CEM per finger (iterations × population
     candidates per finger; elite 0: a third of the population, at least 1); vary : subset of ("depth", "speed"); substeps : physics
     substeps per sample of a prediction; noise_samples : average F over this many noisy
-    sensor draws (0: the closed form at the noiseless prediction).
+    sensor draws (0: the closed form at the noiseless prediction; 2-D only);
+    information : schur | identity | diffsim | marginal (tacest.information.sensitivity;
+    None: :data:`DEFAULT_INFORMATION` of the estimate's dimension; the ``identity``
+    method always uses ``identity``).
     """
 
     method: str = "eig"
@@ -57,6 +71,7 @@ class PlanSettings:
     vary: tuple = field(default_factory=tuple)
     substeps: int = PREDICT_SUBSTEPS
     noise_samples: int = 0
+    information: str | None = None
 
     def validate(self) -> "PlanSettings":
         if self.method not in METHODS:
@@ -69,7 +84,18 @@ class PlanSettings:
             raise TacestError("CEM needs iterations >= 1, population >= 2 and 0 <= elite <= population")
         if int(self.substeps) < 1 or int(self.noise_samples) < 0:
             raise TacestError("substeps must be >= 1 and noise_samples >= 0")
+        if self.information is not None and self.information not in INFORMATION_METHODS:
+            raise TacestError(f"unknown information {self.information!r}: use {', '.join(INFORMATION_METHODS)}")
+        if self.method == "identity" and self.information not in (None, "identity"):
+            raise TacestError(f"method identity is the identity-Jacobian information; "
+                              f"--information {self.information} goes with method eig")
         return self
+
+    def information_for(self, dim: int) -> str:
+        """The information construction used for an estimate of ``dim``."""
+        if self.method == "identity":
+            return "identity"
+        return self.information or DEFAULT_INFORMATION[int(dim)]
 
 
 _INFO_CACHE: dict = {}
@@ -98,6 +124,7 @@ class Scorer:
     evaluations: int = 0
 
     def information(self, action) -> np.ndarray:
+        """F (n, n) of the poke vector ``action``, physical units."""
         from tacest.information.expected import expected_information
 
         pred = predict_poke(self.model, action, substeps=self.substeps)
@@ -109,10 +136,57 @@ class Scorer:
         return score(self.information(action), self.I_past, self.kind)
 
 
+@dataclass
+class Scorer3(Scorer):
+    """The 3-D Scorer: predict in the MuJoCo world (predict_poke_3d), F by the
+    ``approximation`` construction of tacest.information.sensitivity (common random
+    numbers ``seed`` for ``marginal``: every candidate sees the same draws)."""
+
+    seed: int = 0
+
+    def information(self, action) -> np.ndarray:
+        from tacest.information.expected3d import predict_poke_3d
+
+        pred = predict_poke_3d(self.model, action, substeps=self.substeps)
+        return self.info.information(self.model, pred, method=self.approximation, seed=self.seed)
+
+
+_INFO3_CACHE: dict = {}
+
+
+def expected_information_model_3d(shape_spec: str, n_fingers: int, config, effects: tuple, scales):
+    """The ExpectedInformation3D of a structure, built once per process and reused."""
+    from tacest.information.expected3d import ExpectedInformation3D
+
+    key = (shape_spec, int(n_fingers), json.dumps(config.to_dict(), sort_keys=True), tuple(effects),
+           float(scales.L), float(scales.m0), float(scales.g))
+    if key not in _INFO3_CACHE:
+        _INFO3_CACHE[key] = ExpectedInformation3D(shape_spec, n_fingers, config, tuple(effects), scales)
+    return _INFO3_CACHE[key]
+
+
+def make_scorer_3d(est, runs, settings: PlanSettings) -> Scorer3:
+    """The Scorer3 of a 3-D estimate and its runs; I_past by the same construction as
+    the candidates' F (tacest.information.expected3d.ExpectedInformation3D.past_information)."""
+    from tacest.information.expected3d import ModelState3
+
+    if int(settings.noise_samples) > 0:
+        raise TacestError("noise_samples (noisy sensor draws of a prediction) is offered in 2-D only")
+    config = config_of_estimate(est)
+    model = ModelState3.from_estimate(est, runs, config)
+    info = expected_information_model_3d(model.shape.name, model.n_fingers, config, model.effects, model.scales)
+    how = settings.information_for(3)
+    I_past = info.past_information(est, runs, model, method=how, seed=int(settings.seed))
+    return Scorer3(info=info, model=model, I_past=I_past, kind=settings.score, approximation=how,
+                   substeps=settings.substeps, seed=int(settings.seed))
+
+
 def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
-    """The Scorer of an estimate (tacest.io.estimate.Estimate) and its runs."""
+    """The Scorer of an estimate (tacest.io.estimate.Estimate) and its runs (2-D or 3-D)."""
     from tacest.estimation.data import choose_scales
 
+    if int(est.dim) == 3:
+        return make_scorer_3d(est, runs, settings)
     config = config_of_estimate(est)
     model = ModelState.from_estimate(est, runs)
     scales = choose_scales(runs, config)
@@ -122,22 +196,25 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
                   (("noise_force", config.noise.force), ("noise_normal", config.noise.normal),
                    ("noise_position", 1e-4)))
     return Scorer(info=info, model=model, I_past=I_past, kind=settings.score,
-                  approximation="identity" if settings.method == "identity" else "fisher",
+                  approximation=settings.information_for(2),
                   substeps=settings.substeps, noise_samples=settings.noise_samples, noise=noise)
 
 
 def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     """The next poke for the object of ``est`` (an Estimate) recorded in ``runs``.
 
-    Returns a Plan: candidates (N, 6) POKE_NAMES vectors with their scores, the chosen
-    one, method, score, estimate_sha256 and attrs ``planner`` (settings JSON),
+    Returns a Plan: candidates (N, n) poke vectors (POKE_NAMES, or POKE3_NAMES in 3-D)
+    with their scores, the chosen one, method, score, estimate_sha256 and attrs ``planner`` (settings JSON),
     ``wall_time`` (s), ``evaluations``, ``target`` (the estimated centroid, m).
     """
     settings = (settings or PlanSettings()).validate()
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
-    space = ActionSpace(n_fingers=model.n_fingers, vary=tuple(settings.vary))
+    if int(est.dim) == 3:
+        space = ActionSpace3(n_fingers=model.n_fingers, vary=tuple(settings.vary), p_finger__world=model.p_finger__world)
+    else:
+        space = ActionSpace(n_fingers=model.n_fingers, vary=tuple(settings.vary))
     target = model.centroid__world
     rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 4]))
     cands, scores = [], []
@@ -147,14 +224,15 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
         scores.append(scorer(a))
     else:
         lo, hi = space.bounds()
-        for f in range(model.n_fingers):
+        for f in space.searched_fingers():
             res = cem_maximize(lambda u: scorer(space.action(f, u, target)), lo, hi, rng,
                                iterations=settings.iterations, population=settings.population,
                                elite=settings.elite or max(1, settings.population // 3))
             cands += [space.action(f, u, target) for u in res.samples]
             scores += list(res.scores)
-            log.info(f"finger {f}: best {settings.score} {np.max(res.scores):.4g} of {len(res.scores)} candidates")
-    cands = np.asarray(cands, float).reshape(-1, len(POKE_NAMES))
+            log.info(f"finger {'nearest' if f is None else f}: best {settings.score} {np.max(res.scores):.4g} of "
+                     f"{len(res.scores)} candidates")
+    cands = np.asarray(cands, float).reshape(-1, len(space.poke_names))
     scores = np.asarray(scores, float)
     if not np.any(np.isfinite(scores)):
         raise TacestError("no candidate poke could be scored (every prediction failed)")
@@ -169,7 +247,8 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
 
         sha = sha256_file(est.filename)
     return Plan(chosen=cands[best].copy(), candidates=cands, scores=scores, method=settings.method,
-                score=settings.score, estimate_sha256=sha, names=list(POKE_NAMES), kind="poke",
-                extra_attrs={"planner": json.dumps({**asdict(settings), "vary": list(settings.vary)}),
+                score=settings.score, estimate_sha256=sha, names=list(space.poke_names), kind="poke",
+                extra_attrs={"planner": json.dumps({**asdict(settings), "vary": list(settings.vary),
+                                                    "information": settings.information_for(est.dim)}),
                              "wall_time": float(wall), "evaluations": int(scorer.evaluations),
                              "target": np.asarray(target, float)})

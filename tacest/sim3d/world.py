@@ -346,6 +346,15 @@ class World3:
                 hi = mid
         return lo
 
+    def place_finger(self, f: int, p__world) -> None:
+        """Put fingertip ``f`` (and its command) at ``p__world`` (3,) m, at rest: a
+        prediction starts a poke at its approach point without the transit there."""
+        a, b = self._finger_adr[int(f)]
+        self.data.qpos[a:a + 3] = np.asarray(p__world, float).reshape(3)
+        self.data.qvel[b:b + 3] = 0.0
+        self._p_ctl[int(f)] = np.asarray(p__world, float).reshape(3)
+        self._mj.mj_forward(self.model, self.data)
+
     # -- stepping --------------------------------------------------------------------
     def _ground_mu(self) -> float:
         # the face that faces the ground most: the most negative world z of its normal

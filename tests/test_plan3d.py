@@ -1,0 +1,288 @@
+"""3-D planning: the expected information of a predicted poke (tacest.information.expected3d)
+against finite differences, what it says about touched and untouched faces, and
+`tacest plan` / `tacest explore` in the MuJoCo world.
+
+The information cases use the true object of a short simulated recording (no IPOPT
+solve); the command cases run one tiny loop (2 pokes, random policy) and plan from its
+first estimate.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import choose_scales
+from tacest.estimation.estimator3d import effects_3d
+from tacest.geometry.shapes3d import make_shape_3d
+from tacest.geometry.transforms import quat_to_matrix
+from tacest.information.expected3d import (ExpectedInformation3D, ModelState3, predict_poke_3d, prediction_run_3d,
+                                           theta_of_estimate, twist_map)
+from tacest.information.scores import score
+from tacest.information.sensitivity import identity_sensitivity, information
+from tacest.sim.record import SimOptions
+
+TACEST = str(Path(sys.executable).parent / "tacest")
+CONFIG = EstimatorConfig()
+#: m, poke depth and m/s, speed of the test pokes (a 1 s approach, as the planner's default)
+DEPTH, SPEED = 0.02, 0.04
+
+
+@pytest.fixture(scope="module")
+def truth_model():
+    """(ModelState3 of the true box at the end of a 1-poke, 3-finger, no-force
+    recording, its ExpectedInformation3D)."""
+    from tacest.dims import record_sim
+
+    run = record_sim(SimOptions(dim=3, object_spec="box", seed=1, pokes=1, fingers=3, force_stream=False))
+    tr = run.truth
+    shape = make_shape_3d("box")
+    effects = effects_3d(shape, CONFIG)
+    scales = choose_scales([run], CONFIG)
+    params = {"mass": tr.mass, "friction_ground": tr.friction_ground, "friction_finger": tr.friction_finger}
+    theta = theta_of_estimate(shape, effects, tr.vertices, params, tr.inertia, scales)
+    model = ModelState3(shape=shape, effects=effects, scales=scales, theta=theta, vertices=np.asarray(tr.vertices),
+                        mass=float(tr.mass), inertia=np.asarray(tr.inertia, float),
+                        friction_ground=float(tr.friction_ground), friction_finger=float(tr.friction_finger),
+                        pose=np.asarray(tr.pose[-1], float), p_finger__world=run.finger_position[-1].copy(),
+                        finger_radius=run.finger_radius.copy(), dt=run.dt, has_force=False,
+                        gravity=float(np.linalg.norm(run.gravity)), config=CONFIG)
+    info = ExpectedInformation3D("box", 3, CONFIG, effects, scales)
+    return model, info
+
+
+def _face_azimuths(model) -> list:
+    """rad: the approach azimuths straight onto the box's two horizontal body axes'
+    +faces (the two body axes closest to horizontal)."""
+    R = quat_to_matrix(model.pose[3:])
+    axes = np.argsort(np.abs(R[2]))[:2]
+    return [math.atan2(R[1, k], R[0, k]) for k in axes]
+
+
+def _poke(model, azimuth, elevation=math.radians(20.0), finger=0):
+    return np.array([finger, azimuth, elevation, *model.centroid__world, DEPTH, SPEED])
+
+
+def _twisted(pose, delta):
+    """pose (7,) moved by the body-frame twist delta (6,) = (δp_b m, δr_b rad)."""
+    from tacest.geometry.transforms import quat_multiply
+
+    q = pose[3:]
+    R = quat_to_matrix(q)
+    ang = float(np.linalg.norm(delta[3:]))
+    axis = delta[3:] / ang if ang > 0 else np.zeros(3)
+    dq = np.r_[math.cos(ang / 2), math.sin(ang / 2) * axis]
+    return np.r_[pose[:3] + R @ delta[:3], quat_multiply(q, dq)]
+
+
+def test_information_of_a_poke_against_finite_differences(truth_model):
+    """The linearized residuals of a predicted poke against central differences of the
+    estimator's residuals: every kept column (θ, the start pose's twist), the nuisance
+    columns along random directions, and the identity-Jacobian information
+    G_idᵀG_id built from differences (θ, and every pose moved rigidly by one twist)."""
+    model, info = truth_model
+    pred = predict_poke_3d(model, _poke(model, _face_azimuths(model)[0]))
+    assert pred.contact[:, 0].any(), "the test poke must touch the box"
+    run = prediction_run_3d(pred, model)
+    lin = info.prediction(model, pred)
+    U, LF = lin.extra["U"], lin.extra["LF"]
+
+    def residuals(theta=None, poses=None):
+        return info.linearize(model.theta if theta is None else theta, run, pred.pose if poses is None else poses,
+                              LF, U=U, keep=0).r
+
+    # central differences: truncation O(h²) ~1e-8 of the curvature, rounding ~1e-16/h;
+    # h = 1e-5 (scaled θ ~1, twist m and rad) balances them; columns agree to 1e-4 of
+    # their own size (the contact-flag and normal terms are smooth at this scale)
+    h = 1e-5
+    nt = info.n_theta
+    fd = np.zeros_like(lin.Ja)
+    for j in range(nt):
+        e = np.zeros(nt)
+        e[j] = h
+        fd[:, j] = (residuals(theta=model.theta + e) - residuals(theta=model.theta - e)) / (2 * h)
+    for j in range(6):
+        d = np.zeros(6)
+        d[j] = h
+        plus, minus = pred.pose.copy(), pred.pose.copy()
+        plus[0], minus[0] = _twisted(pred.pose[0], d), _twisted(pred.pose[0], -d)
+        fd[:, nt + j] = (residuals(poses=plus) - residuals(poses=minus)) / (2 * h)
+    scale = np.maximum(np.linalg.norm(lin.Ja, axis=0), 1e-6)
+    assert np.all(np.linalg.norm(fd - lin.Ja, axis=0) <= 1e-4 * scale + 1e-6)
+
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        dx = rng.standard_normal(lin.n_x) * 1e-2
+        got = (lin.residual_at(h * dx) - lin.residual_at(-h * dx)) / (2 * h)
+        want = lin.Jx @ dx
+        assert np.linalg.norm(got - want) <= 1e-4 * np.linalg.norm(want) + 1e-6
+
+    # the identity-Jacobian sensitivity from differences: θ columns, and every pose of
+    # the poke moved rigidly by the same body-frame twist (∂x/∂s = S_identity)
+    m = np.asarray(lin.measured, bool)
+    G_fd = np.zeros((int(m.sum()), nt + 6))
+    G_fd[:, :nt] = fd[m, :nt]
+    for j in range(6):
+        d = np.zeros(6)
+        d[j] = h
+        plus = np.array([_twisted(p, d) for p in pred.pose])
+        minus = np.array([_twisted(p, -d) for p in pred.pose])
+        G_fd[:, nt + j] = ((residuals(poses=plus) - residuals(poses=minus)) / (2 * h))[m]
+    G = identity_sensitivity(lin)
+    F, F_fd = G.T @ G, G_fd.T @ G_fd
+    assert np.linalg.norm(F - F_fd) <= 1e-3 * np.linalg.norm(F)
+    np.testing.assert_allclose(info.to_physical(information(lin, "identity"), model), info.to_physical(F, model),
+                               rtol=1e-9, atol=1e-9 * np.abs(F).max())
+
+
+def test_twist_map_against_finite_differences():
+    """twist_map: d[p / L, q] / d(δp_b, δr_b) against central differences of _twisted."""
+    q = np.array([0.9, 0.1, -0.3, 0.2])
+    pose = np.r_[0.1, -0.2, 0.05, q / np.linalg.norm(q)]
+    L, h = 0.1, 1e-6
+    E = twist_map(pose[3:], L)
+    for j in range(6):
+        d = np.zeros(6)
+        d[j] = h
+        diff = (_twisted(pose, d) - _twisted(pose, -d)) / (2 * h)
+        np.testing.assert_allclose(np.r_[diff[:3] / L, diff[3:]], E[:, j], atol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["identity", "marginal"])
+def test_a_poke_at_a_known_face_scores_lower(truth_model, method):
+    """After a poke at one face (the past: the prior and that poke's information), the
+    same poke again scores lower than a poke at an untouched face."""
+    model, info = truth_model
+    az_known, az_new = _face_azimuths(model)
+    F_known = info.information(model, predict_poke_3d(model, _poke(model, az_known)), method)
+    F_new = info.information(model, predict_poke_3d(model, _poke(model, az_new)), method)
+    I_past = info.prior_information(model) + F_known
+    s_known, s_new = score(F_known, I_past), score(F_new, I_past)
+    assert s_known < s_new, (s_known, s_new)
+    # by a wide margin (measured 6-15x): the poke at the known face repeats what the
+    # past holds, and before that poke it was worth as much as the other (measured
+    # within 10 %: the box is nearly a cube)
+    s0_known = score(F_known, info.prior_information(model))
+    assert 3 * s_known < s_new and s_known < 0.2 * s0_known
+
+
+@pytest.fixture(scope="module")
+def loop_dir(tmp_path_factory):
+    """A 2-poke random loop in the MuJoCo world (3 fingers, contact and normal only)."""
+    out = tmp_path_factory.mktemp("explore3d") / "loop"
+    res = subprocess.run([TACEST, "explore", "--dim", "3", "--fingers", "3", "--object", "box", "--seed", "1",
+                          "--policy", "random", "--pokes", "2", "-o", str(out)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    return out, res
+
+
+@pytest.mark.slow
+def test_explore_3d_writes_the_2d_layout_and_views(loop_dir):
+    out, res = loop_dir
+    for name in ("run.h5", "estimate_1.h5", "estimate_2.h5", "plan_1.h5", "summary.json", "learning_curve.png",
+                 "view_3d.png", "view_3d.html"):
+        assert (out / name).exists(), name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dim"] == 3 and summary["fingers"] == 3 and summary["force"] is False
+    assert [s["pokes"] for s in summary["steps"]] == [1, 2]
+    assert all(s["chamfer"] is not None and s["chamfer"] > 0 for s in summary["steps"])
+    assert "ETA" in res.stderr
+    from tacest.io.run import read_run
+
+    run = read_run(out / "run.h5")
+    assert run.dim == 3 and run.truth is not None and not run.has_force and run.n_fingers == 3
+
+
+@pytest.fixture(scope="module")
+def estimate_1(tmp_path_factory):
+    """(estimate, run) paths: a 1-poke, 3-finger, no-force recording and its estimate."""
+    d = tmp_path_factory.mktemp("plan3d")
+    run, est = d / "run.h5", d / "est.h5"
+    for args in (["record", "--source", "sim", "--dim", "3", "--fingers", "3", "--no-force", "--pokes", "1",
+                  "--seed", "1", "-o", str(run)], ["estimate", str(run), "--quiet", "-o", str(est)]):
+        res = subprocess.run([TACEST, *args], capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+    return est, run
+
+
+def test_plan_3d_cli(estimate_1, tmp_path):
+    """`tacest plan` on a 3-D estimate: eig with the identity and marginal information,
+    3-D poke vectors aimed at the estimated centroid; `tacest record --plan` executes it;
+    bad combinations are one line and exit 2."""
+    from tacest.io.plan import read_plan
+    from tacest.sim3d.pokes import POKE3_NAMES
+
+    est, run = (str(p) for p in estimate_1)
+    for info in ("identity", "marginal"):
+        plan_path = tmp_path / f"plan_{info}.h5"
+        res = subprocess.run([TACEST, "plan", est, run, "--information", info, "--iterations", "1", "--population",
+                              "3", "-o", str(plan_path)], capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+        plan = read_plan(plan_path)
+        assert list(plan.names) == list(POKE3_NAMES) and plan.candidates.shape == (3, 8)
+        assert json.loads(plan.extra_attrs["planner"])["information"] == info
+        assert plan.scores.max() == plan.scores[np.all(plan.candidates == plan.chosen, 1)][0]
+    appended = tmp_path / "appended.h5"
+    appended.write_bytes(Path(run).read_bytes())
+    rec = subprocess.run([TACEST, "record", "--source", "sim", "--dim", "3", "--fingers", "3", "--no-force",
+                          "--plan", str(tmp_path / "plan_marginal.h5"), "-o", str(appended)],
+                         capture_output=True, text=True)
+    assert rec.returncode == 0, rec.stderr
+    bad = subprocess.run([TACEST, "plan", est, str(appended), "-o", str(tmp_path / "p.h5")],
+                         capture_output=True, text=True)  # not the run the estimate was made from
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    bad = subprocess.run([TACEST, "plan", est, run, "--method", "identity", "--information", "marginal", "-o",
+                          str(tmp_path / "p.h5")], capture_output=True, text=True)
+    assert bad.returncode == 2 and "goes with method eig" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--dim", "3", "--object", "nonsense"], "nonsense"),
+    (["--dim", "3", "--policy", "identity", "--information", "marginal"], "goes with method eig"),
+    (["--dim", "3", "--shape", "polygon:8"], "polygon"),
+])
+def test_explore_3d_bad_input_is_one_line_exit_2(tmp_path, args, message):
+    res = subprocess.run([TACEST, "explore", *args, "--pokes", "2", "-o", str(tmp_path / "out")], capture_output=True,
+                         text=True)
+    assert res.returncode == 2, res.stderr
+    assert message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert not (tmp_path / "out" / "run.h5").exists()
+
+
+def test_a_failed_3d_estimate_is_planned_from_the_start_guess(estimate_1):
+    """The loop's fallback when a 3-D estimate fails: the estimator's initial guess as an
+    Estimate (status "start guess", no information) that the planner can aim with."""
+    from tacest.io.run import read_run
+    from tacest.planning.explore import start_guess_estimate
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    run = read_run(estimate_1[1])
+    est = start_guess_estimate([run], "box", CONFIG)
+    assert est.dim == 3 and est.solver_status == "start guess" and est.information is None
+    assert est.runs[0].pose.shape == (run.n_samples, 7) and np.all(np.isfinite(est.runs[0].pose))
+    plan = plan_next(est, [run], PlanSettings(method="identity", iterations=1, population=3))
+    assert plan.candidates.shape == (3, 8) and np.all(np.isfinite(plan.scores))
+
+
+def test_one_search_pokes_each_direction_with_the_nearest_finger():
+    """ActionSpace3 with the fingertips known: one search, and a direction is poked by
+    the finger nearest its approach; the poke vector is POKE3_NAMES'."""
+    from tacest.planning.actions import ActionSpace3
+    from tacest.sim3d.pokes import POKE3_NAMES
+
+    tips = np.array([[0.2, 0.0, 0.1], [-0.2, 0.0, 0.1], [0.0, 0.2, 0.1]])
+    space = ActionSpace3(n_fingers=3, p_finger__world=tips)
+    assert space.searched_fingers() == [None] and ActionSpace3(n_fingers=3).searched_fingers() == [0, 1, 2]
+    target = np.array([0.0, 0.0, 0.03])
+    for az, finger in ((0.0, 0), (math.pi, 1), (math.pi / 2, 2)):
+        a = dict(zip(POKE3_NAMES, space.action(None, [az, 0.3], target)))
+        assert a["finger"] == finger and a["approach_azimuth"] == az and a["target_z"] == 0.03
+    lo, hi = space.bounds()
+    np.testing.assert_allclose([lo, hi], [[-math.pi, math.radians(10)], [math.pi, math.radians(90)]])
