@@ -7,7 +7,6 @@ hidden in a function-level import is still a cycle."""
 from __future__ import annotations
 
 import ast
-import collections
 from pathlib import Path
 
 import pytest

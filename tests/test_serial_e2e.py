@@ -129,7 +129,6 @@ def test_loop_url_round_trip(tmp_path, caplog):
     # ends on --duration: a loop never hangs up; 3 s is > 10x what 1500 lines need here
     with caplog.at_level(logging.INFO, logger="tacest"):
         s = record_serial(port, duration=3.0, output=out)
-    msgs = [r.getMessage() for r in caplog.records]
     writer.join(timeout=5)
     port.close()
     assert "duration" in s.stop_reason

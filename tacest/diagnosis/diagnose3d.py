@@ -316,7 +316,7 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
         fig.savefig(tmp / "residuals_3d.png", dpi=90)
         plt.close(fig)
         (tmp / "diagnosis.json").write_text(json.dumps(obj, indent=1) + "\n")
-        lines = [f"# Diagnosis (3-D)\n", f"verdict: **{diag.verdict}** ({diag.reason})\n",
+        lines = ["# Diagnosis (3-D)\n", f"verdict: **{diag.verdict}** ({diag.reason})\n",
                  f"training runs: {len(diag.train)}, held-out runs: {len(diag.heldout)}; "
                  f"noise floor {diag.floor:g} per sample\n",
                  "| model | held-out loss / sample | gap | reduction | parameters |", "|---|---|---|---|---|"]

@@ -207,7 +207,6 @@ class ConvexBoundary:
             jo = j[out]
             worst = np.max(S - sj[out, None] * self.G[jo], axis=1)
             ok = worst <= self.tol
-            o = out[ok]
             r = out[~ok]
             if r.size:
                 a = self.seg_a[None]
