@@ -191,12 +191,18 @@ class _Progress(ca.Callback):
         return ca.Sparsity(0, 0)
 
     def eval(self, arg):
-        if self.it % self.every == 0 and log.isEnabledFor(logging.INFO):
-            g = np.asarray(arg[ca.nlpsol_out().index("g")]).reshape(-1)
-            inf = float(np.max(np.concatenate([[0.0], self.lbg - g, g - self.ubg]))) if g.size else 0.0
-            f = float(arg[ca.nlpsol_out().index("f")])
-            log.info(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
-        self.it += 1
+        try:
+            if self.it % self.every == 0 and log.isEnabledFor(logging.INFO):
+                g = np.asarray(arg[ca.nlpsol_out().index("g")]).reshape(-1)
+                inf = float(np.max(np.concatenate([[0.0], self.lbg - g, g - self.ubg]))) if g.size else 0.0
+                f = float(arg[ca.nlpsol_out().index("f")])
+                log.info(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
+            self.it += 1
+        except KeyboardInterrupt:
+            # a Ctrl-C handled here (the next Python code IPOPT runs): ask IPOPT to stop
+            # (a nonzero return: User_Requested_Stop) rather than let the exception
+            # cross CasADi, which prints its traceback; the interrupt watch has noted it
+            return [1]
         return [0]
 
 
