@@ -42,9 +42,18 @@ class _Handler(logging.StreamHandler):
 
     _tacest_cli = True
 
-    def __init__(self, stream):
+    def __init__(self, stream=None):
+        self._fixed = stream  # None: whatever sys.stderr is when a record comes
         super().__init__(stream)
         self._bar = False  # a bar is on the screen, without its newline
+
+    @property
+    def stream(self):
+        return self._fixed if self._fixed is not None else sys.stderr
+
+    @stream.setter
+    def stream(self, value):  # StreamHandler.__init__ and setStream
+        self._fixed = value if value is not sys.stderr else self._fixed
 
     def emit(self, record):
         from tacest.parallel import PROGRESS_ATTR
@@ -75,7 +84,7 @@ def setup_logging(quiet: bool = False, stream=None) -> logging.Logger:
     for h in list(logger.handlers):
         if getattr(h, "_tacest_cli", False):
             logger.removeHandler(h)
-    handler = _Handler(stream or sys.stderr)
+    handler = _Handler(stream)  # no stream: sys.stderr as it is at each record (a test may swap it)
     handler.setFormatter(_Format())
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
