@@ -15,6 +15,8 @@ import time
 
 import click
 
+from tacest.cli.logs import warn_fit_quality
+
 #: the built-in example
 DEMO_OBJECT = "box"
 DEMO_POKES = 6
@@ -85,6 +87,7 @@ def _demo(run_path, est_path, json_path, png_path, seed, progress) -> list:
     except SolveFailedError as exc:
         raise SolveFailedError(f"demo: solve failed on {run_path}: {exc}") from None
     write_estimate(est, est_path)
+    warn_fit_quality(est)
     t_estimate = time.perf_counter() - t0
     est = read_estimate(est_path)
     progress(f"estimate: wrote {est_path} ({est.solver_status}, {est.iterations} iterations, {t_estimate:.1f} s)")

@@ -3,10 +3,9 @@
 
 from __future__ import annotations
 
-import logging
-
 import click
 
+from tacest.cli.logs import warn_fit_quality
 from tacest.cli.parallel import executor, parallel_options
 
 
@@ -54,10 +53,7 @@ def estimate(runs, output, manifest, shape, method, config_path, quiet, workers,
     loaded = read_runs(runs)
     est = estimate_runs(loaded, shape, config=config, method=method)
     write_estimate(est, output)
-    if est.consistent is False and est.fit_quality:
-        from tacest.estimation.fitquality import quality_summary
-
-        logging.getLogger("tacest.estimate").warning(quality_summary(est.fit_quality))
+    warn_fit_quality(est)
     if not quiet:
         p = est.params
 

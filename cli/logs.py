@@ -52,8 +52,8 @@ class _Handler(logging.StreamHandler):
         return self._fixed if self._fixed is not None else sys.stderr
 
     @stream.setter
-    def stream(self, value):  # StreamHandler.__init__ and setStream
-        self._fixed = value if value is not sys.stderr else self._fixed
+    def stream(self, value):  # StreamHandler.__init__ and setStream; sys.stderr: follow it
+        self._fixed = None if value is sys.stderr else value
 
     def emit(self, record):
         from tacest.parallel import PROGRESS_ATTR
@@ -90,3 +90,13 @@ def setup_logging(quiet: bool = False, stream=None) -> logging.Logger:
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
     logger.propagate = False
     return logger
+
+
+def warn_fit_quality(est) -> None:
+    """One warning line when the estimate ``est`` handed to the user failed its
+    goodness-of-fit test (the fits inside a diagnosis, which misfit on purpose, only
+    log it as information: tacest.estimation.result)."""
+    if est.consistent is False and est.fit_quality:
+        from tacest.estimation.fitquality import quality_summary
+
+        logging.getLogger("tacest.estimate").warning(quality_summary(est.fit_quality))
