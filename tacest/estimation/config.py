@@ -187,6 +187,12 @@ class Solver3D:
     homotopy_no_pose: tuple = ((0.3, 1.0, 1.0), (0.3, 1.0, 1.0))
     #: runs without pose observations: Hessian model, as hessian
     hessian_no_pose: str = "gauss-newton-then-exact"
+    #: runs without pose observations: IPOPT iterations of the final stage (solver.max_iter
+    #: for the others).  The exact-Hessian stage creeps along the flat directions an
+    #: untouched extent leaves: a toppled box's fit from the sampled start took 420
+    #: iterations (objective 75.0 -> 64.7, the last 100 within 0.01 %) and ended 1.9 mm
+    #: from the truth; with 400 it was a failed solve (docs/estimation3d.md, "Sampled starts")
+    max_iter_no_pose: int = 800
     #: runs without pose observations only: further starts tried when a fit fails or
     #: violates its own physics by more than restart_physics (initial3d.py,
     #: estimator3d.Estimator3D.solve); pose-observed runs solve once from their poses
@@ -197,8 +203,28 @@ class Solver3D:
     #: within 0.4-1.2 mm of the body hold 0.047-0.075; fits 2-5 mm off 0.069-0.12, fits
     #: 6-26 mm off 0.12-3.5; the truth 0.054-0.098 (docs/estimation3d.md)
     restart_physics: float = 0.1
+    #: hypotheses of the sequential Monte Carlo start (estimation/smc3d.py) of 3-D runs
+    #: without pose observations; 0 turns it off (push-tracked starts only)
+    sampler_particles: int = 256
+    #: seed of the sampler's first run (the same runs and seed give the same start)
+    sampler_seed: int = 0
+    #: independent sampler runs (seeds sampler_seed, +1, ...); the lineage of highest
+    #: likelihood is the start (one run of 256 hypotheses finds a topple's basin on
+    #: about one seed in three: docs/estimation3d.md, "Sampled starts")
+    sampler_runs: int = 3
+    #: degrees: a sampled lineage that tilts further than this goes first (the push
+    #: tracker never tips the box); a flatter one is the first restart
+    sampler_tip_deg: float = 20.0
 
     def __post_init__(self):
+        if self.sampler_particles < 0 or self.sampler_particles == 1:
+            raise _InvalidSetting(f"solver3d.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
+        if self.max_iter_no_pose < 1:
+            raise _InvalidSetting(f"solver3d.max_iter_no_pose must be >= 1, got {self.max_iter_no_pose}")
+        if self.sampler_runs < 1:
+            raise _InvalidSetting(f"solver3d.sampler_runs must be >= 1, got {self.sampler_runs}")
+        if not (np.isfinite(self.sampler_tip_deg) and self.sampler_tip_deg >= 0):
+            raise _InvalidSetting(f"solver3d.sampler_tip_deg must be >= 0, got {self.sampler_tip_deg!r}")
         _check_stages(self, "solver3d", "")
         _check_stages(self, "solver3d", "_no_pose")
         _check_restarts(self, "solver3d")

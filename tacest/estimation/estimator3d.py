@@ -31,7 +31,8 @@ from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
-from tacest.estimation.initial3d import start_candidates_3d
+from tacest.estimation.initial3d import Start3D, smoothed_start_track, start_candidates_3d, touch_inconsistency_3d
+from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
@@ -179,35 +180,6 @@ def observed_poses(run: Run):
     filled = np.stack([np.interp(t, idx, P[idx, c]) for c in range(7)], 1)
     filled[:, 3:] /= np.linalg.norm(filled[:, 3:], axis=1, keepdims=True)
     return smoothed_start_track(filled), ok
-
-
-#: Savitzky–Golay window (samples, odd) and polynomial order of the starting trajectory
-#: of pose-observed runs (:func:`smoothed_start_track`)
-START_SMOOTH_WINDOW = 11
-START_SMOOTH_ORDER = 3
-
-
-def smoothed_start_track(poses: np.ndarray) -> np.ndarray:
-    """(T, 7) starting poses from observed ones (T, 7) (m, unit quaternions with
-    continuous signs): a cubic Savitzky–Golay smoothing over START_SMOOTH_WINDOW samples,
-    quaternions renormalised.  Only the start: the pose residuals use the observations.
-
-    Why: the dynamics residuals of the start are second differences of the poses, so an
-    observation noise sigma becomes accelerations of ~sigma / dt² (0.5 mm at 100 Hz:
-    5 m/s², 10 mrad: 100 rad/s²).  From the raw observations the first Gauss–Newton
-    steps absorb that noise into the slowest parameters: on simulated topples (MuJoCo,
-    noiseless sensors, poses at 0.5 mm) the inertia grew 40–300x and the mass 60 % off,
-    objective 1400–2100; from the smoothed start the same fits end at 240–630 with the
-    mass within 1–8 % (docs/estimation3d.md, "Pose-observed starts")."""
-    T = poses.shape[0]
-    window = min(START_SMOOTH_WINDOW, T if T % 2 else T - 1)
-    if window <= START_SMOOTH_ORDER + 1:
-        return poses
-    from scipy.signal import savgol_filter
-
-    out = savgol_filter(poses, window, START_SMOOTH_ORDER, axis=0, mode="interp")
-    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
-    return out
 
 
 def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
@@ -502,6 +474,11 @@ class Estimator3D:
             return self.solve_from_shape(s0)
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
+        sampled = self.sampled_start(starts[0])
+        if sampled is not None:
+            # a lineage that tips goes first (the push tracker never tips the box); a
+            # flat one is the first restart
+            starts.insert(0 if sampled.extra["max_tilt_deg"] > cfg3.sampler_tip_deg else 1, sampled)
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
@@ -519,7 +496,7 @@ class Estimator3D:
                     self.fit_quality(out.z).local, found)
 
         records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
-                    "touch_inconsistency": float(c.inconsistency)} for c in starts]
+                    "touch_inconsistency": float(c.inconsistency), **c.extra} for c in starts]
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts)
@@ -529,6 +506,27 @@ class Estimator3D:
             raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {first}") from None
         self.z = out.z
         return out
+
+    def sampled_start(self, tracked: Start3D) -> Start3D | None:
+        """The sampler's start (smc3d.py: the lineage of highest likelihood over
+        ``solver3d.sampler_runs`` runs of ``sampler_particles`` hypotheses, seeds
+        sampler_seed, +1, ...; half of each run's hypotheses around the box of the
+        ``tracked`` start), or None where it does not apply (off, or a polytope: the
+        sampler's hypotheses are boxes)."""
+        cfg3, sc = self.config.solver3d, self.scales
+        if not cfg3.sampler_particles or self.shape.name != "box":
+            return None
+        best = None
+        for k in range(int(cfg3.sampler_runs)):
+            r = smc_start_3d(self.runs, sc.L, sc.m0, tracked.extents * sc.L,
+                             SMC3DSettings(particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k))
+            if best is None or r.log_likelihood > best.log_likelihood:
+                best = r
+        cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0])
+                   for run, P in zip(self.runs, best.poses))
+        return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
+                       extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
+                              "max_tilt_deg": best.max_tilt_deg})
 
     def fit_quality(self, z):
         """The goodness-of-fit test of the fit at z (fitquality.goodness_of_fit)."""
@@ -556,7 +554,8 @@ class Estimator3D:
         cfg, cfg3 = self.config.solver, self.config.solver3d
         hom = cfg3.homotopy if self.has_pose else cfg3.homotopy_no_pose
         hessian = cfg3.hessian if self.has_pose else cfg3.hessian_no_pose
-        return plan_stages(hom, hessian, cfg.max_iter, cfg.stage_max_iter, impulses_first=bool(self.F))
+        max_iter = cfg.max_iter if self.has_pose else cfg3.max_iter_no_pose
+        return plan_stages(hom, hessian, max_iter, cfg.stage_max_iter, impulses_first=bool(self.F))
 
     def stage_bounds(self, stage, z):
         lbx, ubx = self.variable_bounds(z)

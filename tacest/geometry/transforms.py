@@ -131,6 +131,15 @@ def quat_from_axis_angle(axis, angle) -> np.ndarray:
     return np.concatenate([np.cos(half), np.sin(half) * axis], -1)
 
 
+def quat_from_rotvec(phi) -> np.ndarray:
+    """Quaternions (..., 4) of rotation vectors phi (..., 3) rad (axis times angle;
+    the identity at phi = 0)."""
+    phi = np.asarray(phi, float)
+    a = np.linalg.norm(phi, axis=-1, keepdims=True)
+    s = np.where(a > 1e-12, np.sin(a / 2) / np.maximum(a, 1e-12), 0.5)
+    return np.concatenate([np.cos(a / 2), s * phi], -1)
+
+
 # ---------------------------------------------------------------------------------
 # poses
 
