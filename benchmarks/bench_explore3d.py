@@ -2,7 +2,8 @@
 
     nice -n 5 .venv/bin/python benchmarks/bench_explore3d.py [--seeds 10] [--first-seed 0]
         [--cases box,polytope] [--policies eig,random,identity] [--pokes 8] [--fingers 3]
-        [--iterations 4] [--population 12] [--cache DIR (default /tmp/tacest_bench_explore3d)]
+        [--iterations 4] [--population 12] [--poke-style gentle|dynamic]
+        [--cache DIR (default /tmp/tacest_bench_explore3d)]
         [--report-only] [--plot OUT.png] [--json OUT.json]
 
 For every case, seed and policy it runs one closed loop in the MuJoCo world
@@ -18,9 +19,15 @@ with another construction of the information), ``random``, ``identity`` (the
 quasi-static identity-Jacobian baseline).  The first poke of a seed is the same for every
 policy (the simulator's random poke); the seeds are paired.
 
+``--poke-style dynamic``: the first poke from the simulator's dynamic mix and every
+planned poke fast with its aim height chosen (tacest explore --poke-style dynamic: the
+object tips and topples); the default ``gentle`` keeps slow pokes at the centroid.
+
 Each loop's result (its explore summary and wall time, or the error) goes to
-``<cache>/<case>-<seed>-<policy>.json``; a loop whose result exists is not run again
-(``--report-only`` prints what the cache holds).
+``<cache>/code_<digest>/<style>/<case>-<seed>-<policy>.json`` (digest:
+tacest.provenance.source_digest of tacest's sources and this script, so that a changed
+planner or estimator never reprints old figures); a loop whose result exists is not run
+again (``--report-only`` prints what the cache holds).
 
 Printed, per case over the paired seeds (benchmarks/bench_plan.py's report: median
 Chamfer per poke count and policy, failed estimates ranked last, plan time per poke),
@@ -91,7 +98,7 @@ def run_loop(case: str, seed: int, policy: str, args, cache: Path) -> dict:
     pol, info = policy_settings(policy)
     opts = ExploreOptions(object_spec=obj, seed=seed, policy=pol, pokes=args.pokes, shape=shape, dim=3,
                           fingers=args.fingers, force_stream=False, information=info, iterations=args.iterations,
-                          population=args.population)
+                          population=args.population, poke_style=args.poke_style)
     t0 = time.perf_counter()
     print(f"{name}: running ...", file=sys.stderr, flush=True)
     try:
@@ -161,6 +168,7 @@ def main(argv=None):
     ap.add_argument("--fingers", type=int, default=3)
     ap.add_argument("--iterations", type=int, default=4)
     ap.add_argument("--population", type=int, default=12)
+    ap.add_argument("--poke-style", choices=("gentle", "dynamic"), default="gentle")
     ap.add_argument("--cache", default="/tmp/tacest_bench_explore3d")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--plot", default=None)
@@ -176,7 +184,9 @@ def main(argv=None):
 
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     bp = _bench_plan()
-    cache = Path(args.cache)
+    from tacest.provenance import source_digest
+
+    cache = Path(args.cache) / f"code_{source_digest(Path(__file__).resolve())}" / args.poke_style
     cache.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}", file=sys.stderr)

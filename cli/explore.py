@@ -33,8 +33,12 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
                    "in 3-D).")
 @click.option("--score", type=click.Choice(["logdet", "A", "D", "E"]), default="logdet", show_default=True,
               help="Scalarization of the information (docs/planning.md).")
-@click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
-              help="Also choose the depth and/or speed of each poke (repeatable).")
+@click.option("--vary", multiple=True, type=click.Choice(["depth", "speed", "height"]),
+              help="Also choose the depth, speed and/or aim height of each poke (repeatable).")
+@click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="gentle", show_default=True,
+              help="gentle: slow pokes at the centroid; dynamic: the first poke from tacest record's dynamic "
+                   "mix, and every planned poke fast (0.1-0.6 m/s) with its aim height chosen, so the object "
+                   "tips and topples (docs/planning.md).")
 @click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
               help="Cross-entropy iterations (eig, identity; per finger in 2-D, one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
@@ -43,7 +47,7 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
               help="Estimator TOML settings (`tacest config --defaults` prints every key).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, pokes, shape, information, score, vary,
-            iterations, population, config_path, quiet):
+            poke_style, iterations, population, config_path, quiet):
     """Explore a simulated object (2-D, or 3-D with --dim 3): record a poke, estimate,
     plan the next poke with POLICY, repeat until POKES pokes; write per-step files,
     summary.json and a learning-curve plot (3-D: and views) to OUTPUT."""
@@ -68,7 +72,7 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
     opts = ExploreOptions(object_spec=object_spec, seed=seed, policy=policy, pokes=pokes, shape=shape, score=score,
                           config_path=config_path, vary=tuple(vary), dim=int(dim), fingers=fingers,
                           force_stream=force_stream, information=information, iterations=iterations,
-                          population=population).validate()
+                          population=population, poke_style=poke_style).validate()
     setup_logging(quiet)
 
     t_start = time.perf_counter()

@@ -21,14 +21,18 @@ import click
                    "estimator's own, 2-D default), identity, diffsim (differentiating the simulation) or "
                    "marginal (past states marginalized by sampling, 3-D default).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Random seed of the search.")
-@click.option("--vary", multiple=True, type=click.Choice(["depth", "speed"]),
-              help="Also choose the poke's depth and/or speed (repeatable); default: 2 cm, a 1 s approach.")
+@click.option("--vary", multiple=True, type=click.Choice(["depth", "speed", "height"]),
+              help="Also choose the poke's depth, speed and/or aim height above the centroid (repeatable); "
+                   "default: 2 cm, a 1 s approach, at the centroid.")
+@click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="gentle", show_default=True,
+              help="dynamic: fast pokes (0.1-0.6 m/s) whose speed and aim height are chosen, so the object "
+                   "tips and topples (docs/planning.md).")
 @click.option("--iterations", type=click.IntRange(1, 50), default=4, show_default=True,
               help="Cross-entropy iterations (per finger in 2-D; one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def plan(estimate, runs, output, method, score, information, seed, vary, iterations, population, quiet):
+def plan(estimate, runs, output, method, score, information, seed, vary, poke_style, iterations, population, quiet):
     """Plan the next poke of the object in ESTIMATE (an estimate file) from the RUNS it
     was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
     centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
@@ -48,7 +52,7 @@ def plan(estimate, runs, output, method, score, information, seed, vary, iterati
     setup_logging(quiet)
     output = check_output(output, inputs=[estimate, *runs])
     settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
-                            population=population, information=information).validate()
+                            population=population, information=information, poke_style=poke_style).validate()
     est = read_estimate(estimate)
     loaded = read_runs(runs)
     check_runs_match(est, runs)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import re
+
 import numpy as np
 import pytest
 
@@ -113,7 +115,9 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
     ``outcomes`` in turn (None: the solve fails)."""
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
-    cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts}})
+    # the sampled start is off here (its place among the starts: test_a_tipping_sampled_start_goes_first)
+    cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts,
+                                                  "sampler_particles": 0}})
     est.config, est.problem = cfg, _FakeProblem()
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")
@@ -122,11 +126,13 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     starts = [Start3D(np.full(3, 1.0 + 0.3 * k), [np.zeros((400, 7))], f"start {k}", float(k)) for k in range(3)]
     monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: starts[:n])
     calls = []
+    offered = est.offered_starts = []
 
     def solve_from(s0):
         k = len(calls)
         calls.append(np.asarray(s0, float))
-        assert est.start_tracks is starts[k].poses  # the start's trajectory is used
+        # the start's trajectory is used (a sampled start, when one is offered, is another)
+        assert any(est.start_tracks is c.poses for c in (starts + offered if offered else starts[k:k + 1]))
         if outcomes[k] is None:
             raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1': Maximum_Iterations_Exceeded")
         obj, phys = outcomes[k]
@@ -169,12 +175,30 @@ def test_every_start_failing_raises_one_solve_failure(monkeypatch):
     assert len(calls) == 3 and len(est.attempts) == 3
 
 
+@pytest.mark.parametrize("tilt_deg, first", [(60.0, True), (5.0, False)])
+def test_a_tipping_sampled_start_goes_first(monkeypatch, tilt_deg, first):
+    """The sampler's lineage is solved first when it tips the box further than
+    solver3d.sampler_tip_deg (the push tracker never tips it), else it is the first
+    restart; the push-tracked starts keep their order."""
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.5), (40.0, 0.5), (30.0, 0.5), (20.0, 0.5)])
+    est.config = est.config.updated({"solver3d": {"sampler_particles": 256}})
+    sampled = Start3D(np.full(3, 0.7), [np.zeros((400, 7))], "sampler", 0.0, extra={"max_tilt_deg": tilt_deg})
+    monkeypatch.setattr(est, "sampled_start", lambda tracked: sampled)
+    est.offered_starts.append(sampled)
+    est.solve()
+    labels = [a["start"] for a in est.attempts]
+    assert labels == (["sampler", "start 0", "start 1", "start 2"] if first else
+                      ["start 0", "sampler", "start 1", "start 2"])
+    assert est.attempts[labels.index("sampler")]["max_tilt_deg"] == tilt_deg
+
+
 def test_new_solver3d_keys_are_checked():
     from tacest.errors import TacestError
     from tacest.estimation.config import load_config
 
     for bad in ({"hessian_no_pose": "newton"}, {"homotopy_no_pose": [[0.3, 1.0]]}, {"restarts": -1},
-                {"restart_physics": 0.0}):
+                {"restart_physics": 0.0}, {"sampler_particles": 1}, {"sampler_runs": 0}, {"sampler_tip_deg": -1.0},
+                {"max_iter_no_pose": 0}):
         with pytest.raises(TacestError, match="solver3d"):
             load_config(overrides={"solver3d": bad})
 
@@ -190,7 +214,7 @@ def test_a_poke_run_whose_every_start_fails_exits_2_without_output(tmp_path):
 
     write_run(_push_run(), tmp_path / "push.h5")
     cfg = tmp_path / "few.toml"
-    cfg.write_text("[solver]\nmax_iter = 2\nstage_max_iter = 2\n")
+    cfg.write_text("[solver]\nmax_iter = 2\nstage_max_iter = 2\n[solver3d]\nmax_iter_no_pose = 2\n")
     out = tmp_path / "est.h5"
     tacest = str(Path(sys.executable).with_name("tacest"))
     r = subprocess.run([tacest, "estimate", str(tmp_path / "push.h5"), "--shape", "box", "--config", str(cfg),
@@ -198,5 +222,6 @@ def test_a_poke_run_whose_every_start_fails_exits_2_without_output(tmp_path):
     assert r.returncode == 2, (r.returncode, r.stderr)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("tacest: error:"), r.stderr
-    assert "no fit from any of 3 starts" in lines[0] and "Maximum_Iterations_Exceeded" in lines[0]
+    # the push-tracked and resting starts and the sampler's
+    assert re.search(r"no fit from any of [34] starts", lines[0]) and "Maximum_Iterations_Exceeded" in lines[0]
     assert not out.exists()

@@ -420,3 +420,50 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch, caplog):
     assert steps[0]["plan_time"] > 0 and "friction_ground_rel" in steps[2]
     assert len(lines) == 3 and lines[1].startswith("[2/3]")
     assert read_estimate(out / "estimate_3.h5").success
+
+
+def test_the_dynamic_action_space_searches_speed_and_aim_height():
+    """poke style dynamic: speed (0.1-0.6 m/s, the simulators' fast pokes) and the aim's
+    height above the centroid (0-45 % of the object's height along the ground normal) are
+    searched; gentle keeps the slow pokes at the centroid; height needs the object."""
+    from tacest.errors import TacestError
+    from tacest.planning.actions import DYNAMIC_SPEED_RANGE, HEIGHT_RANGE, ActionSpace, ActionSpace3
+    from tacest.sim.pokes import POKE_NAMES
+
+    up = np.array([0.0, 1.0])
+    space = ActionSpace(style="dynamic", object_height=0.1, up=up)
+    assert space.names == ["approach_angle", "speed", "height"]
+    lo, hi = space.bounds()
+    np.testing.assert_allclose(lo[1:], [DYNAMIC_SPEED_RANGE[0], HEIGHT_RANGE[0]])
+    np.testing.assert_allclose(hi[1:], [DYNAMIC_SPEED_RANGE[1], HEIGHT_RANGE[1]])
+    a = dict(zip(POKE_NAMES, space.action(0, [1.0, 0.4, 0.3], np.array([0.2, 0.05]))))
+    assert a["speed"] == 0.4 and a["target_x"] == 0.2 and a["target_y"] == pytest.approx(0.05 + 0.3 * 0.1)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        r = dict(zip(POKE_NAMES, space.random_action(rng, np.array([0.0, 0.05]))))
+        assert DYNAMIC_SPEED_RANGE[0] <= r["speed"] <= DYNAMIC_SPEED_RANGE[1]
+        assert 0.05 <= r["target_y"] <= 0.05 + HEIGHT_RANGE[1] * 0.1
+    assert ActionSpace().names == ["approach_angle"]  # gentle: as before
+    s3 = ActionSpace3(style="dynamic", object_height=0.08, up=np.array([0.0, 0.0, 1.0]))
+    assert s3.names == ["approach_azimuth", "approach_elevation", "speed", "height"]
+    with pytest.raises(TacestError, match="height"):
+        ActionSpace(vary=("height",))
+    with pytest.raises(TacestError, match="poke style"):
+        ActionSpace(style="wild")
+
+
+def test_plan_cli_dynamic_style_plans_a_fast_high_poke_that_record_executes(tmp_path):
+    run = _sim_run(tmp_path / "run.h5")
+    write_estimate(estimate_from_truth(run), tmp_path / "est.h5")
+    res = _tacest("plan", "est.h5", "run.h5", "--poke-style", "dynamic", "--iterations", "1", "--population", "4",
+                  "-o", "plan.h5", "--quiet", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    a = read_plan(tmp_path / "plan.h5").chosen_dict()
+    assert 0.1 <= a["speed"] <= 0.6
+    height = np.ptp(run.truth.vertices @ np.array([[np.cos(run.truth.pose[-1, 2]), np.sin(run.truth.pose[-1, 2])],
+                                                    [-np.sin(run.truth.pose[-1, 2]), np.cos(run.truth.pose[-1, 2])]])[:, 1])
+    assert 0.0 <= a["target_y"] - run.truth.pose[-1, 1] <= 0.45 * height + 1e-9
+    res = _tacest("record", "--source", "sim", "--plan", "plan.h5", "-o", "run.h5", "--quiet", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    res = _tacest("plan", "est.h5", "run.h5", "--poke-style", "wild", "-o", "p.h5", cwd=tmp_path)
+    assert res.returncode == 2 and not (tmp_path / "p.h5").exists()

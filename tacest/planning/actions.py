@@ -8,10 +8,16 @@ planner chooses, per finger:
   the left; flatter approaches would drag the finger along the table).  Unlike the
   random pokes of the simulator (10°..65° and 115°..170°), steep pokes from above are
   allowed: they press on the top face, which is how the height of a box is felt;
-- optionally (``vary``) ``depth`` in :data:`DEPTH_RANGE` and ``speed`` in
-  :data:`SPEED_RANGE`.  Otherwise depth is :data:`DEFAULT_DEPTH` (the middle of the
-  random pokes' range) and the speed makes the approach last :data:`APPROACH_TIME`
-  (1 s), as the random pokes do.
+- optionally (``vary``) ``depth`` in :data:`DEPTH_RANGE`, ``speed`` in
+  :data:`SPEED_RANGE` and ``height`` in :data:`HEIGHT_RANGE` (the aim raised above the
+  centroid by this fraction of the object's estimated height along the ground normal).
+  Otherwise depth is :data:`DEFAULT_DEPTH` (the middle of the random pokes' range), the
+  aim is the centroid and the speed makes the approach last :data:`APPROACH_TIME` (1 s),
+  as the random pokes do;
+- poke style ``dynamic`` (``tacest plan --poke-style dynamic``): speed and height are
+  always searched, the speed in :data:`DYNAMIC_SPEED_RANGE` (the simulators' fast
+  pokes, 0.1-0.6 m/s): pokes that tip, topple and flick the object, as the dynamic
+  pokes of ``tacest record --poke-style dynamic`` do.
 
 In 3-D (:class:`ActionSpace3`, tacest.sim3d.pokes.POKE3_NAMES) the approach angle
 becomes an approach direction: ``approach_azimuth`` in [-π, π] (any side) and
@@ -38,7 +44,15 @@ DEPTH_RANGE = (0.005, 0.04)
 #: m/s, approach speeds the planner may choose with ``vary=("speed",)`` (0.6 .. 3 s
 #: approaches at the default depth)
 SPEED_RANGE = (0.02, 0.1)
-VARIABLES = ("depth", "speed")
+#: m/s, approach speeds of the ``dynamic`` poke style (tacest.sim.pokes' fast pokes)
+DYNAMIC_SPEED_RANGE = (0.1, 0.6)
+#: fractions of the object's estimated height (along the ground normal) the aim may be
+#: raised above its centroid with ``vary=("height",)``: up to the simulators' high pokes
+#: (30-45 % tips and topples a box on a grippy ground)
+HEIGHT_RANGE = (0.0, 0.45)
+VARIABLES = ("depth", "speed", "height")
+#: poke styles of the action space (module docstring)
+ACTION_STYLES = ("gentle", "dynamic")
 #: rad, 3-D approach elevations the planner may choose (0: horizontal; flatter than 10°
 #: the finger would drag along the table; 90°: straight down onto the top face)
 ELEVATION_RANGE = (math.radians(10.0), math.radians(90.0))
@@ -51,18 +65,37 @@ APPROACH_REACH = 0.1
 
 @dataclass
 class ActionSpace:
-    """What the planner chooses (module docstring).  vary : subset of ("depth", "speed")."""
+    """What the planner chooses (module docstring).  vary : subset of VARIABLES; style :
+    ``gentle`` or ``dynamic`` (adds speed and height, speeds in DYNAMIC_SPEED_RANGE);
+    object_height : m, the object's estimated extent along ``up`` (D,), the ground
+    normal (the unit of ``height``)."""
 
     n_fingers: int = 1
     vary: tuple = field(default_factory=tuple)
     angle_range: tuple = ANGLE_RANGE
     depth: float = DEFAULT_DEPTH
+    style: str = "gentle"
+    object_height: float = 0.0
+    up: np.ndarray | None = None
 
     def __post_init__(self):
         bad = [v for v in self.vary if v not in VARIABLES]
         if bad:
             raise TacestError(f"cannot vary {', '.join(bad)}: choose from {', '.join(VARIABLES)}")
-        self.vary = tuple(v for v in VARIABLES if v in self.vary)
+        if self.style not in ACTION_STYLES:
+            raise TacestError(f"unknown poke style {self.style!r}: use {', '.join(ACTION_STYLES)}")
+        vary = set(self.vary) | ({"speed", "height"} if self.style == "dynamic" else set())
+        self.vary = tuple(v for v in VARIABLES if v in vary)
+        if "height" in self.vary and (self.up is None or not self.object_height > 0):
+            raise TacestError("varying the aim's height needs the object's height and the ground normal")
+
+    def range_of(self, name: str) -> tuple:
+        """(low, high) of a searched variable besides the direction."""
+        if name == "depth":
+            return DEPTH_RANGE
+        if name == "speed":
+            return DYNAMIC_SPEED_RANGE if self.style == "dynamic" else SPEED_RANGE
+        return HEIGHT_RANGE
 
     @property
     def names(self) -> list:
@@ -72,7 +105,7 @@ class ActionSpace:
     def bounds(self):
         lo, hi = self._direction_bounds()
         for v in self.vary:
-            r = DEPTH_RANGE if v == "depth" else SPEED_RANGE
+            r = self.range_of(v)
             lo.append(r[0])
             hi.append(r[1])
         return np.array(lo), np.array(hi)
@@ -96,6 +129,8 @@ class ActionSpace:
         depth = float(vals.get("depth", self.depth))
         speed = float(vals.get("speed", (CLEARANCE + depth) / APPROACH_TIME))
         t = np.asarray(target__world, float)
+        if "height" in vals:  # the aim raised along the ground normal
+            t = t + float(vals.pop("height")) * self.object_height * np.asarray(self.up, float)
         named = {**vals, "finger": finger, "depth": depth, "speed": speed,
                  **{f"target_{c}": float(v) for c, v in zip("xyz", t)}}
         return np.array([named[n] for n in self.poke_names], float)
@@ -109,11 +144,11 @@ class ActionSpace:
     def random_action(self, rng: np.random.Generator, target__world) -> np.ndarray:
         """The random baseline: a random finger and approach angle, as the simulator's
         random pokes draw it (U(10°, 65°) from the right or its mirror from the left);
-        depth and speed as :meth:`action` (random within their ranges if varied)."""
+        depth, speed and height as :meth:`action` (uniform within their ranges if varied)."""
         finger = int(rng.integers(self.n_fingers))
         u = self._random_direction(rng)
         for v in self.vary:
-            u.append(float(rng.uniform(*(DEPTH_RANGE if v == "depth" else SPEED_RANGE))))
+            u.append(float(rng.uniform(*self.range_of(v))))
         return self.action(finger, u, target__world)
 
 
@@ -163,3 +198,13 @@ class ActionSpace3(ActionSpace):
     def _random_direction(self, rng: np.random.Generator) -> list:
         """As the 3-D simulator's random pokes: azimuth U(-π, π), elevation U(10°, 65°)."""
         return [float(rng.uniform(*AZIMUTH_RANGE)), float(rng.uniform(*RANDOM_ANGLE_RANGE))]
+
+
+def object_height(model) -> float:
+    """m: the estimated object's extent along the ground normal now (a planning
+    ModelState or ModelState3: vertices in the body frame, pose, up)."""
+    from tacest.geometry.transforms import transform_points
+
+    V = np.asarray(model.vertices, float)
+    Vw = transform_points(np.asarray(model.pose, float), V, V.shape[1])
+    return float(np.ptp(Vw @ np.asarray(model.up, float)))

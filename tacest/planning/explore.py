@@ -65,7 +65,10 @@ class ExploreOptions:
     identity; pokes : N >= 1; shape : estimator shape (default ``box`` for boxes,
     ``polygon:8`` otherwise, ``polytope:12`` in 3-D); score : logdet | A | D | E;
     config_path : estimator TOML;
-    vary : planner variables besides the angle; noise_* : sensor noise of the simulator
+    vary : planner variables besides the angle; poke_style : gentle | dynamic, the first
+    poke's style (tacest record --poke-style) and the planner's action space (dynamic:
+    fast pokes whose speed and aim height are chosen, tacest.planning.actions); noise_* :
+    sensor noise of the simulator
     (tacest record's defaults); iterations, population : CEM settings.
     """
 
@@ -86,6 +89,7 @@ class ExploreOptions:
     fingers: int = 1
     force_stream: bool | None = None
     information: str | None = None
+    poke_style: str = "gentle"
 
     def validate(self) -> "ExploreOptions":
         if int(self.dim) not in (2, 3):
@@ -118,7 +122,7 @@ class ExploreOptions:
 
         return PlanSettings(method=self.policy, score=self.score, seed=plan_seed(self.seed, n), vary=tuple(self.vary),
                             iterations=self.iterations, population=self.population,
-                            information=self.information).validate()
+                            information=self.information, poke_style=self.poke_style).validate()
 
 
 def _write_json(path: Path, obj) -> None:
@@ -154,6 +158,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     shape = opts.estimator_shape
     sim = SimOptions(dim=int(opts.dim), object_spec=opts.object_spec, seed=int(opts.seed), pokes=1,
                      fingers=int(opts.fingers), force_stream=opts.records_force, noise_force=opts.noise_force,
+                     poke_style=opts.poke_style,
                      noise_position=opts.noise_position, noise_normal=opts.noise_normal).validate()
     run_path = out / "run.h5"
     for stale in [run_path, out / "summary.json", out / "learning_curve.png", out / "view_3d.png",

@@ -38,7 +38,7 @@ from tacest.information.expected import (PREDICT_SUBSTEPS, ExpectedInformation, 
 from tacest.information.scores import SCORES, score
 from tacest.io.plan import Plan
 from tacest.information.sensitivity import INFORMATION_METHODS
-from tacest.planning.actions import ActionSpace, ActionSpace3
+from tacest.planning.actions import ACTION_STYLES, ActionSpace, ActionSpace3, object_height
 from tacest.planning.cem import cem_maximize
 
 log = logging.getLogger(__name__)
@@ -54,7 +54,9 @@ class PlanSettings:
 
     method : eig | random | identity; score : logdet | A | D | E; seed : int;
     iterations, population, elite : CEM per finger (iterations × population
-    candidates per finger; elite 0: a third of the population, at least 1); vary : subset of ("depth", "speed"); substeps : physics
+    candidates per finger; elite 0: a third of the population, at least 1); vary : subset of
+    ("depth", "speed", "height"); poke_style : gentle | dynamic (tacest.planning.actions:
+    dynamic searches speed and aim height, fast pokes that tip and topple); substeps : physics
     substeps per sample of a prediction; noise_samples : average F over this many noisy
     sensor draws (0: the closed form at the noiseless prediction; 2-D only);
     information : schur | identity | diffsim | marginal (tacest.information.sensitivity;
@@ -72,6 +74,7 @@ class PlanSettings:
     substeps: int = PREDICT_SUBSTEPS
     noise_samples: int = 0
     information: str | None = None
+    poke_style: str = "gentle"
 
     def validate(self) -> "PlanSettings":
         if self.method not in METHODS:
@@ -84,6 +87,8 @@ class PlanSettings:
             raise TacestError("CEM needs iterations >= 1, population >= 2 and 0 <= elite <= population")
         if int(self.substeps) < 1 or int(self.noise_samples) < 0:
             raise TacestError("substeps must be >= 1 and noise_samples >= 0")
+        if self.poke_style not in ACTION_STYLES:
+            raise TacestError(f"unknown poke style {self.poke_style!r}: use {', '.join(ACTION_STYLES)}")
         if self.information is not None and self.information not in INFORMATION_METHODS:
             raise TacestError(f"unknown information {self.information!r}: use {', '.join(INFORMATION_METHODS)}")
         if self.method == "identity" and self.information not in (None, "identity"):
@@ -211,10 +216,12 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
+    shared = dict(n_fingers=model.n_fingers, vary=tuple(settings.vary), style=settings.poke_style,
+                  object_height=object_height(model), up=np.asarray(model.up, float))
     if int(est.dim) == 3:
-        space = ActionSpace3(n_fingers=model.n_fingers, vary=tuple(settings.vary), p_finger__world=model.p_finger__world)
+        space = ActionSpace3(p_finger__world=model.p_finger__world, **shared)
     else:
-        space = ActionSpace(n_fingers=model.n_fingers, vary=tuple(settings.vary))
+        space = ActionSpace(**shared)
     target = model.centroid__world
     rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 4]))
     cands, scores = [], []
