@@ -422,6 +422,27 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch, caplog):
     assert read_estimate(out / "estimate_3.h5").success
 
 
+def test_explore_dynamic_style_pokes_fast_from_the_first_poke_on(tmp_path, monkeypatch):
+    """tacest explore --poke-style dynamic: the first poke from the simulator's dynamic
+    mix (0.1-0.6 m/s) and the planned ones fast, aimed at or above the centroid
+    (stand-in estimator, as above)."""
+    import tacest.estimation.estimator as estimator
+    from tacest.planning.explore import ExploreOptions, explore
+    from tacest.sim.pokes import POKE_NAMES
+
+    monkeypatch.setattr(estimator, "estimate_2d", lambda runs, shape, config=None, **kw: estimate_from_truth(runs[0]))
+    out = tmp_path / "loop"
+    summary = explore(ExploreOptions(object_spec="box", seed=3, policy="eig", pokes=2, iterations=1, population=3,
+                                     poke_style="dynamic"), out)
+    assert summary["options"]["poke_style"] == "dynamic"
+    run = read_run(out / "run.h5")
+    speeds = run.actions.params[:, POKE_NAMES.index("speed")]
+    assert np.all((speeds >= 0.1) & (speeds <= 0.6)), speeds
+    plan = read_plan(out / "plan_1.h5").chosen_dict()
+    pose = read_estimate(out / "estimate_1.h5").runs[-1].pose[-1]
+    assert plan["target_y"] >= pose[1] - 1e-9
+
+
 def test_the_dynamic_action_space_searches_speed_and_aim_height():
     """poke style dynamic: speed (0.1-0.6 m/s, the simulators' fast pokes) and the aim's
     height above the centroid (0-45 % of the object's height along the ground normal) are
