@@ -197,7 +197,7 @@ def test_new_solver3d_keys_are_checked():
     from tacest.estimation.config import load_config
 
     for bad in ({"hessian_no_pose": "newton"}, {"homotopy_no_pose": [[0.3, 1.0]]}, {"restarts": -1},
-                {"restart_physics": 0.0}, {"sampler_particles": 1}, {"sampler_runs": 0}, {"sampler_tip_deg": -1.0},
+                {"restart_physics": 0.0}, {"sampler_particles": 1}, {"sampler_runs": 0}, {"sampler_seed": -1}, {"sampler_tip_deg": -1.0},
                 {"max_iter_no_pose": 0}):
         with pytest.raises(TacestError, match="solver3d"):
             load_config(overrides={"solver3d": bad})

@@ -444,21 +444,23 @@ def test_explore_dynamic_style_pokes_fast_from_the_first_poke_on(tmp_path, monke
 
 
 def test_the_dynamic_action_space_searches_speed_and_aim_height():
-    """poke style dynamic: speed (0.1-0.6 m/s, the simulators' fast pokes) and the aim's
-    height above the centroid (0-45 % of the object's height along the ground normal) are
-    searched; gentle keeps the slow pokes at the centroid; height needs the object."""
+    """poke style dynamic: depth (2-12 cm), speed (0.1-0.6 m/s, the simulators' fast
+    pokes) and the aim's height above the centroid (0-45 % of the object's height along
+    the ground normal) are searched; gentle keeps the slow pokes at the centroid; height
+    needs the object."""
     from tacest.errors import TacestError
-    from tacest.planning.actions import DYNAMIC_SPEED_RANGE, HEIGHT_RANGE, ActionSpace, ActionSpace3
+    from tacest.planning.actions import DYNAMIC_DEPTH_RANGE, DYNAMIC_SPEED_RANGE, HEIGHT_RANGE, ActionSpace, ActionSpace3
     from tacest.sim.pokes import POKE_NAMES
 
     up = np.array([0.0, 1.0])
     space = ActionSpace(style="dynamic", object_height=0.1, up=up)
-    assert space.names == ["approach_angle", "speed", "height"]
+    assert space.names == ["approach_angle", "depth", "speed", "height"]
     lo, hi = space.bounds()
-    np.testing.assert_allclose(lo[1:], [DYNAMIC_SPEED_RANGE[0], HEIGHT_RANGE[0]])
-    np.testing.assert_allclose(hi[1:], [DYNAMIC_SPEED_RANGE[1], HEIGHT_RANGE[1]])
-    a = dict(zip(POKE_NAMES, space.action(0, [1.0, 0.4, 0.3], np.array([0.2, 0.05]))))
-    assert a["speed"] == 0.4 and a["target_x"] == 0.2 and a["target_y"] == pytest.approx(0.05 + 0.3 * 0.1)
+    np.testing.assert_allclose(lo[1:], [DYNAMIC_DEPTH_RANGE[0], DYNAMIC_SPEED_RANGE[0], HEIGHT_RANGE[0]])
+    np.testing.assert_allclose(hi[1:], [DYNAMIC_DEPTH_RANGE[1], DYNAMIC_SPEED_RANGE[1], HEIGHT_RANGE[1]])
+    a = dict(zip(POKE_NAMES, space.action(0, [1.0, 0.08, 0.4, 0.3], np.array([0.2, 0.05]))))
+    assert a["speed"] == 0.4 and a["depth"] == 0.08 and a["target_x"] == 0.2
+    assert a["target_y"] == pytest.approx(0.05 + 0.3 * 0.1)
     rng = np.random.default_rng(0)
     for _ in range(20):
         r = dict(zip(POKE_NAMES, space.random_action(rng, np.array([0.0, 0.05]))))
@@ -466,7 +468,7 @@ def test_the_dynamic_action_space_searches_speed_and_aim_height():
         assert 0.05 <= r["target_y"] <= 0.05 + HEIGHT_RANGE[1] * 0.1
     assert ActionSpace().names == ["approach_angle"]  # gentle: as before
     s3 = ActionSpace3(style="dynamic", object_height=0.08, up=np.array([0.0, 0.0, 1.0]))
-    assert s3.names == ["approach_azimuth", "approach_elevation", "speed", "height"]
+    assert s3.names == ["approach_azimuth", "approach_elevation", "depth", "speed", "height"]
     with pytest.raises(TacestError, match="height"):
         ActionSpace(vary=("height",))
     with pytest.raises(TacestError, match="poke style"):

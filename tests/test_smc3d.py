@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tacest.estimation.initial3d import _box_signed_distance
-from tacest.geometry.transforms import quat_from_rotvec, quat_to_matrix
+from tacest.geometry.transforms import quat_from_rotvec, quat_multiply, quat_to_matrix
 from tacest.model.forward3d import GROUND_SINK, Boxes, World3D, box_finger_geometry
 
 HALF = np.array([0.05, 0.04, 0.06])  # m
@@ -92,6 +92,24 @@ def test_the_finger_geometry_is_the_box_signed_distance_and_its_gradient():
         dn = _box_signed_distance(np.einsum("nji,nj->ni", R, pts - e - pos), half)
         grad[:, k] = (up - dn) / (2 * hstep)
     np.testing.assert_allclose(grad, n_w, atol=1e-6)
+
+
+def test_a_turn_about_the_vertical_is_no_tilt():
+    """The sampler's tilt (which decides whether its start goes first) is the angle of the
+    ground normal in the body frame: 40 degrees of yaw give 0, 30 degrees about x give 30
+    whatever the yaw."""
+    from types import SimpleNamespace
+
+    from tacest.estimation.smc3d import _max_tilt_deg
+
+    run = SimpleNamespace(up=np.array([0.0, 0.0, 1.0]))
+    yaw = np.linspace(0, np.radians(40), 50)
+    spin = np.concatenate([np.zeros((50, 3)), quat_from_rotvec(np.stack([0 * yaw, 0 * yaw, yaw], 1))], 1)
+    assert _max_tilt_deg([run], [spin]) == pytest.approx(0.0, abs=1e-6)
+    tip = spin.copy()
+    tilt = np.linspace(0, np.radians(30), 50)
+    tip[:, 3:] = quat_multiply(spin[:, 3:], quat_from_rotvec(np.stack([tilt, 0 * tilt, 0 * tilt], 1)))  # Rz Rx
+    assert _max_tilt_deg([run], [tip]) == pytest.approx(30.0, abs=1e-6)
 
 
 TOPPLE_3D = dict(dim=3, object_spec="box", pokes=2, seed=1, fingers=3, poke_style="high")

@@ -145,6 +145,8 @@ class Solver:
         _check_stages(self, "solver", "")
         if self.sampler_particles < 0 or self.sampler_particles == 1:
             raise _InvalidSetting(f"solver.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
+        if self.sampler_seed < 0:
+            raise _InvalidSetting(f"solver.sampler_seed must be >= 0, got {self.sampler_seed}")
         if self.sampler_starts < 1:
             raise _InvalidSetting(f"solver.sampler_starts must be >= 1, got {self.sampler_starts}")
         _check_restarts(self, "solver")
@@ -193,9 +195,10 @@ class Solver3D:
     #: iterations (objective 75.0 -> 64.7, the last 100 within 0.01 %) and ended 1.9 mm
     #: from the truth; with 400 it was a failed solve (docs/estimation3d.md, "Sampled starts")
     max_iter_no_pose: int = 800
-    #: runs without pose observations only: further starts tried when a fit fails or
-    #: violates its own physics by more than restart_physics (initial3d.py,
-    #: estimator3d.Estimator3D.solve); pose-observed runs solve once from their poses
+    #: runs without pose observations only: further push-tracked (or resting) starts tried
+    #: when a fit fails or violates its own physics by more than restart_physics
+    #: (initial3d.py, estimator3d.Estimator3D.solve), besides the sampler's start (one
+    #: more, sampler_particles); pose-observed runs solve once from their poses
     restarts: int = 2
     #: objective units per sample of the physics terms (dynamics, penetration,
     #: complementarity, dissipation, cone) above which a 3-D fit without pose observations
@@ -221,6 +224,8 @@ class Solver3D:
             raise _InvalidSetting(f"solver3d.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
         if self.max_iter_no_pose < 1:
             raise _InvalidSetting(f"solver3d.max_iter_no_pose must be >= 1, got {self.max_iter_no_pose}")
+        if self.sampler_seed < 0:
+            raise _InvalidSetting(f"solver3d.sampler_seed must be >= 0, got {self.sampler_seed}")
         if self.sampler_runs < 1:
             raise _InvalidSetting(f"solver3d.sampler_runs must be >= 1, got {self.sampler_runs}")
         if not (np.isfinite(self.sampler_tip_deg) and self.sampler_tip_deg >= 0):

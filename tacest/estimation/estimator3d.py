@@ -137,7 +137,7 @@ def box_extents_from_poses(runs: list, L: float, cube: float) -> np.ndarray:
     U, h = [], []
     sigma = 1e-3
     for run in runs:
-        poses, ok = observed_poses(run)
+        poses, ok = observed_poses(run, smooth=True)
         if poses is None or not ok.any():
             continue
         up = np.asarray(run.up, float) / np.linalg.norm(run.up)
@@ -163,11 +163,12 @@ def box_extents_from_poses(runs: list, L: float, cube: float) -> np.ndarray:
     return np.where(measured & (e > 0), e, cube)
 
 
-def observed_poses(run: Run):
+def observed_poses(run: Run, smooth: bool = False):
     """(poses (T, 7) with missing rows filled by interpolation, observed (T,) bool), or
     (None, all False) without observations.  Quaternions are normalised and their signs
-    made continuous, and the track is smoothed (:func:`smoothed_start_track`): the poses
-    are for the starts only (trajectory and shape), never for the pose residuals."""
+    made continuous; the filled rows are for the starts only.  ``smooth``: the track
+    smoothed (:func:`smoothed_start_track`), for the starts (trajectory and shape), never
+    for the pose residuals."""
     T = run.n_samples
     if run.pose_obs is None:
         return None, np.zeros(T, bool)
@@ -179,7 +180,7 @@ def observed_poses(run: Run):
     t = np.arange(T)
     filled = np.stack([np.interp(t, idx, P[idx, c]) for c in range(7)], 1)
     filled[:, 3:] /= np.linalg.norm(filled[:, 3:], axis=1, keepdims=True)
-    return smoothed_start_track(filled), ok
+    return (smoothed_start_track(filled) if smooth else filled), ok
 
 
 def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
@@ -322,7 +323,7 @@ class Estimator3D:
         """(T, 7) starting poses: the observations (:func:`observed_poses`: interpolated
         where missing, smoothed), else the prior's initial pose, else resting on the ground
         at the origin, unrotated."""
-        poses, ok = observed_poses(run)
+        poses, ok = observed_poses(run, smooth=True)
         if poses is not None:
             return poses
         if "initial_pose" in run.prior:
@@ -389,7 +390,7 @@ class Estimator3D:
         V = numeric_vertices_3d(self.shape, self.shape.initial(np.ones(3)), self.scales.L) / self.scales.L
         scales = []
         for run in self.runs:
-            poses, ok = observed_poses(run)
+            poses, ok = observed_poses(run, smooth=True)
             if poses is None or not ok.any():
                 continue
             up = np.asarray(run.up, float)
@@ -461,8 +462,9 @@ class Estimator3D:
         parameters, or no fingertip) solve once, from the observed poses and
         :meth:`choose_start_shape`.  Without pose observations the starts are
         initial3d.start_candidates_3d's (push-tracked boxes of a few extents and the
-        plain resting start, best agreement with the contact flags first): solve from
-        the first; when that fit fails, or violates its own physics by more than
+        plain resting start, best agreement with the contact flags first) and the
+        sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
+        than ``solver3d.sampler_tip_deg``, else second): solve from the first; when that fit fails, or violates its own physics by more than
         ``solver3d.restart_physics`` objective units per sample, again from up to
         ``solver3d.restarts`` others; keep the successful fit of lowest objective."""
         pr, cfg3 = self.problem, self.config.solver3d

@@ -54,8 +54,9 @@ class SMC3DSettings:
 class SMC3DResult:
     """The best hypothesis: extents (3,) m of its box, mass kg, mu_ground, mu_finger,
     poses [(T_i, 7)] per run (its lineage, smoothed, lifted out of the penalty ground),
-    its accumulated log likelihood, its largest tilt (deg, from the first pose of each
-    run); resamples, skipped samples, wall time s, the seed."""
+    its accumulated log likelihood, its largest tilt (deg: the angle between the body's
+    up direction now and at the start of its run; a turn about the vertical is no tilt);
+    resamples, skipped samples, wall time s, the seed."""
 
     extents: np.ndarray
     mass: float
@@ -240,11 +241,14 @@ def _as_start(run: Run, poses) -> np.ndarray:
     return smoothed_start_track(P, window)
 
 
-def _max_tilt_deg(poses: list) -> float:
+def _max_tilt_deg(runs: list[Run], poses: list) -> float:
+    """deg: the largest angle between the ground normal seen from the body at a sample
+    and at its run's first sample, over the runs' (T, 7) poses."""
     out = 0.0
-    for P in poses:
-        q = P[:, 3:] / np.linalg.norm(P[:, 3:], axis=1, keepdims=True)
-        out = max(out, float(np.degrees(np.max(2 * np.arccos(np.clip(np.abs(q @ q[0]), 0.0, 1.0))))))
+    for run, P in zip(runs, poses):
+        up = np.asarray(run.up, float) / np.linalg.norm(run.up)
+        u_b = np.einsum("tji,j->ti", quat_to_matrix(P[:, 3:]), up)  # Rᵀ up per sample
+        out = max(out, float(np.degrees(np.max(np.arccos(np.clip(u_b @ u_b[0], -1.0, 1.0))))))
     return out
 
 
@@ -277,7 +281,7 @@ def smc_start_3d(runs: list[Run], L: float, m0: float, extents0, settings: SMC3D
     ext = parts.extents[best].copy()
     result = SMC3DResult(extents=ext, mass=float(parts.mass[best]), mu_ground=float(parts.mu_g[best]),
                          mu_finger=float(parts.mu_f[best]), poses=poses, log_likelihood=float(parts.log_lik[best]),
-                         max_tilt_deg=_max_tilt_deg(poses), resamples=stats["resamples"], skipped=stats["skipped"],
+                         max_tilt_deg=_max_tilt_deg(runs, poses), resamples=stats["resamples"], skipped=stats["skipped"],
                          wall_time=time.perf_counter() - t0, seed=int(settings.seed))
     log.info(f"sampled start (3-D): {parts.n} hypotheses, {stats['resamples']} resamples, {stats['skipped']} idle "
              f"samples skipped, best box {np.round(ext * 1e3, 1)} mm, tilted up to {result.max_tilt_deg:.0f} deg, "

@@ -14,10 +14,11 @@ planner chooses, per finger:
   Otherwise depth is :data:`DEFAULT_DEPTH` (the middle of the random pokes' range), the
   aim is the centroid and the speed makes the approach last :data:`APPROACH_TIME` (1 s),
   as the random pokes do;
-- poke style ``dynamic`` (``tacest plan --poke-style dynamic``): speed and height are
-  always searched, the speed in :data:`DYNAMIC_SPEED_RANGE` (the simulators' fast
-  pokes, 0.1-0.6 m/s): pokes that tip, topple and flick the object, as the dynamic
-  pokes of ``tacest record --poke-style dynamic`` do.
+- poke style ``dynamic`` (``tacest plan --poke-style dynamic``): depth, speed and
+  height are always searched, the speed in :data:`DYNAMIC_SPEED_RANGE` (the simulators'
+  fast pokes, 0.1-0.6 m/s) and the depth in :data:`DYNAMIC_DEPTH_RANGE` (2-12 cm): pokes
+  that tip, topple and flick the object, as the dynamic pokes of ``tacest record
+  --poke-style dynamic`` do.
 
 In 3-D (:class:`ActionSpace3`, tacest.sim3d.pokes.POKE3_NAMES) the approach angle
 becomes an approach direction: ``approach_azimuth`` in [-π, π] (any side) and
@@ -46,9 +47,13 @@ DEPTH_RANGE = (0.005, 0.04)
 SPEED_RANGE = (0.02, 0.1)
 #: m/s, approach speeds of the ``dynamic`` poke style (tacest.sim.pokes' fast pokes)
 DYNAMIC_SPEED_RANGE = (0.1, 0.6)
+#: m, depths past the first touch of the ``dynamic`` poke style: the simulators' fast and
+#: high pokes push 0.3-1.5 object sizes in (3-15 cm on a 10 cm box); the planner may
+#: choose up to 12 cm
+DYNAMIC_DEPTH_RANGE = (0.02, 0.12)
 #: fractions of the object's estimated height (along the ground normal) the aim may be
 #: raised above its centroid with ``vary=("height",)``: up to the simulators' high pokes
-#: (30-45 % tips and topples a box on a grippy ground)
+#: (25-45 % above a box's centre tips and topples it on a grippy ground)
 HEIGHT_RANGE = (0.0, 0.45)
 VARIABLES = ("depth", "speed", "height")
 #: poke styles of the action space (module docstring)
@@ -66,7 +71,7 @@ APPROACH_REACH = 0.1
 @dataclass
 class ActionSpace:
     """What the planner chooses (module docstring).  vary : subset of VARIABLES; style :
-    ``gentle`` or ``dynamic`` (adds speed and height, speeds in DYNAMIC_SPEED_RANGE);
+    ``gentle`` or ``dynamic`` (adds depth, speed and height, in the dynamic ranges);
     object_height : m, the object's estimated extent along ``up`` (D,), the ground
     normal (the unit of ``height``)."""
 
@@ -84,7 +89,7 @@ class ActionSpace:
             raise TacestError(f"cannot vary {', '.join(bad)}: choose from {', '.join(VARIABLES)}")
         if self.style not in ACTION_STYLES:
             raise TacestError(f"unknown poke style {self.style!r}: use {', '.join(ACTION_STYLES)}")
-        vary = set(self.vary) | ({"speed", "height"} if self.style == "dynamic" else set())
+        vary = set(self.vary) | ({"depth", "speed", "height"} if self.style == "dynamic" else set())
         self.vary = tuple(v for v in VARIABLES if v in vary)
         if "height" in self.vary and (self.up is None or not self.object_height > 0):
             raise TacestError("varying the aim's height needs the object's height and the ground normal")
@@ -92,7 +97,7 @@ class ActionSpace:
     def range_of(self, name: str) -> tuple:
         """(low, high) of a searched variable besides the direction."""
         if name == "depth":
-            return DEPTH_RANGE
+            return DYNAMIC_DEPTH_RANGE if self.style == "dynamic" else DEPTH_RANGE
         if name == "speed":
             return DYNAMIC_SPEED_RANGE if self.style == "dynamic" else SPEED_RANGE
         return HEIGHT_RANGE
