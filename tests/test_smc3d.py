@@ -9,6 +9,7 @@ import pytest
 from tacest.estimation.initial3d import _box_signed_distance
 from tacest.geometry.transforms import quat_from_rotvec, quat_multiply, quat_to_matrix
 from tacest.model.forward3d import GROUND_SINK, Boxes, World3D, box_finger_geometry
+from tests.test_dynamic import TOPPLE_3D
 
 HALF = np.array([0.05, 0.04, 0.06])  # m
 G = 9.81
@@ -110,9 +111,6 @@ def test_a_turn_about_the_vertical_is_no_tilt():
     tilt = np.linspace(0, np.radians(30), 50)
     tip[:, 3:] = quat_multiply(spin[:, 3:], quat_from_rotvec(np.stack([tilt, 0 * tilt, 0 * tilt], 1)))  # Rz Rx
     assert _max_tilt_deg([run], [tip]) == pytest.approx(30.0, abs=1e-6)
-
-
-TOPPLE_3D = dict(dim=3, object_spec="box", pokes=2, seed=1, fingers=3, poke_style="high")
 
 
 @pytest.fixture(scope="module")

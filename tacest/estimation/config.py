@@ -143,12 +143,7 @@ class Solver:
 
     def __post_init__(self):
         _check_stages(self, "solver", "")
-        if self.sampler_particles < 0 or self.sampler_particles == 1:
-            raise _InvalidSetting(f"solver.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
-        if self.sampler_seed < 0:
-            raise _InvalidSetting(f"solver.sampler_seed must be >= 0, got {self.sampler_seed}")
-        if self.sampler_starts < 1:
-            raise _InvalidSetting(f"solver.sampler_starts must be >= 1, got {self.sampler_starts}")
+        _check_sampler(self, "solver", "sampler_starts")
         _check_restarts(self, "solver")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise _InvalidSetting(f"solver.linear_solver: unknown {self.linear_solver!r}; one of {', '.join(LINEAR_SOLVERS)}")
@@ -220,14 +215,9 @@ class Solver3D:
     sampler_tip_deg: float = 20.0
 
     def __post_init__(self):
-        if self.sampler_particles < 0 or self.sampler_particles == 1:
-            raise _InvalidSetting(f"solver3d.sampler_particles must be 0 (off) or >= 2, got {self.sampler_particles}")
+        _check_sampler(self, "solver3d", "sampler_runs")
         if self.max_iter_no_pose < 1:
             raise _InvalidSetting(f"solver3d.max_iter_no_pose must be >= 1, got {self.max_iter_no_pose}")
-        if self.sampler_seed < 0:
-            raise _InvalidSetting(f"solver3d.sampler_seed must be >= 0, got {self.sampler_seed}")
-        if self.sampler_runs < 1:
-            raise _InvalidSetting(f"solver3d.sampler_runs must be >= 1, got {self.sampler_runs}")
         if not (np.isfinite(self.sampler_tip_deg) and self.sampler_tip_deg >= 0):
             raise _InvalidSetting(f"solver3d.sampler_tip_deg must be >= 0, got {self.sampler_tip_deg!r}")
         _check_stages(self, "solver3d", "")
@@ -295,6 +285,17 @@ def _check_stages(section, name, suffix):
     if hessian not in HESSIAN_CHOICES:
         raise _InvalidSetting(f"{name}.hessian{suffix}: expected gauss-newton, exact or gauss-newton-then-exact, "
                           f"got {hessian!r}")
+
+
+def _check_sampler(section, name, runs_key):
+    """The sampling start's settings of a section: particles 0 (off) or >= 2, seed >= 0,
+    and its number of runs (``runs_key``) >= 1."""
+    if section.sampler_particles < 0 or section.sampler_particles == 1:
+        raise _InvalidSetting(f"{name}.sampler_particles must be 0 (off) or >= 2, got {section.sampler_particles}")
+    if section.sampler_seed < 0:
+        raise _InvalidSetting(f"{name}.sampler_seed must be >= 0, got {section.sampler_seed}")
+    if getattr(section, runs_key) < 1:
+        raise _InvalidSetting(f"{name}.{runs_key} must be >= 1, got {getattr(section, runs_key)}")
 
 
 def _check_restarts(section, name):

@@ -104,30 +104,37 @@ def observed_trajectory(run: Run):
     return smooth_quadratic(poses, run.dt, OBSERVED_SMOOTHING_S)
 
 
-def smooth_quadratic(x, dt: float, window_s: float) -> np.ndarray:
-    """x (T, n) smoothed by a local quadratic over window_s seconds (the odd number of
-    samples nearest window_s / dt): a least-squares quadratic through each window's
-    samples, evaluated at its centre (Savitzky–Golay of order 2), and within half a
-    window of either end the quadratic of the first or last whole window evaluated
-    there; x unchanged when the window would be under 5 samples or longer than x."""
+def smooth_polynomial(x, window: int, order: int) -> np.ndarray:
+    """x (T, n) smoothed by a local polynomial of ``order`` over ``window`` samples (odd,
+    order + 2 <= window <= T): a least-squares polynomial through each window's samples,
+    evaluated at its centre (Savitzky–Golay), and within half a window of either end the
+    polynomial of the first or last whole window evaluated there."""
     x = np.asarray(x, float)
     T = x.shape[0]
-    window = 2 * int(round(window_s / dt / 2)) + 1
-    if window < 5 or T < window:
-        return x.copy()
     h = window // 2
     u = np.arange(-h, h + 1, dtype=float)
-    A = np.vander(u, 3, increasing=True)  # columns 1, u, u²
-    fit = np.linalg.pinv(A)  # (3, window): coefficients of the least-squares quadratic
+    A = np.vander(u, order + 1, increasing=True)  # columns 1, u, u², ...
+    fit = np.linalg.pinv(A)  # (order + 1, window): coefficients of the least-squares polynomial
     out = x.copy()
     # interior: the fitted value at the centre, i.e. a correlation with fit[0]
     windows = np.lib.stride_tricks.sliding_window_view(x, window, axis=0)  # (T - 2h, n, window)
     out[h: T - h] = windows @ fit[0]
-    # ends: the first and last windows' quadratics evaluated at their outer samples
+    # ends: the first and last windows' polynomials evaluated at their outer samples
     for start, edge in ((0, np.arange(h)), (T - window, np.arange(T - h, T))):
-        coef = fit @ x[start: start + window]  # (3, n)
-        out[edge] = np.vander(edge - (start + h), 3, increasing=True).astype(float) @ coef
+        coef = fit @ x[start: start + window]  # (order + 1, n)
+        out[edge] = np.vander(edge - (start + h), order + 1, increasing=True).astype(float) @ coef
     return out
+
+
+def smooth_quadratic(x, dt: float, window_s: float) -> np.ndarray:
+    """x (T, n) smoothed by a local quadratic over window_s seconds (the odd number of
+    samples nearest window_s / dt; :func:`smooth_polynomial` of order 2); x unchanged when
+    the window would be under 5 samples or longer than x."""
+    x = np.asarray(x, float)
+    window = 2 * int(round(window_s / dt / 2)) + 1
+    if window < 5 or x.shape[0] < window:
+        return x.copy()
+    return smooth_polynomial(x, window, 2)
 
 
 def _rotations(angles):

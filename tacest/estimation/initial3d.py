@@ -33,7 +33,7 @@ import numpy as np
 
 from tacest.estimation.data import touch_inconsistency, touching
 # the grid of candidate extents (factors of L) and the distinctness of starts, as in 2-D
-from tacest.estimation.initial import DISTINCT_EXTENT_RATIO, EXTENT_GRID
+from tacest.estimation.initial import DISTINCT_EXTENT_RATIO, EXTENT_GRID, smooth_polynomial
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.run import Run
 
@@ -90,17 +90,15 @@ def smoothed_start_track(poses: np.ndarray, window: int = START_SMOOTH_WINDOW) -
     observation noise sigma becomes accelerations of ~sigma / dt² (0.5 mm at 100 Hz:
     5 m/s², 10 mrad: 100 rad/s²).  From the raw observations the first Gauss–Newton
     steps absorb that noise into the slowest parameters: on simulated topples (MuJoCo,
-    noiseless sensors, poses at 0.5 mm) the inertia grew 40–300x and the mass 60 % off,
-    objective 1400–2100; from the smoothed start the same fits end at 240–630 with the
-    mass within 1–8 % (docs/estimation3d.md, "Pose-observed starts"); the
-    sampler's lineages are smoothed the same way (smc3d)."""
+    noiseless finger sensors, poses at 0.5 mm) the inertia grew up to 70x and the mass
+    up to 64 % off, objective 1000–2100; from the smoothed start the same fits end at
+    810–1180 with the mass within 0.4–5 % (docs/estimation3d.md, "Pose-observed
+    starts"); the sampler's lineages are smoothed the same way over 0.07 s (smc3d)."""
     T = poses.shape[0]
     window = min(int(window), T if T % 2 else T - 1)
     if window <= START_SMOOTH_ORDER + 1:
         return poses
-    from scipy.signal import savgol_filter
-
-    out = savgol_filter(poses, window, START_SMOOTH_ORDER, axis=0, mode="interp")
+    out = smooth_polynomial(poses, window, START_SMOOTH_ORDER)
     out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
     return out
 

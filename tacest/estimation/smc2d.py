@@ -35,35 +35,16 @@ import numpy as np
 from tacest.estimation.data import finger_velocity, touching
 from tacest.estimation.initial import initial_extents, initial_pose, smooth_quadratic
 from tacest.io.run import Run
+from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
+                                   ParticleParameters, fingers_near, subtract_touch_terms)
 from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypotheses, finger_geometry
 
 log = logging.getLogger(__name__)
 
-#: resample when the effective sample size falls below this fraction of the particles
-ESS_FRACTION = 0.5
-#: m, sigma of the fingertip's gap to the surface in the sampler's likelihood: looser
-#: than the NLP's contact sigma (0.5 mm), for the forward model's penalty contacts sink
-#: a fingertip ~1 mm into a hypothesis that pushes it
-SIGMA_GAP = 2e-3
-#: rad, sigma of the contact normal in the sampler's likelihood (looser than the NLP's
-#: 0.05: a hypothesis a few degrees off in the middle of a topple is still the right one)
-SIGMA_NORMAL = 0.15
 #: N, and fraction of the measured force: sigma of a fingertip's force in the sampler's
 #: likelihood (the forward model's penalty forces ring over a substep or two)
 SIGMA_FORCE = 1.0
 SIGMA_FORCE_FRACTION = 0.2
-#: jitter of a resampled hypothesis: log-extents, log-mass, frictions, position (m),
-#: angle (rad), velocity (m/s, rad/s)
-JITTER = {"log_extent": 0.01, "log_mass": 0.03, "friction": 0.02, "position": 3e-4, "angle": 5e-3,
-          "velocity": 5e-3, "omega": 0.05}
-#: range of the starting extents, as factors of the length scale L (log-uniform), and of
-#: the frictions
-EXTENT_RANGE = (0.4, 2.5)
-FRICTION_RANGE = (0.1, 1.0)
-#: m/s, rad/s: speed below which a hypothesis counts as at rest (samples with every
-#: hypothesis at rest and no fingertip near are skipped)
-REST_SPEED = 1e-4
-REST_OMEGA = 1e-3
 
 
 @dataclass(frozen=True)
@@ -98,28 +79,8 @@ class SMCResult:
     seed: int = 0
 
 
-class _Particles:
-    """The hypotheses' parameters (as box extents), states, lineage and weights."""
-
-    def __init__(self, n, rng, L, m0, has_force, extents0):
-        self.rng = rng
-        lo, hi = np.log(EXTENT_RANGE[0] * L), np.log(EXTENT_RANGE[1] * L)
-        # half the hypotheses log-uniform over the range, half around the push-tracker's
-        # start (initial_extents): where the touches already tell the extents, there
-        k = n // 2
-        self.extents = np.exp(np.concatenate([rng.uniform(lo, hi, size=(n - k, 2)),
-                                              np.log(extents0)[None] + rng.normal(0, 0.25, size=(k, 2))]))
-        self.extents = np.clip(self.extents, EXTENT_RANGE[0] * L, EXTENT_RANGE[1] * L)
-        self.mass = m0 * (np.exp(rng.normal(0.0, 0.7, size=n)) if has_force else np.ones(n))
-        self.mu_g = rng.uniform(*FRICTION_RANGE, size=n)
-        self.mu_f = rng.uniform(*FRICTION_RANGE, size=n)
-        self.has_force = has_force
-        self.log_w = np.zeros(n)
-        self.log_lik = np.zeros(n)
-
-    @property
-    def n(self):
-        return len(self.mass)
+class _Particles(ParticleParameters):
+    """The hypotheses' parameters (as box extents (N, 2)), weights and lineage."""
 
     def hypotheses(self):
         return box_hypotheses(self.extents[:, 0], self.extents[:, 1], self.mass, self.mu_g, self.mu_f)
@@ -127,28 +88,11 @@ class _Particles:
     def resample(self, pose, vel, hist):
         """Systematic resampling, then jitter; pose, vel (N, 3) and the lineage history
         (T, N, 3) are reordered with the hypotheses."""
-        w = np.exp(self.log_w - self.log_w.max())
-        w /= w.sum()
-        u = (self.rng.random() + np.arange(self.n)) / self.n
-        idx = np.minimum(np.searchsorted(np.cumsum(w), u), self.n - 1)
+        idx = self.resample_parameters()
         j = JITTER
-        self.extents = self.extents[idx] * np.exp(self.rng.normal(0, j["log_extent"], size=(self.n, 2)))
-        if self.has_force:
-            self.mass = self.mass[idx] * np.exp(self.rng.normal(0, j["log_mass"], size=self.n))
-        else:
-            self.mass = self.mass[idx]
-        self.mu_g = np.clip(self.mu_g[idx] + self.rng.normal(0, j["friction"], size=self.n), 0.02, 2.0)
-        self.mu_f = np.clip(self.mu_f[idx] + self.rng.normal(0, j["friction"], size=self.n), 0.02, 2.0)
-        self.log_lik = self.log_lik[idx]
-        self.log_w = np.zeros(self.n)
         pose = pose[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["position"], j["position"], j["angle"]]
         vel = vel[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["velocity"], j["velocity"], j["omega"]]
         return pose, vel, hist[:, idx]
-
-    def ess(self):
-        w = np.exp(self.log_w - self.log_w.max())
-        w /= w.sum()
-        return 1.0 / float(np.sum(w * w))
 
 
 def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None) -> np.ndarray:
@@ -165,14 +109,7 @@ def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=Non
             sig = SIGMA_FORCE + SIGMA_FORCE_FRACTION * float(np.linalg.norm(F_meas))
             ll -= 0.5 * np.sum((force_model[f] - F_meas) ** 2, axis=1) / sig ** 2
         sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
-        gap = sd - world.radius[f]
-        if on[t, f]:
-            ll -= 0.5 * (gap / settings.sigma_gap) ** 2
-            n_meas = run.normal[t, f]
-            if np.all(np.isfinite(n_meas)):
-                ll -= 0.5 * np.sum((n_w - n_meas) ** 2, axis=1) / settings.sigma_normal ** 2
-        else:
-            ll -= 0.5 * (np.minimum(gap, 0.0) / settings.sigma_gap) ** 2
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
     return ll
 
 
@@ -192,13 +129,7 @@ def _snap(run: Run, t, pushing, hyp, pose, world) -> np.ndarray:
 def _near(run: Run, t, hyp, pose, world) -> list:
     """Fingers within reach of any hypothesis at samples t-1 or t."""
     reach = float(np.max(np.linalg.norm(hyp.vertices, axis=-1))) + float(np.max(world.radius)) + 0.01
-    out = []
-    for f in range(run.n_fingers):
-        c = run.finger_position[[max(t - 1, 0), t], f]
-        d = np.min(np.linalg.norm(pose[None, :, :2] - c[:, None], axis=-1))
-        if d <= reach:
-            out.append(f)
-    return out
+    return fingers_near(run, t, pose[:, :2], reach)
 
 
 def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
@@ -299,9 +230,7 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
         if i == len(runs) - 1:
             poses.append(histories[i][:, best].copy())
         else:
-            single = _Particles.__new__(_Particles)
-            single.__dict__.update({k: (v[[best]] if isinstance(v, np.ndarray) and v.shape[:1] == (parts.n,) else v)
-                                    for k, v in parts.__dict__.items()})
+            single = parts.take([best])
             single.rng = np.random.default_rng(settings.seed + 1 + i)
             poses.append(_run_filter(run, single, settings, {"resamples": 0, "skipped": 0})[:, 0].copy())
     poses = [_as_start(run, P) for run, P in zip(runs, poses)]

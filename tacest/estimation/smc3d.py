@@ -26,8 +26,8 @@ import numpy as np
 
 from tacest.estimation.data import finger_velocity, touching
 from tacest.estimation.initial3d import initial_orientation, initial_position, smoothed_start_track
-from tacest.estimation.smc2d import ESS_FRACTION, EXTENT_RANGE, FRICTION_RANGE, JITTER, REST_OMEGA, REST_SPEED, \
-    SIGMA_GAP, SIGMA_NORMAL
+from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
+                                   ParticleParameters, fingers_near, subtract_touch_terms)
 from tacest.geometry.transforms import quat_from_matrix, quat_from_rotvec, quat_multiply, quat_to_matrix
 from tacest.io.run import Run
 from tacest.model.forward3d import GROUND_SINK, MAX_STEP, Boxes, World3D, box_finger_geometry
@@ -42,7 +42,7 @@ SMOOTHING_S = 0.07
 @dataclass(frozen=True)
 class SMC3DSettings:
     """particles : hypotheses; seed : of every random draw; sigma_gap (m), sigma_normal
-    (rad) : the likelihood's sigmas (smc2d's)."""
+    (rad) : the likelihood's sigmas (tacest.estimation.smc's)."""
 
     particles: int = 256
     seed: int = 0
@@ -71,62 +71,23 @@ class SMC3DResult:
     seed: int = 0
 
 
-class _Particles:
-    """The hypotheses' parameters, log weights and accumulated log likelihoods."""
-
-    def __init__(self, n, rng, L, m0, has_force, extents0):
-        self.rng = rng
-        lo, hi = np.log(EXTENT_RANGE[0] * L), np.log(EXTENT_RANGE[1] * L)
-        k = n // 2  # half log-uniform over the range, half around the push tracker's box
-        ext = np.exp(np.concatenate([rng.uniform(lo, hi, size=(n - k, 3)),
-                                     np.log(extents0)[None] + rng.normal(0, 0.25, size=(k, 3))]))
-        self.extents = np.clip(ext, EXTENT_RANGE[0] * L, EXTENT_RANGE[1] * L)
-        self.mass = m0 * (np.exp(rng.normal(0.0, 0.7, size=n)) if has_force else np.ones(n))
-        self.mu_g = rng.uniform(*FRICTION_RANGE, size=n)
-        self.mu_f = rng.uniform(*FRICTION_RANGE, size=n)
-        self.has_force = has_force
-        self.log_w = np.zeros(n)
-        self.log_lik = np.zeros(n)
-
-    @property
-    def n(self):
-        return len(self.mass)
+class _Particles(ParticleParameters):
+    """The hypotheses' parameters (as box extents (N, 3)), weights and lineage."""
 
     def boxes(self) -> Boxes:
         return Boxes(0.5 * self.extents, self.mass, self.mu_g, self.mu_f)
 
-    def take(self, idx):
-        """A copy holding only the hypotheses idx."""
-        out = _Particles.__new__(_Particles)
-        out.__dict__.update({k: (v[idx] if isinstance(v, np.ndarray) and v.shape[:1] == (self.n,) else v)
-                             for k, v in self.__dict__.items()})
-        return out
-
     def resample(self, state, hist):
         """Systematic resampling, then jitter; the state (pos, quat, vel, omega_b) and
         the lineage history (T, N, 7) are reordered with the hypotheses."""
-        w = np.exp(self.log_w - self.log_w.max())
-        w /= w.sum()
-        u = (self.rng.random() + np.arange(self.n)) / self.n
-        idx = np.minimum(np.searchsorted(np.cumsum(w), u), self.n - 1)
+        idx = self.resample_parameters()
         j, n, rng = JITTER, self.n, self.rng
-        self.extents = self.extents[idx] * np.exp(rng.normal(0, j["log_extent"], size=(n, 3)))
-        self.mass = self.mass[idx] * (np.exp(rng.normal(0, j["log_mass"], size=n)) if self.has_force else 1.0)
-        self.mu_g = np.clip(self.mu_g[idx] + rng.normal(0, j["friction"], size=n), 0.02, 2.0)
-        self.mu_f = np.clip(self.mu_f[idx] + rng.normal(0, j["friction"], size=n), 0.02, 2.0)
-        self.log_lik = self.log_lik[idx]
-        self.log_w = np.zeros(n)
         pos, quat, vel, om = (a[idx] for a in state)
         pos = pos + rng.normal(0, j["position"], size=(n, 3))
         quat = quat_multiply(quat, quat_from_rotvec(rng.normal(0, j["angle"], size=(n, 3))))
         vel = vel + rng.normal(0, j["velocity"], size=(n, 3))
         om = om + rng.normal(0, j["omega"], size=(n, 3))
         return (pos, quat, vel, om), hist[:, idx]
-
-    def ess(self):
-        w = np.exp(self.log_w - self.log_w.max())
-        w /= w.sum()
-        return 1.0 / float(np.sum(w * w))
 
 
 def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings) -> np.ndarray:
@@ -137,28 +98,14 @@ def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings) -> np.
         if not valid[f] or not np.all(np.isfinite(run.finger_position[t, f])):
             continue
         sd, n_w, _ = box_finger_geometry(hyp.half, R, pos, run.finger_position[t, f])
-        gap = sd - world.radius[f]
-        if on[t, f]:
-            ll -= 0.5 * (gap / settings.sigma_gap) ** 2
-            n_meas = run.normal[t, f]
-            if np.all(np.isfinite(n_meas)):
-                ll -= 0.5 * np.sum((n_w - n_meas) ** 2, axis=1) / settings.sigma_normal ** 2
-        else:
-            ll -= 0.5 * (np.minimum(gap, 0.0) / settings.sigma_gap) ** 2
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
     return ll
 
 
 def _near(run: Run, t, hyp: Boxes, pos, world) -> list:
     """Fingers within reach of any hypothesis at samples t-1 or t."""
     reach = float(np.max(np.linalg.norm(hyp.half, axis=1))) + float(np.max(world.radius)) + 0.01
-    out = []
-    for f in range(run.n_fingers):
-        c = run.finger_position[[max(t - 1, 0), t], f]
-        if not np.all(np.isfinite(c)):
-            continue
-        if np.min(np.linalg.norm(pos[None] - c[:, None], axis=-1)) <= reach:
-            out.append(f)
-    return out
+    return fingers_near(run, t, pos, reach)
 
 
 def _start_state(run: Run, parts: _Particles, world: World3D):
