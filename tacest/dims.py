@@ -97,12 +97,15 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
                   refit_shape: bool = False):
     """Estimate one object from its runs (all of one dimension): the dimension's
     estimator for ``method``.  effects, fixed, refit_shape : see
-    tacest.estimation.estimator.estimate_2d (the 2-D implicit estimator only)."""
+    tacest.estimation.estimator.estimate_2d (fixed and refit_shape: the 2-D implicit
+    estimator only; effects: the implicit estimators of both dimensions)."""
     dim = dimension_of(runs)
     if method not in ("implicit", "shooting"):
         raise TacestError(f"unknown method {method!r}: use implicit or shooting")
-    if (tuple(effects or ()) or fixed is not None) and not (dim.dim == 2 and method == "implicit"):
-        raise TacestError("effects= and fixed= are offered by the implicit 2-D estimator only")
+    if fixed is not None and not (dim.dim == 2 and method == "implicit"):
+        raise TacestError("fixed= is offered by the implicit 2-D estimator only")
+    if tuple(effects or ()) and method != "implicit":
+        raise TacestError("effects= are offered by the implicit estimators only")
     kwargs = {}
     if effects:
         kwargs["effects"] = tuple(effects)

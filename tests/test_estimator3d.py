@@ -394,10 +394,83 @@ def test_diagnose_3d_finds_rounded_edges_on_held_out_tosses(tmp_path):
     d = json.loads(out.stdout)
     assert {"verdict", "effects", "where"} <= set(d)
     eff = {e["name"]: e for e in d["effects"]}
-    assert set(eff) == {"edge_radius", "ground_offset"}
+    # every 3-D augmentation the tosses can show: no force stream, so no force effects
+    assert set(eff) == {"edge_radius", "ground_offset", "angular_damping", "linear_drag", "soft_contact",
+                        "face_friction", "com_offset"}
+    assert {"force_bias", "force_scale", "restitution"} <= set(d["not_compared"])
     # the sharp model misses the rounded contacts: a gap above the floor that the rounded
     # model closes by at least the blaming rule's 20 %
     assert eff["edge_radius"]["gap_before"] > 0
     assert eff["edge_radius"]["reduction"] >= 0.2
     assert d["verdict"] == "edge_radius"
     assert (tmp_path / "diag" / "report.md").is_file() and (tmp_path / "diag" / "residuals_3d.png").is_file()
+
+
+#: every SPEC effect the 3-D NLP models beside edge_radius and ground_offset
+EFFECTS_3D = ("angular_damping", "linear_drag", "soft_contact", "force_bias", "force_scale", "face_friction",
+              "com_offset")
+
+
+def test_derivatives_with_every_3d_effect_match_finite_differences(monkeypatch):
+    """The checks of the pushing fingertip with every 3-D effect in the model: their
+    Jacobian columns are live (each moves some residual of the push) and match central
+    differences, as do the gradient and the exact Hessian."""
+    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
+    from tacest.estimation.estimator3d import Estimator3D
+    from tests.test_initial3d import _push_run
+
+    run = _push_run(yaw_deg=3.0)
+    a, b = 150, 158
+    short = run.replace(time=run.time[a:b] - run.time[a], finger_position=run.finger_position[a:b],
+                        contact=run.contact[a:b], force=run.force[a:b], normal=run.normal[a:b])
+    est = Estimator3D([short], "box", effects=EFFECTS_3D)
+    pr = est.problem
+    assert set(EFFECTS_3D) <= set(pr.effects)
+    J = _assert_derivatives_match_finite_differences(est, seed=5)
+    for e, par in pr.effect_params:
+        if e.name in EFFECTS_3D:
+            col = np.abs(J[: pr.n_res_data, pr.theta_index(f"{e.name}.{par.name}")]).max()
+            if e.name == "face_friction":  # only the face the box rests on (d2: -z) slides
+                assert (col > 1e-3) == (par.name == "d2"), (par.name, col)
+            else:
+                assert col > 1e-3, f"{e.name}.{par.name} moves no residual"
+
+
+def test_face_friction_is_refused_for_a_polytope_in_3d():
+    from tacest.errors import TacestError
+    from tacest.geometry.shapes3d import make_shape_3d
+    from tacest.model.stage3d import StageModel3D
+
+    with pytest.raises(TacestError, match="face_friction"):
+        StageModel3D(make_shape_3d("polytope:8"), 1, ("face_friction",))
+
+
+@pytest.mark.parametrize("spec,keys,tol", [
+    # 3 % of the offsets: the force stream sees the bias at every sample (0.1 % seen)
+    ("force_bias:fx=0.5,fy=-0.3,fz=0.4", {"force_bias.fx": 0.5, "force_bias.fy": -0.3, "force_bias.fz": 0.4}, 0.015),
+    # 2.5 mm on offsets of 8-16 mm: told by how the box tips and rests (0.4, 0.4, 1.3 mm seen)
+    ("com_offset:dx=0.016,dy=-0.008,dz=0.011", {"com_offset.dx": 0.016, "com_offset.dy": -0.008,
+                                                 "com_offset.dz": 0.011}, 0.0025),
+])
+def test_a_3d_effect_is_recovered_from_a_recording_that_shows_it(spec, keys, tol):
+    """Known answer for a 3-D augmentation on a recording of the MuJoCo world (another
+    simulator than the model): 3 dynamic pokes by one force-sensing finger, poses seen at
+    0.5 mm.  The effect's parameters come back, and the fit with the effect explains the
+    data far better than the plain one."""
+    from tacest.dims import record_sim
+    from tacest.estimation.estimator3d import estimate_3d
+    from tacest.sim.record import SimOptions
+
+    run = record_sim(SimOptions(dim=3, seed=1, pokes=3, fingers=1, effects=[spec], observe_pose=0.0005,
+                                poke_style="dynamic"))
+    name = spec.split(":")[0]
+    plain = estimate_3d([run], "box")
+    est = estimate_3d([run], "box", effects=[name])
+    assert est.success, est.solver_status
+    assert name in est.model
+    for k, v in keys.items():
+        assert est.params[k] == pytest.approx(v, abs=tol), k
+        assert np.isfinite(est.std[k])
+    # the plain fit pays for the missing effect (objective 34214 -> 1447 for the bias,
+    # 29346 -> 1324 for the COM): at least a factor 5
+    assert est.objective < plain.objective / 5

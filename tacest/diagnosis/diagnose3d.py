@@ -16,15 +16,20 @@ augmentations closes the gap on runs the fit did not see.
    false-alarm rate ``alpha`` (Bonferroni over all windows) are flagged; overlapping
    flagged windows merge.  Each flagged stretch names the term with the most excess, and its
    share of all runs' excess.
-4. Candidates.  Each augmentation of AUGMENTATIONS is fitted on the training runs; the
-   plain and every augmented model are then evaluated on the held-out runs with their
-   parameters held (the trajectories alone fitted).  gap = held-out loss per sample -
-   FLOOR; reduction = 1 - gap_after / gap_before.  A candidate is blamed if the plain
-   model's gap is above the floor and it closes at least MIN_REDUCTION of it (the 2-D
-   rule, docs/diagnosis.md); the verdict is the largest such reduction, else ``none``.
+4. Candidates.  Each augmentation of AUGMENTATIONS (tacest's edge_radius and
+   ground_offset, and every SPEC effect the 3-D NLP models: SPEC_EFFECTS_3D) that the
+   runs can show (:func:`applicable`: force effects need a force stream) is fitted on the
+   training runs; the plain and every augmented model are then evaluated on the held-out
+   runs with their parameters held (the trajectories alone fitted).  Every fit starts
+   from the observed poses; a fit that uses up its iteration budget is compared where it
+   ended, its status reported.  gap = held-out loss per sample - FLOOR; reduction = 1 -
+   gap_after / gap_before.  A candidate is blamed if the plain model's gap is above the
+   floor and it closes at least MIN_REDUCTION of it (the 2-D rule, docs/diagnosis.md);
+   the verdict is the largest such reduction, else ``none``.
 
-Restitution and the other SPEC effects have no 3-D model yet: they are listed as not
-compared (docs/estimation3d.md).
+Restitution (no per-vertex impact memory in the 3-D NLP yet), latency and time_scale
+(data transforms the 3-D diagnosis does not search yet) are listed as not compared
+(docs/estimation3d.md, "Effects").
 """
 
 from __future__ import annotations
@@ -40,19 +45,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.model.registry import NONE, model_effect_names
+from tacest.sim.effects import EFFECT_NAMES
 
 log = logging.getLogger(__name__)
 
-#: the 3-D augmentations a diagnosis compares: name -> [solver3d] overrides (prior sigmas,
-#: m): weak priors at 0 (a few times the millimetre effects they are meant to find)
-AUGMENTATIONS = {
-    "edge_radius": {"edge_radius_sigma": 0.005, "ground_offset_sigma": 0.0},
-    "ground_offset": {"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.005},
-}
+#: [solver3d] overrides of the plain model (tacest's 3-D extensions off)
 PLAIN = {"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.0}
-#: SPEC effects without a 3-D model (reported as not compared)
-NOT_MODELLED_3D = ("restitution", "angular_damping", "linear_drag", "soft_contact", "face_friction", "com_offset",
-                   "time_scale")
+#: the SPEC effects the 3-D NLP models (tacest.model.registry), compared as candidates
+SPEC_EFFECTS_3D = tuple(n for n in model_effect_names(3) if n not in ("edge_radius", "ground_offset"))
+#: the 3-D augmentations a diagnosis compares: name -> ([solver3d] overrides (prior
+#: sigmas, m: weak priors at 0, a few times the millimetre effects they are meant to
+#: find), effects modelled as extra parameters)
+AUGMENTATIONS = {
+    "edge_radius": ({"edge_radius_sigma": 0.005, "ground_offset_sigma": 0.0}, ()),
+    "ground_offset": ({"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.005}, ()),
+    **{name: (PLAIN, (name,)) for name in SPEC_EFFECTS_3D},
+}
+#: SPEC effects without a 3-D model (reported as not compared): restitution needs an
+#: impact memory per vertex (states the 3-D NLP does not have yet); latency and time_scale
+#: are data transforms the 3-D diagnosis does not search yet
+NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D and n != NONE)
 #: expected per-sample loss of the pose (6 rows) and dynamics (6 rows) terms: half the rows
 FLOOR_PER_SAMPLE = {"pose": 3.0, "dynamics": 3.0}
 TERMS = ("pose", "dynamics", "penetration", "complementarity")
@@ -105,7 +118,7 @@ class Diagnosis3D:
         return {
             "verdict": self.verdict, "reason": self.reason, "dim": 3,
             "effects": self.effects, "where": self.where,
-            "not_compared": list(NOT_MODELLED_3D),
+            "not_compared": list(self.extra.get("not_compared_reasons", {n: "" for n in NOT_MODELLED_3D})),
             "floor_per_sample": self.floor,
             "train": self.train, "heldout": self.heldout,
             "fits": {k: {"params": {n: num(x) for n, x in f.params.items()}, "status": f.status,
@@ -133,22 +146,42 @@ def _losses(est, z):
     return res, total / max(n, 1)
 
 
-def _fit(runs, shape, cfg, fixed_theta=None):
+def _estimator(runs, shape, cfg, effects, fixed_theta=None):
     from tacest.estimation.estimator3d import Estimator3D
-    from tacest.estimation.solver import SUCCESS_STATUSES
 
-    est = Estimator3D(runs, shape, cfg, fixed_theta=fixed_theta)
-    out = est.solve()
-    if out.status not in SUCCESS_STATUSES:
+    # a fit that uses up its iteration budget is compared where it ended (its status is
+    # reported): a candidate warm-started from the plain fit ends no worse than it
+    return Estimator3D(runs, shape, cfg, fixed_theta=fixed_theta, effects=effects, accept_budget=True)
+
+
+def _check(out):
+    from tacest.estimation.solver import BUDGET_STATUSES, SUCCESS_STATUSES
+
+    if out.status not in SUCCESS_STATUSES + BUDGET_STATUSES:
         raise TacestError(f"diagnose: a 3-D fit failed ({out.status})")
-    return est, out
+    return out
 
 
 def _params(est, z):
     V, mass, inertia, mu_g, _ = est.physical(z)
     p = {"extent_x": float(np.ptp(V[:, 0])), "extent_y": float(np.ptp(V[:, 1])), "extent_z": float(np.ptp(V[:, 2])),
-         "friction_ground": mu_g, "edge_radius": est.edge_radius(z), "ground_offset": est.ground_offset(z)}
+         "mass": float(mass), "friction_ground": mu_g}
+    for k, v in est.effect_params(z).items():
+        v = np.asarray(v, float)
+        if v.ndim:  # face_friction.values: one entry per face
+            p.update({f"{k}[{i}]": float(x) for i, x in enumerate(v.reshape(-1))})
+        else:
+            p[k] = float(v)
     return p
+
+
+def applicable(name, runs, shape) -> str:
+    """Why an augmentation cannot be compared on these runs ("" when it can)."""
+    if name in ("force_bias", "force_scale") and not any(r.force is not None for r in runs):
+        return "no force stream"
+    if name in ("face_friction", "edge_radius") and shape != "box":
+        return f"modelled for boxes only, not {shape}"
+    return ""
 
 
 def flight_floor(est, z, res_runs):
@@ -201,27 +234,53 @@ def flag_windows(res_runs, window, alpha, floor):
     return flags, stretches
 
 
-def _model_task(name, cfg, shape, train, held) -> tuple:
-    """One model of a 3-D diagnosis, a task: its fit to the training runs, then to the
-    held-out runs with its parameters held; (Fit3D, (residuals of the training runs, the
-    flight floor, flight samples) for the plain model, else None)."""
+def _heldout(fit, est, out, shape, cfg, effects, train, held):
+    """The held-out half with the fitted model's parameters held, from the estimator's
+    own start (the observed poses): fills ``fit``.  (Started from the plain model's
+    held-out trajectories instead, candidates whose parameters differed from the plain
+    fit's by little ended 30-50 % above it: the held-out fits end on their iteration
+    budget, and where they end depends on where they start.)"""
     from tacest.estimation.data import choose_scales
 
-    t0 = time.perf_counter()
-    est, out = _fit(train, shape, cfg)
-    res, per = _losses(est, out.z)
-    extra = (res,) + flight_floor(est, out.z, res) if name == "none" else None
-    fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
     theta, sc = out.z[: est.problem.n_theta].copy(), est.scales
     sh = choose_scales(held, cfg)
     if not (np.isclose(sh.L, sc.L) and np.isclose(sh.m0, sc.m0)):
         raise TacestError("diagnose: the held-out runs have other length or mass scales (/prior) than the "
                           "training runs; give runs of one object with one prior")
-    est, out = _fit(held, shape, cfg, fixed_theta=theta)
-    fit.heldout_loss_per_sample = _losses(est, out.z)[1]
-    fit.heldout_status = out.status
+    est_h = _estimator(held, shape, cfg, effects, fixed_theta=theta)
+    out_h = _check(est_h.solve())
+    fit.heldout_loss_per_sample = _losses(est_h, out_h.z)[1]
+    fit.heldout_status = out_h.status
+
+
+def _plain_task(cfg, shape, train, held) -> tuple:
+    """The plain model of a 3-D diagnosis, a task: its fit to the training runs, then to
+    the held-out runs with its parameters held; (Fit3D, its solution z, the residuals of
+    the training runs, the flight floor, flight samples)."""
+    t0 = time.perf_counter()
+    est = _estimator(train, shape, cfg, ())
+    out = _check(est.solve())
+    res, per = _losses(est, out.z)
+    fit = Fit3D(name=NONE, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
+    _heldout(fit, est, out, shape, cfg, (), train, held)
     fit.seconds = time.perf_counter() - t0
-    return fit, extra
+    return (fit, res) + flight_floor(est, out.z, res)
+
+
+def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
+    """One augmented model of a 3-D diagnosis, a task: its fit to the training runs from
+    the estimator's own start (the observed poses), then to the held-out runs with its
+    parameters held.  (Started from the plain fit's solution instead, a com_offset fit
+    stayed in the plain model's basin: the plain fit bends its trajectories round what it
+    lacks.)"""
+    t0 = time.perf_counter()
+    est = _estimator(train, shape, cfg, effects)
+    out = _check(est.solve())
+    fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
+                train_loss_per_sample=_losses(est, out.z)[1])
+    _heldout(fit, est, out, shape, cfg, effects, train, held)
+    fit.seconds = time.perf_counter() - t0
+    return fit
 
 
 def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None, executor=None) -> Diagnosis3D:
@@ -242,30 +301,35 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     train, held = runs[:n_train], runs[n_train:]
     names = [r.filename or f"run{i}" for i, r in enumerate(runs)]
     ex = executor or Executor()
-    models = [("none", PLAIN)] + list(AUGMENTATIONS.items())
-    ex.plan(len(models), what="diagnosis")
+    models = [(n, ov, eff) for n, (ov, eff) in AUGMENTATIONS.items() if not applicable(n, runs, shape)]
+    skipped = {n: applicable(n, runs, shape) for n in AUGMENTATIONS if applicable(n, runs, shape)}
+    ex.plan(1 + len(models), what="diagnosis")
     train_h, held_h = ex.scatter(train), ex.scatter(held)
-    handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), shape, train_h, held_h,
-                         name=f"3d-{name}") for name, ov in models]
-    fits = {}
-    for (name, _), (fit, extra) in zip(models, ex.gather(handles)):
+    plain_cfg = _config(config, PLAIN, opts.fit_iterations)
+    plain, res_plain, floor, n_flight = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
+                                                                     name="3d-none"))
+    fits = {NONE: plain}
+    log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
+             f"({plain.heldout_status}), {plain.seconds:.0f} s")
+    handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), eff, shape, train_h, held_h,
+                         name=f"3d-{name}") for name, ov, eff in models]
+    for (name, _, _), fit in zip(models, ex.gather(handles)):
         fits[name] = fit
         log.info(f"{name}: trained on {len(train)} runs ({fit.status}), held out on {len(held)} runs "
                  f"({fit.heldout_status}), {fit.seconds:.0f} s")
-        if name == "none":
-            res_plain, floor, n_flight = extra
     flags, where = flag_windows(res_plain, opts.window, opts.alpha, floor)
     for w in where:
         w["run"] = names[w["run"]]
-    gap_before = fits["none"].heldout_loss_per_sample - floor
+    gap_before = fits[NONE].heldout_loss_per_sample - floor
     effects = []
-    for name in AUGMENTATIONS:
+    for name, _, _ in models:
         gap_after = fits[name].heldout_loss_per_sample - floor
         red = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
         # (reduction < 0: the augmented model does worse on the held-out runs)
         effects.append({"name": name, "gap_before": gap_before, "gap_after": gap_after, "reduction": red,
-                        "params": {k: fits[name].params[k] for k in (name, "extent_x", "extent_y", "extent_z",
-                                                                     "friction_ground")}})
+                        "params": {k: v for k, v in fits[name].params.items()
+                                   if k.split(".")[0].split("[")[0] == name
+                                   or k in ("extent_x", "extent_y", "extent_z", "mass", "friction_ground")}})
     effects.sort(key=lambda e: -e["reduction"])
     blamed = [e for e in effects if gap_before > 0 and e["reduction"] >= MIN_REDUCTION]
     if blamed:
@@ -273,15 +337,18 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         reason = (f"{verdict} closes {blamed[0]['reduction']:.0%} of the plain model's held-out gap "
                   f"({gap_before:.3g} above the floor {floor:g} per sample)")
     else:
-        verdict = "none"
+        verdict = NONE
         reason = (f"no 3-D augmentation closes {MIN_REDUCTION:.0%} of the held-out gap ({gap_before:.3g} per sample "
                   f"above the floor {floor:g})" if gap_before > 0 else "the held-out loss is within the noise floor")
-    reason += "; not compared (no 3-D model): " + ", ".join(NOT_MODELLED_3D)
+    not_compared = {n: "no 3-D model" for n in NOT_MODELLED_3D}
+    not_compared.update(skipped)
+    reason += "; not compared: " + ", ".join(f"{n} ({why})" for n, why in not_compared.items())
     return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
                        dts=[float(r.dt) for r in runs[:n_train]],
                        extra={"floor_flight_samples": n_flight,
-                              "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values())})
+                              "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values()),
+                              "not_compared_reasons": not_compared})
 
 
 def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:

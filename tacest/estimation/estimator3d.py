@@ -44,6 +44,7 @@ from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run, run_sha256
 from tacest.model.stage2d import PHYSICS_TERMS
+from tacest.model.registry import names_of, resolve
 from tacest.model.stage3d import D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D, impulse_variable
 
 log = logging.getLogger(__name__)
@@ -86,9 +87,10 @@ def check_runs_3d(runs: list[Run]):
             raise TacestError(f"{name}: /observations/pose sigmas must be > 0")
 
 
-def effects_3d(shape: Shape3D, config: EstimatorConfig) -> tuple:
-    """The effects a 3-D fit models: ``edge_radius`` (boxes) and ``ground_offset`` where
-    their prior sigmas in [solver3d] are above 0 (docs/estimation3d.md)."""
+def effects_3d(shape: Shape3D, config: EstimatorConfig, effects=()) -> tuple:
+    """The effects a 3-D fit models, canonical order: ``edge_radius`` (boxes) and
+    ``ground_offset`` where their prior sigmas in [solver3d] are above 0, and ``effects``
+    (names of tacest.model.registry modelled in 3-D; docs/estimation3d.md, "Effects")."""
     s3 = config.solver3d
     for k in ("ground_offset_sigma", "edge_radius_sigma"):
         v = getattr(s3, k)
@@ -99,7 +101,7 @@ def effects_3d(shape: Shape3D, config: EstimatorConfig) -> tuple:
         out.append("edge_radius")
     if s3.ground_offset_sigma > 0:
         out.append("ground_offset")
-    return tuple(out)
+    return names_of(resolve(list(out) + [str(e) for e in (effects or ())], 3))
 
 
 def solver_for_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, effects=()) -> BuiltSolver:
@@ -237,8 +239,9 @@ class Estimator3D:
     """Implicit estimator for a set of 3-D runs of one object."""
 
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 fixed_theta=None):
+                 fixed_theta=None, effects=(), accept_budget: bool = False):
         check_runs_3d(runs)
+        self.accept_budget = bool(accept_budget)  # end on the iteration budget (solver.run_stages)
         #: (n_theta,) scaled parameters to hold (the trajectories alone are fitted: a
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
@@ -256,8 +259,8 @@ class Estimator3D:
             raise TacestError(f"size bound {self.size_bound:g} m is below the length scale {self.scales.L:g} m "
                               f"times {MIN_BOUND_OVER_SCALE}: no shape fits")
         self.s0 = self.shape.initial(np.full(3, 1.0))  # a cube of the length scale
-        #: the modelled effects (effects_3d: edge_radius, ground_offset)
-        self.effects = effects_3d(self.shape, self.config)
+        #: the modelled effects (effects_3d)
+        self.effects = effects_3d(self.shape, self.config, effects)
         t0 = time.perf_counter()
         self.built = solver_for_3d(self.shape, self.layout, self.config, self.effects)
         self.build_time = time.perf_counter() - t0
@@ -585,7 +588,8 @@ class Estimator3D:
         z = self.ground_impulses_nnls(z, self.stage_params(stages[0]))
         nnls_time = time.perf_counter() - t0
         log.info(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
-        out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds)
+        out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
+                         accept_budget=self.accept_budget)
         out.stages.insert(0, StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
                                        wall_time=nnls_time, objective=float("nan")))
         out.wall_time += nnls_time
@@ -615,13 +619,25 @@ class Estimator3D:
         """Estimated ground offset (m) above /scene's ground_height (0 when not estimated)."""
         return float(self.effect_params(z).get("ground_offset", 0.0))
 
+    def com_offset(self, z) -> np.ndarray:
+        """(3,) m: the estimated centre of mass in the shape's frame (zeros when not
+        estimated)."""
+        p = self.effect_params(z)
+        return np.array([float(p.get(f"com_offset.d{a}", 0.0)) for a in "xyz"])
+
+    def body_vertices(self, z) -> np.ndarray:
+        """(K, 3) m: the estimated vertices in the body frame (origin at the centre of
+        mass)."""
+        th = np.asarray(z, float)[: self.problem.n_theta]
+        return numeric_vertices_3d(self.shape, th[: self.problem.n_shape], self.scales.L) - self.com_offset(z)
+
     def physical(self, z):
         """(vertices (K, 3) m, mass kg, inertia (3, 3) kg·m², mu_g, mu_f)."""
         pr, sc = self.problem, self.scales
         th = np.asarray(z, float)[: pr.n_theta]
         mass = sc.m0 * float(np.exp(th[pr.theta_index("log_mass")]))
         inertia = mass * sc.L ** 2 * inertia_numeric(th[pr.n_shape + 1: pr.n_shape + 7])
-        return (numeric_vertices_3d(self.shape, th[: pr.n_shape], sc.L), mass, inertia,
+        return (self.body_vertices(z), mass, inertia,
                 float(th[pr.theta_index("friction_ground")]), float(th[pr.theta_index("friction_finger")]))
 
     def stage_outputs(self, z, p=None):
@@ -726,11 +742,13 @@ class Estimator3D:
 MIN_BOUND_OVER_SCALE = 0.5
 
 
-def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None) -> Estimate:
+def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
+                effects=()) -> Estimate:
     """Estimate one object's shape, inertia, friction and every run's trajectory from 3-D
-    runs.  See the module docstring."""
+    runs; ``effects``: effect names modelled as extra parameters (tacest.model.registry,
+    3-D).  See the module docstring."""
     t_start = time.perf_counter()
-    est = Estimator3D(runs, shape_spec, config)
+    est = Estimator3D(runs, shape_spec, config, effects=effects)
     pr = est.problem
     log.info(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
     out = est.solve()

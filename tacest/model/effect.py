@@ -97,7 +97,7 @@ class Effect:
     def report(self, u: dict, sc: Scales, K: int, mu_ground: float) -> dict:
         """{estimate /params name: physical value} from the scaled values ``u``
         ({parameter name: value}); default: each linear parameter times its unit."""
-        pars = {p.name: p for p in self.parameters(K, 2 if 2 in self.dims else 3)}
+        pars = {p.name: p for dim in self.dims for p in self.parameters(K, dim)}
         return {f"{self.name}.{n}": float(v) * pars[n].per_unit(sc) for n, v in u.items()}
 
     def scaled(self, params: dict, sc: Scales, K: int, mu_ground: float, dim: int) -> dict:
@@ -119,14 +119,24 @@ class Effect:
         """d(scaled) / d(physical) of a parameter at scaled value u (I_phys = D I D)."""
         return 1.0 / par.per_unit(sc)
 
+    # -- hooks of both dimensions ---------------------------------------------------
+    def physics_gain(self, u: dict):
+        """A factor on every force and mass the physics residuals see, or None."""
+        return None
+
+    def sensor_gain(self, u: dict):
+        """A factor on the force the sensor reads (reading = gain × force + bias), or None."""
+        return None
+
+    def sensor_bias(self, u: dict, ctx):
+        """An offset (D,) N on the force the sensor reads (ctx.m0 kg, ctx.grav m/s²), or None."""
+        return None
+
     # -- 2-D model hooks (tacest.model.stage2d; see Stage2DContext) --------------------
     def body_vertices_2d(self, V, u: dict, L):
         """Vertices (K, 2) m of the body frame (origin at the COM) from the shape's."""
         return V
 
-    def physics_gain_2d(self, u: dict):
-        """A factor on every force and mass the physics residuals see, or None."""
-        return None
 
     def ground_surface_2d(self, ctx) -> None:
         """Move the ground the contact laws see (ctx.phi_c, ctx.vn_c; rows in
@@ -138,13 +148,6 @@ class Effect:
     def impacts_2d(self, ctx) -> None:
         """Change the contact laws at impacts (ctx.phi_c, ctx.vn_c, ctx.impulse_levers)."""
 
-    def sensor_gain_2d(self, u: dict):
-        """A factor on the force the sensor reads (reading = gain × force + bias), or None."""
-        return None
-
-    def sensor_bias_2d(self, u: dict, ctx):
-        """An offset (2,) N on the force the sensor reads, or None."""
-        return None
 
     def body_impulse_2d(self, ctx):
         """An extra generalized impulse (3,) over the interval [N·s, N·s, N·m·s], or None."""
@@ -162,7 +165,25 @@ class Effect:
     #: impulse stage (tacest.model.stage2d.StageModel2D.settle_states), or None
     settled_output: Optional[str] = None
 
-    # -- 3-D model hooks (tacest.model.stage3d) ----------------------------------------
+    # -- 3-D model hooks (tacest.model.stage3d; see Stage3DContext) --------------------
+    def com_shift_3d(self, u: dict, L):
+        """(3,) m: where the centre of mass lies in the shape's own frame (its centroid at
+        the origin), or None.  The body frame's origin is the COM: shape points move by
+        minus this."""
+        return None
+
+    def body_impulse_3d(self, ctx):
+        """An extra impulse over the interval: (linear (3,) N·s world frame, angular (3,)
+        N·m·s body frame), or None."""
+        return None
+
+    def ground_friction_3d(self, ctx) -> None:
+        """Change the ground friction coefficient ctx.mu_g (R body-to-world, n_g)."""
+
+    def ground_surface_3d(self, ctx) -> None:
+        """Move the ground the contact laws see: ctx.phi (K gaps, m) from the normal ground
+        impulses ctx.lam_n (K, units of m0·g·dt)."""
+
     def ground_height_3d(self, u: dict, L):
         """Height (m) of the ground plane above the run's /scene ground_height, or None."""
         return None

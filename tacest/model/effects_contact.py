@@ -1,5 +1,5 @@
-"""Effects at the ground contact: restitution, soft_contact and face_friction (2-D),
-edge_radius and ground_offset (3-D).
+"""Effects at the ground contact: restitution (2-D), soft_contact and face_friction (2-D
+and 3-D), edge_radius and ground_offset (3-D).
 
 docs/diagnosis.md ("NLP augmentations") gives the equations and the measurements behind
 each choice made here; docs/estimation3d.md those of the 3-D ones.
@@ -199,24 +199,36 @@ class SoftContact(Effect):
     and the contact laws see its normal velocity relative to the plate."""
 
     name = "soft_contact"
-    dims = (2,)
+    dims = (2, 3)
     doc = "compliant ground: a plate on a spring and damper sinks under the load"
 
     def parameters(self, K, dim):
-        return (EffectParameter("compliance", 0.0, 5.0, 0.0, 100.0, unit="m/N",
-                                per_unit=lambda sc: COMPLIANCE_UNIT * sc.L / (sc.m0 * sc.g),
-                                doc="1 / stiffness"),
-                EffectParameter("tau", 0.0, 5.0, 0.0, 20.0, unit="s", per_unit=lambda sc: TAU_UNIT,
-                                doc="damping / stiffness"))
+        compliance = EffectParameter("compliance", 0.0, 5.0, 0.0, 100.0, unit="m/N",
+                                     per_unit=lambda sc: COMPLIANCE_UNIT * sc.L / (sc.m0 * sc.g),
+                                     doc="1 / stiffness")
+        if dim == 3:  # the 3-D ground sinks quasi-statically (ground_surface_3d): no damper
+            return (compliance,)
+        return (compliance, EffectParameter("tau", 0.0, 5.0, 0.0, 20.0, unit="s", per_unit=lambda sc: TAU_UNIT,
+                                            doc="damping / stiffness"))
 
     def state_rows(self, K, dim):
-        return 1
+        return 1 if dim == 2 else 0
 
     def report(self, u, sc, K, mu_ground):
         c = u["compliance"] * COMPLIANCE_UNIT * sc.L / (sc.m0 * sc.g)
-        tau = u["tau"] * TAU_UNIT
-        return {"soft_contact.compliance": c, "soft_contact.stiffness": 1.0 / c if c > 0 else float("inf"),
-                "soft_contact.tau": tau, "soft_contact.damping": tau / c if c > 0 else float("inf")}
+        out = {"soft_contact.compliance": c, "soft_contact.stiffness": 1.0 / c if c > 0 else float("inf")}
+        if "tau" in u:
+            tau = u["tau"] * TAU_UNIT
+            out.update({"soft_contact.tau": tau, "soft_contact.damping": tau / c if c > 0 else float("inf")})
+        return out
+
+    def ground_surface_3d(self, ctx):
+        """The ground sinks under the interval's load W (the normal ground impulses over
+        dt) by compliance × W, quasi-statically (no damper and no plate velocity in 3-D:
+        the contact laws see the gaps to the sunk plate, the normal velocities as on a
+        rigid ground)."""
+        sink = ctx.u[self.name]["compliance"] * COMPLIANCE_UNIT * ctx.L * ca.sum1(ctx.lam_n)  # m
+        ctx.phi = [p + sink for p in ctx.phi]
 
     @staticmethod
     def plate_law(ctx, u, s, s_prev, load):
@@ -277,28 +289,49 @@ FACE_FRICTION_PRIOR = (0.0, 0.5, -1.5, 1.5)
 FACE_SHARPNESS = 20.0
 
 
+#: face_friction in 3-D (boxes): the outward body-frame normals of a box's six faces, in
+#: SPEC's face order (tacest.sim3d.objects.hull_faces: sorted by the normal's x, then y,
+#: then z component)
+BOX_FACE_NORMALS = np.array([[-1, 0, 0], [0, -1, 0], [0, 0, -1], [0, 0, 1], [0, 1, 0], [1, 0, 0]], float)
+
+
 class FaceFriction(Effect):
-    """Ground friction differs from face to face: face i (from vertex i to i+1 of the
-    CCW polygon) has friction_ground + d_i."""
+    """Ground friction differs from face to face: face i has friction_ground + d_i.  In
+    2-D face i runs from vertex i to i+1 of the CCW polygon; in 3-D the shape is a box and
+    its faces are in SPEC's order (BOX_FACE_NORMALS)."""
 
     name = "face_friction"
-    dims = (2,)
+    dims = (2, 3)
     doc = "ground friction differs from face to face"
+
+    @staticmethod
+    def n_faces(K, dim):
+        return K if dim == 2 else len(BOX_FACE_NORMALS)
 
     def parameters(self, K, dim):
         return tuple(EffectParameter(f"d{i}", *FACE_FRICTION_PRIOR, doc=f"friction offset of face {i}")
-                     for i in range(K))
+                     for i in range(self.n_faces(K, dim)))
 
     def report(self, u, sc, K, mu_ground):
-        return {"face_friction.values": np.array([mu_ground + u[f"d{i}"] for i in range(K)])}
+        return {"face_friction.values": np.array([mu_ground + u[f"d{i}"] for i in range(len(u))])}
 
     def scaled(self, params, sc, K, mu_ground, dim):
         if "face_friction.values" not in params:
             raise KeyError("face_friction.values")
         vals = np.asarray(params["face_friction.values"], float).reshape(-1)
-        if vals.size != K:
-            raise ValueError(f"face_friction.values has {vals.size} entries, the shape has {K} faces")
-        return {f"d{i}": float(vals[i]) - mu_ground for i in range(K)}
+        n = self.n_faces(K, dim)
+        if vals.size != n:
+            raise ValueError(f"face_friction.values has {vals.size} entries, the shape has {n} faces")
+        return {f"d{i}": float(vals[i]) - mu_ground for i in range(n)}
+
+    def ground_friction_3d(self, ctx):
+        """As in 2-D: the offset Σ_i w_i d_i of the box face facing the ground most,
+        w_i ∝ exp(-FACE_SHARPNESS · (R n_i)·n_g), n_i of BOX_FACE_NORMALS."""
+        u = ctx.u[self.name]
+        scores = [-FACE_SHARPNESS * ca.dot(ctx.n_g, ca.mtimes(ctx.R, ca.DM(n))) for n in BOX_FACE_NORMALS]
+        w = ca.exp(ca.vertcat(*scores))
+        d = ca.vertcat(*(u[f"d{i}"] for i in range(len(BOX_FACE_NORMALS))))
+        ctx.mu_g = ctx.mu_g + ca.dot(w, d) / ca.sum1(w)
 
     def ground_friction_2d(self, ctx):
         """Ground friction offset Σ_i w_i d_i of the face that faces the ground most:

@@ -1,4 +1,4 @@
-"""Effects of the force sensor: force_bias and force_scale (2-D)."""
+"""Effects of the force sensor: force_bias and force_scale (2-D and 3-D)."""
 
 from __future__ import annotations
 
@@ -8,21 +8,23 @@ import numpy as np
 from tacest.model.effect import Effect, EffectParameter
 
 
+#: world axes of a force bias's components
+_AXES = ("x", "y", "z")
+
+
 class ForceBias(Effect):
-    """A constant offset (fx, fy) on every measured force sample, units of m0·g (N)."""
+    """A constant offset (fx, fy[, fz]) on every measured force sample, units of m0·g (N)."""
 
     name = "force_bias"
-    dims = (2,)
+    dims = (2, 3)
     doc = "constant offset on the measured force"
 
     def parameters(self, K, dim):
-        return (EffectParameter("fx", 0.0, 1.0, -10.0, 10.0, unit="N", per_unit=lambda sc: sc.m0 * sc.g,
-                                doc="offset along world x"),
-                EffectParameter("fy", 0.0, 1.0, -10.0, 10.0, unit="N", per_unit=lambda sc: sc.m0 * sc.g,
-                                doc="offset along world y"))
+        return tuple(EffectParameter(f"f{a}", 0.0, 1.0, -10.0, 10.0, unit="N", per_unit=lambda sc: sc.m0 * sc.g,
+                                     doc=f"offset along world {a}") for a in _AXES[:dim])
 
-    def sensor_bias_2d(self, u, ctx):
-        return ca.vertcat(u["fx"], u["fy"]) * ctx.m0 * ctx.grav
+    def sensor_bias(self, u, ctx):
+        return ca.vertcat(*(u[f"f{a}"] for a in _AXES if f"f{a}" in u)) * ctx.m0 * ctx.grav
 
 
 class ForceScale(Effect):
@@ -37,7 +39,7 @@ class ForceScale(Effect):
     splits gain and mass."""
 
     name = "force_scale"
-    dims = (2,)
+    dims = (2, 3)
     doc = "wrong force-sensor gain"
 
     def parameters(self, K, dim):
@@ -58,8 +60,8 @@ class ForceScale(Effect):
     def info_factor(self, par, u, sc):
         return 1.0 / float(np.exp(u))  # d log(gain) / d gain
 
-    def physics_gain_2d(self, u):
+    def physics_gain(self, u):
         return ca.exp(u["log_gain"])
 
-    def sensor_gain_2d(self, u):
+    def sensor_gain(self, u):
         return ca.exp(u["log_gain"])

@@ -338,7 +338,7 @@ class StageModel2D:
         # a factor on every force and the mass the physics residuals see (force_scale)
         gain = 1.0
         for e in self.effect_objects:
-            factor = e.physics_gain_2d(u[e.name])
+            factor = e.physics_gain(u[e.name])
             if factor is not None:
                 gain = factor if isinstance(gain, float) else gain * factor
         # gaps (m) and normal velocities (m/s) of the vertices at the end of the interval
@@ -541,11 +541,11 @@ class StageModel2D:
         then every effect's bias (force_scale, force_bias; the plain model reads the force
         itself)."""
         for e in self.effect_objects:
-            gain = e.sensor_gain_2d(ctx.u[e.name])
+            gain = e.sensor_gain(ctx.u[e.name])
             if gain is not None:
                 force = gain * force
         for e in self.effect_objects:
-            bias = e.sensor_bias_2d(ctx.u[e.name], ctx)
+            bias = e.sensor_bias(ctx.u[e.name], ctx)
             if bias is not None:
                 force = force + bias
         return force

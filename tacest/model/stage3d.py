@@ -49,18 +49,27 @@ is available (:mod:`tacest.estimation.kernels`).
 
 
 Effects (tacest.model.registry) add parameters after PHYS_NAMES_3D in theta and act
-through the hooks of tacest.model.effect.Effect: the ground's height (ground_offset) and a
-box's rounded edges (edge_radius) in :meth:`StageModel3D.ground_geometry`.
+through the hooks of tacest.model.effect.Effect: the ground's height (ground_offset), a
+box's rounded edges (edge_radius) and the centre of mass's place in the shape (com_offset)
+in :meth:`StageModel3D.ground_geometry` and :meth:`StageModel3D.finger_geometry`; the
+sunk ground (soft_contact) and the ground friction of the face below (face_friction) on
+the stage's :class:`Stage3DContext`; extra impulses on the body (linear_drag,
+angular_damping); the force sensor's gain and offset (force_scale, force_bias) on the
+force residual, the gain also on the physics residuals (as in 2-D: then a gain and a mass
+scaled together are one model, as they are one data).  None of them has per-sample states
+in 3-D (docs/estimation3d.md, "Effects").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
 from tacest.dynamics.laws import CONE_TOLERANCE, SLIP_EPS, contact_residual, one_sided, smooth_pos
+from tacest.errors import TacestError
 from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
 from tacest.geometry.shapes3d import Shape3D, shape_sd_and_normal_function
 from tacest.model.effect import parameter_table
@@ -185,6 +194,28 @@ def n_data(F):
     return len(D_NAMES) + len(DF_NAMES) * F
 
 
+@dataclass
+class Stage3DContext:
+    """What an effect's 3-D hooks see of one interval (tacest.model.effect.Effect):
+    u {effect: {parameter: scaled value}}; L m, m0 kg, grav m/s², dt s; v (3) m/s world
+    and w (3) rad/s body, the interval's velocity; R (3, 3) body to world; n_g (3) the
+    ground's normal; lam_n (K) normal ground impulses (units of m0·g·dt).  Hooks change
+    mu_g (the ground's friction) and phi (K vertex gaps, m, as the contact laws see them)."""
+
+    u: dict
+    L: Any
+    m0: Any
+    grav: Any
+    dt: Any
+    v: Any
+    w: Any
+    R: Any
+    n_g: Any
+    lam_n: Any
+    mu_g: Any
+    phi: list
+
+
 class StageModel3D:
     """The model's per-sample residual functions (SX) for a shape and F fingers: what
     the NLP maps over samples and what the forward simulator (rollout3d.py) solves
@@ -198,6 +229,8 @@ class StageModel3D:
         self.effect_objects = resolve(effects, 3)
         #: names of the modelled effects, canonical order
         self.effects = names_of(self.effect_objects)
+        if "face_friction" in self.effects and shape.name != "box":
+            raise TacestError(f"effect face_friction is modelled in 3-D for boxes only, not {shape.name}")
         #: [(Effect, EffectParameter)] of the effect block (theta after PHYS_NAMES_3D)
         self.effect_params = parameter_table(self.effect_objects, self.K, 3)
         self.n_eff = len(self.effect_params)
@@ -253,6 +286,21 @@ class StageModel3D:
                 return r
         return None
 
+    def com_shift(self, th, L):
+        """(3,) m: the centre of mass in the shape's own frame (com_offset), or None."""
+        u = self.effect_values(th)
+        for e in self.effect_objects:
+            d = e.com_shift_3d(u[e.name], L)
+            if d is not None:
+                return d
+        return None
+
+    def body_vertices(self, th, L):
+        """(K, 3) m: the vertices in the body frame (its origin at the centre of mass)."""
+        V = self.shape.vertices(th[: self.n_shape], L)
+        shift = self.com_shift(th, L)
+        return V if shift is None else V - ca.repmat(shift.T, self.K, 1)
+
     def ground_geometry(self, p, q, v, w, th, d, L):
         """Ground contact of every vertex: (phi (K) m, slip (K x (3,)) m/s world, levers
         (K x (3,)) body-frame contact points m, R (3, 3)), with the augmentations: the ground
@@ -260,9 +308,8 @@ class StageModel3D:
         ``edge_radius`` r (the box's extents are its outer size: the shape is the inner box
         of half extents s L / 2 - r swept by a ball of radius r, so its lowest point is an
         inner vertex minus r along the ground normal)."""
-        s = th[: self.n_shape]
         n_g = d[DI["nx"]: DI["nz"] + 1]
-        V = self.shape.vertices(s, L)
+        V = self.body_vertices(th, L)
         r = self.edge_radius(th, L) if self.shape.name == "box" else None
         if r is not None:
             V = V - r * ca.DM(np.sign(np.array(ca.DM(self.shape.vertices(np.ones(3), 1.0)))))
@@ -273,6 +320,29 @@ class StageModel3D:
         spin = ca.mtimes(R, cross(w, n_b))  # the contact point moves by -spin relative to the vertex
         return ([ph - r for ph in phi], [sl - spin + ca.dot(n_g, spin) * n_g for sl in slip],
                 [lv - n_b for lv in levers], R)
+
+    def physics_gain(self, u):
+        """The factor on every force and mass the physics residuals see (force_scale), 1
+        without."""
+        gain = 1
+        for e in self.effect_objects:
+            f = e.physics_gain(u[e.name])
+            if f is not None:
+                gain = gain * f
+        return gain
+
+    def sensor_reading(self, ctx, force):
+        """The force sensor's reading (3,) N of a model force (3,) N: every effect's gain
+        and offset (reading = gain × force + bias)."""
+        for e in self.effect_objects:
+            gain = e.sensor_gain(ctx.u[e.name])
+            if gain is not None:
+                force = gain * force
+        for e in self.effect_objects:
+            bias = e.sensor_bias(ctx.u[e.name], ctx)
+            if bias is not None:
+                force = force + bias
+        return force
 
     def unpack_theta(self, th, L, m0):
         """(s (n_s), mass kg, a (3, 3) = I / m in m², mu_g, mu_f) from theta."""
@@ -293,11 +363,12 @@ class StageModel3D:
         return ca.sqrt(on) * r
 
     @staticmethod
-    def finger_geometry(p, R, s, L, c_f, radius, sd_fun):
+    def finger_geometry(p, R, s, L, c_f, radius, sd_fun, shift=None):
         """Gap phi_f (m), outward normal n (3, world) and body-frame contact point r_b
-        (3, m) of one fingertip sphere centred at c_f (3, world)."""
+        (3, m) of one fingertip sphere centred at c_f (3, world); shift (3,) m: the centre
+        of mass in the shape's frame (:meth:`com_shift`), None at its centroid."""
         c_b = ca.mtimes(R.T, c_f - p)
-        sd, n_b = sd_fun(c_b, s, L)
+        sd, n_b = sd_fun(c_b if shift is None else c_b + shift, s, L)
         n_b = n_b / ca.sqrt(ca.dot(n_b, n_b) + 1e-12)
         return sd - radius, ca.mtimes(R, n_b), c_b - sd * n_b
 
@@ -328,6 +399,13 @@ class StageModel3D:
         v, w = pose_velocity(xb, xc, dt, L)
         v_prev, w_prev = pose_velocity(xa, xb, dt, L)
         phi, slip, levers, R = self.ground_geometry(p, q, v, w, th, d, L)
+        ctx = Stage3DContext(u=self.effect_values(th), L=L, m0=m0, grav=d[DI["grav"]], dt=dt, v=v, w=w, R=R,
+                             n_g=n_g, lam_n=ln, mu_g=mu_g, phi=list(phi))
+        for e in self.effect_objects:
+            e.ground_surface_3d(ctx)
+            e.ground_friction_3d(ctx)
+        phi, mu_g, gain = ctx.phi, ctx.mu_g, self.physics_gain(ctx.u)
+        shift = self.com_shift(th, L)
         imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
         torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
         comp, pen, lt_out = [], [], []
@@ -346,7 +424,7 @@ class StageModel3D:
             # relative to the object's own weight (a factor m0 / m), a heavy fit made every
             # violation cheap (a poked box came out 5x too heavy, its ground friction 76 %
             # off; with the reference weight 3.6 % and 3.2 %)
-            comp.append(ln[k] * gap / (1 + gap))
+            comp.append(gain * ln[k] * gap / (1 + gap))
             # penetration: the shifted one-sided penalty of 2-D (≈ 0 at phi = 0, so that
             # resting contacts are not pushed off the ground)
             pen.append(one_sided(phi[k], g[G3["sig_pen"]]))
@@ -357,24 +435,29 @@ class StageModel3D:
             c_f, v_f = d[o: o + 3], d[o + 3: o + 6]
             contact, n_meas, F_meas = d[o + 6], d[o + 7: o + 10], d[o + 10: o + 13]
             w_force, w_tact, radius = d[o + 13], d[o + 14], d[o + 15]
-            phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun)
+            phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun, shift)
             imp_s = lf[3 * f: 3 * f + 3]
             lam_n = -ca.dot(imp_s, n_w)
             lam_t = imp_s + lam_n * n_w  # tangential part
             u_rel = v + ca.mtimes(R, cross(w, r_b)) - v_f
             s_t = (u_rel - ca.dot(u_rel, n_w) * n_w) / L  # object lengths per second
             # eq. C3 at the fingertip: zero when lambda_t opposes the slip at the cone's edge
-            diss.append(mu_f * lam_n * ca.sqrt(ca.dot(s_t, s_t) + (SLIP_EPS / L) ** 2) + ca.dot(lam_t, s_t))
+            diss.append(gain * (mu_f * lam_n * ca.sqrt(ca.dot(s_t, s_t) + (SLIP_EPS / L) ** 2) + ca.dot(lam_t, s_t)))
             # |lambda_t| <= mu lambda_n (and lambda_n >= 0) as a smooth penalty; the 1e-12
             # (scaled impulse units squared) keeps |lambda_t| differentiable at 0
-            cone.append(one_sided(mu_f * lam_n - ca.sqrt(ca.dot(lam_t, lam_t) + 1e-12), CONE_TOLERANCE)
+            cone.append(one_sided(gain * (mu_f * lam_n - ca.sqrt(ca.dot(lam_t, lam_t) + 1e-12)), CONE_TOLERANCE)
                         * CONE_TOLERANCE)
             imp_world += imp_s
             torque_b += cross(r_b, ca.mtimes(R.T, imp_s))
             imp_f_out.append(Lam * imp_s)
-            r_force.append(w_force * (Lam * imp_s / dt - F_meas) / g[G3["sig_force"]])
+            r_force.append(w_force * (self.sensor_reading(ctx, Lam * imp_s / dt) - F_meas) / g[G3["sig_force"]])
             r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
             r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]]))
+        for e in self.effect_objects:  # extra impulses on the body over the interval
+            extra = e.body_impulse_3d(ctx)
+            if extra is not None:
+                imp_world += extra[0] / Lam
+                torque_b += extra[1] / Lam
         # D1 divided by the mass (matrix), whitened as process noise on the velocity change
         grav = d[DI["grav"]]  # m/s², the run's gravity
         acc_scale = grav * dt * (m0 / mass)  # scaled impulse -> velocity change, m/s
@@ -422,14 +505,22 @@ class StageModel3D:
         s, *_ = self.unpack_theta(th, L, m0)
         sd_fun = shape_sd_and_normal_function(self.shape) if F else None
         pose, pen, contact, qn = [], [], [], []
+        shift = self.com_shift(th, L)
         for x, d in ((xa, da), (xb, db)):
             p, q = x[0:3] * L, x[3:7]
             phi, _, _, R = self.ground_geometry(p, q, ca.SX.zeros(3), ca.SX.zeros(3), th, d, L)
+            # the ground as the effects move it under the object's own weight (at rest)
+            ctx = Stage3DContext(u=self.effect_values(th), L=L, m0=m0, grav=d[DI["grav"]], dt=d[DI["dt"]],
+                                 v=ca.SX.zeros(3), w=ca.SX.zeros(3), R=R, n_g=d[DI["nx"]: DI["nz"] + 1],
+                                 lam_n=ca.repmat(ca.exp(th[self.n_shape]) / self.K, self.K, 1), mu_g=0, phi=list(phi))
+            for e in self.effect_objects:
+                e.ground_surface_3d(ctx)
+            phi = ctx.phi
             pose.append(self.pose_residual(p, q, d))
             pen += [one_sided(ph, g[G3["sig_pen"]]) for ph in phi]
             for f in range(F):
                 o = len(D_NAMES) + len(DF_NAMES) * f
-                phi_f, _, _ = self.finger_geometry(p, R, s, L, d[o: o + 3], d[o + 15], sd_fun)
+                phi_f, _, _ = self.finger_geometry(p, R, s, L, d[o: o + 3], d[o + 15], sd_fun, shift)
                 contact.append(contact_residual(phi_f, d[o + 6], d[o + 14], g[G3["sig_gap"]]))
             qn.append((ca.dot(q, q) - 1) / QUAT_NORM_SIGMA)
         v, w = pose_velocity(xa, xb, da[DI["dt"]], L)
