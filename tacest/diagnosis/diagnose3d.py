@@ -150,7 +150,7 @@ def _estimator(runs, shape, cfg, effects, fixed_theta=None):
     from tacest.estimation.estimator3d import Estimator3D
 
     # a fit that uses up its iteration budget is compared where it ended (its status is
-    # reported): a candidate warm-started from the plain fit ends no worse than it
+    # reported)
     return Estimator3D(runs, shape, cfg, fixed_theta=fixed_theta, effects=effects, accept_budget=True)
 
 
