@@ -25,6 +25,7 @@ from tacest.estimation.config import EstimatorConfig
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d
 from tacest.geometry.transforms import quat_conjugate, quat_multiply, quat_to_matrix
 from tacest.interrupt import raise_if_interrupted, watch_interrupts
+from tacest.model.effect import Scales
 from tacest.model.stage3d import DI, G3_NAMES, NP, StageModel3D
 
 #: factor on the whitened dynamics residual in a simulation step: with the estimator's
@@ -63,10 +64,13 @@ class TimeStepper3D:
     dt : s;  up : (3,) ground normal;  ground_height : m;  gravity : m/s², along -up
     edge_radius : m, radius of a box's rounded edges (the estimate's ``edge_radius``; 0: sharp)
     config : EstimatorConfig (noise levels and the final homotopy stage of [solver3d])
+    effect_params : {estimate /params name: physical value} of further 3-D effects to
+        simulate (e.g. ``{"linear_drag.b": 0.3}``; tacest.model.registry), or None
     """
 
     def __init__(self, shape, shape_params, mass, inertia, friction, dt, up=(0.0, 0.0, 1.0), ground_height=0.0,
-                 config: EstimatorConfig | None = None, edge_radius=0.0, gravity=STANDARD_GRAVITY):
+                 config: EstimatorConfig | None = None, edge_radius=0.0, gravity=STANDARD_GRAVITY,
+                 effect_params=None):
         self.shape = make_shape_3d(shape) if isinstance(shape, str) else shape
         self.config = config or EstimatorConfig()
         self.dt = float(dt)
@@ -74,7 +78,9 @@ class TimeStepper3D:
         self.L = float(np.mean(sp[: 3])) if self.shape.name == "box" else 2.0 * float(np.mean(sp))
         self.m0 = float(mass)
         rounded = self.shape.name == "box" and float(edge_radius) > 0
-        self.model = StageModel3D(self.shape, 0, effects=("edge_radius",) if rounded else ())
+        named = dict(effect_params or {})
+        extra = tuple(dict.fromkeys(k.split(".")[0] for k in named))
+        self.model = StageModel3D(self.shape, 0, effects=(("edge_radius",) if rounded else ()) + extra)
         theta = np.zeros(self.model.n_theta)
         theta[: self.model.n_shape] = sp / self.L
         theta[self.model.theta_index("log_mass")] = 0.0
@@ -84,6 +90,11 @@ class TimeStepper3D:
         theta[self.model.theta_index("friction_finger")] = float(friction)
         if rounded:
             theta[self.model.theta_index("edge_radius")] = float(edge_radius) / self.L
+        sc = Scales(L=self.L, m0=self.m0, g=float(gravity))
+        for e in self.model.effect_objects:
+            if e.name in extra:
+                for name, v in e.scaled(named, sc, self.model.K, float(friction), 3).items():
+                    theta[self.model.theta_index(f"{e.name}.{name}")] = v
         self.theta = theta
         nz = self.config.noise
         eps, comp_mult, dyn_mult = self.config.solver3d.homotopy[-1]
@@ -213,7 +224,7 @@ def initial_state(poses, dt, n_fit=4, gravity=(0.0, 0.0, -STANDARD_GRAVITY)):
 
 def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0, T, dt=0.0068,
                   sigma_position=1e-3, sigma_angle=1e-2, noise_seed=None, config=None, edge_radius=0.0,
-                  ground_height=0.0):
+                  ground_height=0.0, effect_params=None):
     """A pose-only 3-D run (tacest.io.run.Run, with /truth) of an object tossed from
     ``pose0`` (7,) with ``velocity0`` (6,) [v world m/s, omega world rad/s], simulated
     for T samples by :class:`TimeStepper3D`.  The observed poses are the simulated ones,
@@ -221,12 +232,13 @@ def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0
     rotation vector) when ``noise_seed`` is an integer.  The run's extra attribute
     ``simulation_unconverged_steps`` counts the steps that did not converge.  ``edge_radius``
     (m) rounds a box's edges; ``ground_height`` (m) is where the simulated ground is (the
-    run file still says 0: a ground offset the estimator has to find)."""
+    run file still says 0: a ground offset the estimator has to find); ``effect_params``
+    as :class:`TimeStepper3D`'s (in /truth attrs effects)."""
     from tacest.geometry.transforms import quat_from_axis_angle
     from tacest.io.run import Run, Truth
 
     sim = TimeStepper3D(shape, shape_params, mass, inertia, friction, dt, config=config, edge_radius=edge_radius,
-                        ground_height=ground_height)
+                        ground_height=ground_height, effect_params=effect_params)
     truth_pose = sim.rollout(pose0, velocity0, T)
     attrs = {"simulation_unconverged_steps": int(sim.unconverged), "simulation_edge_radius": float(edge_radius),
              "simulation_ground_height": float(ground_height)}
@@ -245,7 +257,17 @@ def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0
                prior={"size_bound": float(4 * np.max(shape_params))}, extra_attrs=attrs,
                truth=Truth(pose=truth_pose, vertices=V, mass=float(mass), inertia=np.asarray(inertia, float),
                            # no finger takes part; the file format wants a finite value
-                           friction_ground=float(friction), friction_finger=float(friction), effects=[]))
+                           friction_ground=float(friction), friction_finger=float(friction),
+                           effects=_truth_effects(effect_params)))
+
+
+def _truth_effects(effect_params) -> list:
+    """/truth effects (SPEC: [{"name": ..., parameter: value}]) of ``effect_params``."""
+    out = {}
+    for k, v in (effect_params or {}).items():
+        name, _, par = k.partition(".")
+        out.setdefault(name, {"name": name})[par or name] = v
+    return list(out.values())
 
 
 def _vertices(shape: Shape3D, shape_params) -> np.ndarray:
