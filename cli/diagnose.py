@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 
@@ -39,11 +40,16 @@ from tacest.parallel import machine_workers
 @click.option("--reach", type=click.FloatRange(min=0), default=None, metavar="M",
               help="No action at a distance in every fit: a ground impulse at a vertex more than M m up "
               "costs its height (noise.complementarity_reach; default 0.01; 0: off). 2-D runs.")
+@click.option("--suggest", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Also write N plan files (suggest_<k>.h5) of the pokes that best tell the leading candidates "
+              "apart (2-D runs; docs/diagnosis.md).")
+@click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="dynamic", show_default=True,
+              help="Action space of --suggest: the planner's gentle or dynamic pokes.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, reach, as_json, quiet, workers, scheduler):
+             max_candidates, floor_mode, reach, suggest, poke_style, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  The fits run in this process unless --workers or
@@ -72,9 +78,9 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or effects or reach is not None:
-            raise TacestError("--estimate, --effects and --reach are for 2-D runs; 3-D runs compare the 3-D "
-                              "augmentations")
+        if estimate_path or effects or reach is not None or suggest:
+            raise TacestError("--estimate, --effects, --reach and --suggest are for 2-D runs; 3-D runs compare "
+                              "the 3-D augmentations")
         opts3 = Options3D(fit_iterations=fit_iterations)
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
@@ -94,7 +100,14 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     check_heldout_data(loaded)  # before any fit: without held-out data nothing can be decided
     with ex:
         diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, executor=ex)
-    _report(diag, write_report, out, as_json, quiet)
+    extra = None
+    if suggest:
+        from tacest.diagnosis.suggest import suggest as suggest_experiments
+        from tacest.diagnosis.suggest import suggestion_writer
+
+        found = suggest_experiments(diag, loaded, n=suggest, poke_style=poke_style)
+        extra = functools.partial(suggestion_writer, found)
+    _report(diag, write_report, out, as_json, quiet, extra)
     _hint_workers(ex)
 
 
@@ -107,13 +120,14 @@ def _hint_workers(ex):
             "(docs/parallel.md)")
 
 
-def _report(diag, write, out, as_json: bool, quiet: bool):
+def _report(diag, write, out, as_json: bool, quiet: bool, extra=None):
     """Write the report folder with write(diag, out, obj) -> file names, print the JSON
-    object (--json) on stdout and the verdict line on stderr (unless --quiet)."""
+    object (--json) on stdout and the verdict line on stderr (unless --quiet).  extra :
+    ``extra(obj) -> writer`` of more files in the folder (write_report's ``extra``)."""
     from tacest.provenance import provenance
 
     obj = {**diag.to_json(), **provenance()}
-    written = write(diag, out, obj)
+    written = write(diag, out, obj) if extra is None else write(diag, out, obj, extra=extra(obj))
     if as_json:
         click.echo(json.dumps(obj))
     if not quiet:

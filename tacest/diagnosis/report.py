@@ -23,9 +23,11 @@ from tacest.io.outputs import atomic_dir
 LOG_FLOOR = 1e-4
 
 
-def write_report(diag, folder, json_obj: dict = None) -> list:
+def write_report(diag, folder, json_obj: dict = None, extra=None) -> list:
     """Write report.md, the figures and diagnosis.json into ``folder`` (created or
-    replaced).  Returns the file names written."""
+    replaced).  extra : ``extra(tmp) -> [file names]`` writes more files into the folder
+    before it replaces ``folder`` (e.g. suggested plans), or None.  Returns the file
+    names written."""
     import json
 
     with atomic_dir(folder) as tmp:
@@ -42,6 +44,8 @@ def write_report(diag, folder, json_obj: dict = None) -> list:
         names.append("diagnosis.json")
         (tmp / "report.md").write_text(markdown(diag, names))
         names.insert(0, "report.md")
+        if extra is not None:
+            names += extra(tmp)
     return names
 
 

@@ -252,8 +252,11 @@ class PredictedPoke:
 
 @deferred_interrupts()  # Ctrl-C in a substep's cffi callback would be lost (tacest.interrupt)
 def predict_poke(model: ModelState, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
-                 settle_time: float = 0.05) -> PredictedPoke:
+                 settle_time: float = 0.05, effects=()) -> PredictedPoke:
     """Simulate one poke (a (6,) POKE_NAMES vector) on the estimated object, noiseless.
+    effects : resolved tacest.sim.effects.Effect of the world to simulate besides the
+    estimate (the physical ones act in the world, com_offset moves the COM; sensor and
+    clock effects are the caller's: tacest.sim.record.sensor_streams).
 
     The object starts at rest at the model's pose, lowered (or raised) so that its
     lowest vertex touches the ground, and settles for ``settle_time`` s (unrecorded;
@@ -266,8 +269,14 @@ def predict_poke(model: ModelState, action, substeps: int = PREDICT_SUBSTEPS, ho
     from tacest.sim.pokes import Poke
     from tacest.sim.world import World
 
+    from tacest.sim.effects import find
+    from tacest.sim.objects import apply_com_offset
+
     poke = Poke.from_vector(action, model.n_fingers)
     obj = model.sim_object()
+    com = find(effects, "com_offset")
+    if com is not None:
+        obj = apply_com_offset(obj, com["dx"], com["dy"])
     pose = np.asarray(model.pose, float).copy()
     up = model.up
     low = float(np.min((obj.vertices @ rot2(pose[2]).T + pose[:2]) @ up)) - model.ground_height
@@ -277,7 +286,7 @@ def predict_poke(model: ModelState, action, substeps: int = PREDICT_SUBSTEPS, ho
     # every finger away from the object while the world settles
     parked = np.asarray(model.p_finger__world, float).copy()
     parked[:, 1] = np.maximum(parked[:, 1], top + radius + 0.02)
-    world = World(obj, pose, np.zeros(3), parked, radius)
+    world = World(obj, pose, np.zeros(3), parked, radius, effects=effects)
     d = poke.direction__world
     reach = 0.3 + float(np.max(radius))
     s = world.touch_distance(poke.target__world - reach * d, d, radius[poke.finger], reach=2 * reach)

@@ -1,0 +1,249 @@
+"""The experiment that decides: the pokes whose predicted measurements differ most between
+the leading candidate models of a diagnosis (2-D).
+
+A diagnosis ends with a ranking of candidate effects; when the held-out data cannot tell
+the leaders apart (or show no effect at all), what to record next is the action under
+which their predictions differ most relative to the sensor noise.  For Gaussian sensor
+noise the expected log-likelihood ratio of model A against model B on the data of an
+action, when A is true, is
+
+    E_A[log p_A(m) - log p_B(m)] = 0.5 Σ_t |(m_A(t) - m_B(t)) / σ|²,
+
+the same in both directions: the expected discrimination :func:`discrimination`.  Its
+predictions m_A, m_B come from the same forward model as planning (the pymunk world of
+tacest.information.expected.predict_poke, the estimate's object at its last pose), with
+each candidate's fitted effect in the world (restitution, drag, damping, soft ground, COM
+offset) or on the sensor (force bias and gain, latency: tacest.sim.record.sensor_streams,
+noiseless).  Terms, per sample and finger: the force at every sample (a clean sensor reads
+0 off contact, a biased one its bias), the contact normal where both models touch, a
+contact flag that one model sets and the other not (CONTACT_FLIP_LLR), and the pose where
+the runs observe it.
+
+The models compared are the plain model (``none``) and the ``leaders - 1`` best candidates
+whose fit succeeded; an action scores log(1 + the smallest pairwise discrimination), so
+that the chosen action separates every pair.  The search is the planner's (cross-entropy
+method over the planner's action space, tacest.planning.actions, ``--poke-style``); the N
+best distinct actions are written as plan files (SPEC ``tacest.plan``: ``method``
+``discriminate``, ``score`` ``expected_llr``), each executable with ``tacest record --plan``.
+
+Not modelled by the predictions: ``time_scale`` (a clock error changes the time stamps,
+not what one poke measures against another) and ``face_friction`` (its per-face values
+are not kept in the diagnosis' candidate parameters); a candidate of these is left out
+and said so.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacest.errors import TacestError
+
+log = logging.getLogger(__name__)
+
+#: per-sample probability that a tactile contact flag is wrong: a sample where one model
+#: predicts a touch and the other does not is worth log((1 - ε) / ε) nats of
+#: discrimination (ε = 0.01: about 4.6 nats per sample)
+CONTACT_FLIP_RATE = 0.01
+CONTACT_FLIP_LLR = math.log((1 - CONTACT_FLIP_RATE) / CONTACT_FLIP_RATE)
+#: effects whose candidate parameters a prediction can use (module docstring)
+PREDICTABLE = ("restitution", "angular_damping", "linear_drag", "soft_contact", "force_bias", "force_scale",
+               "latency", "com_offset")
+#: default number of models compared: the plain model and the best two candidates
+LEADERS = 3
+
+
+@dataclass
+class Suggestion:
+    """A suggested experiment: ``plan`` (tacest.io.plan.Plan, chosen action and the
+    searched candidates with their scores), ``models`` compared, ``pairwise``
+    {"A vs B": expected discrimination (nats) of the chosen action}."""
+
+    plan: object
+    models: list
+    pairwise: dict = field(default_factory=dict)
+
+
+def sim_effects_of(name: str, params: dict) -> list:
+    """The resolved simulator effects (tacest.sim.effects.Effect) of a candidate with its
+    fitted parameters (/params names ``effect.parameter``, or the transform's parameter
+    name); [] for ``none``; TacestError for an effect a prediction cannot use."""
+    from tacest.sim.effects import EFFECTS, NONE, Effect
+
+    if name == NONE:
+        return []
+    if name not in PREDICTABLE:
+        raise TacestError(f"{name}: its fitted model cannot be predicted (tacest.diagnosis.suggest)")
+    values = {k.split(".", 1)[1] if k.startswith(name + ".") else k: v for k, v in params.items()}
+    out = {}
+    for p in EFFECTS[name].param_names:
+        if p in ("fz", "dz"):  # 3-D only
+            continue
+        v = values.get(p)
+        if v is None or not np.isfinite(float(v)):
+            raise TacestError(f"{name}: fitted parameter {p} is missing")
+        out[p] = int(round(float(v))) if p == "samples" else float(v)
+    return [Effect(name=name, params=out)]
+
+
+def predicted_measurements(model, action, effects, has_pose: bool) -> dict:
+    """Noiseless measurements of one poke on ``model`` (ModelState) with ``effects``:
+    {contact (T, F) bool, force (T, F, 2) N, normal (T, F, 2), pose (T, 3) or None}."""
+    from tacest.information.expected import predict_poke
+    from tacest.sim.record import sensor_streams
+
+    pred = predict_poke(model, action, effects=effects)
+    contact, force, normal = sensor_streams(pred.contact, pred.impulse__world, pred.normal__world, pred.dt,
+                                            effects, 0.0, 0.0, np.random.default_rng(0))
+    return {"contact": contact.astype(bool), "force": force, "normal": normal,
+            "pose": pred.pose if has_pose else None}
+
+
+def discrimination(a: dict, b: dict, noise: dict) -> float:
+    """Expected log-likelihood ratio (nats) between two predictions (module docstring);
+    noise : {force N, normal rad, position m, angle rad}."""
+    T = min(a["contact"].shape[0], b["contact"].shape[0])
+    ca_, cb = a["contact"][:T], b["contact"][:T]
+    total = float(np.sum(ca_ != cb)) * CONTACT_FLIP_LLR
+    if noise.get("force") is not None:
+        total += 0.5 * float(np.sum(((a["force"][:T] - b["force"][:T]) / noise["force"]) ** 2))
+    both = ca_ & cb
+    dn = np.where(both[..., None], np.nan_to_num(a["normal"][:T]) - np.nan_to_num(b["normal"][:T]), 0.0)
+    total += 0.5 * float(np.sum((dn / noise["normal"]) ** 2))
+    if a["pose"] is not None and b["pose"] is not None:
+        dp = a["pose"][:T] - b["pose"][:T]
+        total += 0.5 * float(np.sum((dp[:, :2] / noise["position"]) ** 2) + np.sum((dp[:, 2] / noise["angle"]) ** 2))
+    return total
+
+
+def leading_models(diag, leaders: int = LEADERS) -> tuple:
+    """([(name, sim effects)] of the plain model and the best candidates a prediction can
+    use, in the diagnosis' order; [(name, why)] of the candidates left out)."""
+    models, skipped = [("none", [])], []
+    for c in diag.effects:
+        if len(models) >= leaders:
+            break
+        if c.status != "ok":
+            continue
+        try:
+            models.append((c.name, sim_effects_of(c.name, c.params)))
+        except TacestError as exc:
+            skipped.append((c.name, str(exc)))
+    return models, skipped
+
+
+def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: str = "dynamic", seed: int = 0,
+            iterations: int = 3, population: int = 12) -> list:
+    """The ``n`` best distinct pokes to tell the diagnosis' leading models apart (module
+    docstring): a list of :class:`Suggestion`, best first.  runs : the diagnosed runs
+    (the object's state and fingers at the end of the last one)."""
+    from tacest.information.expected import ModelState
+    from tacest.io.plan import Plan
+    from tacest.planning.actions import ActionSpace, object_height
+    from tacest.planning.cem import cem_maximize
+
+    if int(runs[-1].dim) != 2:
+        raise TacestError("--suggest is for 2-D runs (the 3-D predictions of candidate effects are not built yet)")
+    if n < 1:
+        raise TacestError("--suggest needs N >= 1")
+    models, skipped = leading_models(diag, leaders)
+    for name, why in skipped:
+        log.info(f"suggest: {name} left out ({why})")
+    if len(models) < 2:
+        raise TacestError("--suggest: no candidate besides the plain model can be predicted; nothing to tell apart")
+    model = ModelState.from_estimate(diag.base, runs)
+    last = runs[-1]
+    cfg_noise = diag.base.config.get("noise", {}) if isinstance(diag.base.config, dict) else {}
+    noise = {"force": float(last.extra_attrs.get("noise_force", cfg_noise.get("force", 0.05))) if last.has_force
+             else None,
+             "normal": float(last.extra_attrs.get("noise_normal", cfg_noise.get("normal", 0.05))),
+             "position": float(last.sigma_position) if last.has_pose_obs else 1.0,
+             "angle": float(last.sigma_angle) if last.has_pose_obs else 1.0}
+    for k in ("force", "normal"):
+        if noise[k] is not None:
+            noise[k] = max(noise[k], 1e-3)  # a noiseless recording still has a resolution
+    space = ActionSpace(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
+                        up=np.asarray(model.up, float))
+    target = model.centroid__world
+
+    def pairwise(action) -> dict:
+        preds = {}
+        for name, eff in models:
+            try:
+                preds[name] = predicted_measurements(model, action, eff, last.has_pose_obs)
+            except TacestError:
+                return {}
+        names = [m for m, _ in models]
+        return {f"{a} vs {b}": discrimination(preds[a], preds[b], noise)
+                for i, a in enumerate(names) for b in names[i + 1:]}
+
+    def score(action) -> float:
+        d = pairwise(action)
+        return math.log1p(min(d.values())) if d else -math.inf
+
+    lo, hi = space.bounds()
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
+    cands, scores = [], []
+    for f in space.searched_fingers():
+        res = cem_maximize(lambda u: score(space.action(f, u, target)), lo, hi, rng, iterations=iterations,
+                           population=population, elite=max(1, population // 3))
+        cands += [space.action(f, u, target) for u in res.samples]
+        scores += list(res.scores)
+    cands = np.asarray(cands, float)
+    scores = np.where(np.isfinite(scores), np.asarray(scores, float), -1e300)
+    order = np.argsort(-scores)
+    chosen = []
+    for i in order:
+        if len(chosen) == n or scores[i] <= -1e300:
+            break
+        if all(np.linalg.norm(cands[i] - cands[j]) > 1e-6 for j in chosen):
+            chosen.append(int(i))
+    if not chosen:
+        raise TacestError("--suggest: no candidate poke could be predicted under every model")
+    out = []
+    for i in chosen:
+        plan = Plan(chosen=cands[i].copy(), candidates=cands, scores=scores, method="discriminate",
+                    score="expected_llr", names=list(space.poke_names), kind="poke",
+                    extra_attrs={"models": ",".join(m for m, _ in models), "poke_style": poke_style,
+                                 "target": np.asarray(target, float)})
+        out.append(Suggestion(plan=plan, models=[m for m, _ in models], pairwise=pairwise(cands[i])))
+    return out
+
+
+def suggestion_writer(suggestions: list, json_obj: dict):
+    """``extra(tmp)`` for tacest.diagnosis.report.write_report: the plan files
+    ``suggest_<k>.h5`` (best first) and a section of report.md; adds ``suggestions`` to
+    ``json_obj`` (file, models, chosen action, pairwise discrimination in nats)."""
+    from tacest.io.plan import write_plan
+
+    json_obj["suggestions"] = [
+        {"file": f"suggest_{k}.h5", "models": s.models, "chosen": s.plan.chosen_dict(),
+         "pairwise_expected_llr": {p: float(v) for p, v in s.pairwise.items()}}
+        for k, s in enumerate(suggestions, 1)]
+
+    def write(tmp) -> list:
+        import json
+
+        names = []
+        lines = ["", "## Suggested next experiments", "",
+                 "Pokes whose predicted measurements differ most between "
+                 f"{', '.join(suggestions[0].models)} (expected log-likelihood ratio, nats; "
+                 "`tacest record --plan suggest_<k>.h5` records one):", "",
+                 "| file | approach (deg) | depth (m) | speed (m/s) | smallest pairwise |", "|---|---|---|---|---|"]
+        for k, s in enumerate(suggestions, 1):
+            name = f"suggest_{k}.h5"
+            write_plan(s.plan, tmp / name)
+            names.append(name)
+            c = s.plan.chosen_dict()
+            lines.append(f"| {name} | {math.degrees(c.get('approach_angle', float('nan'))):.0f} | "
+                         f"{c.get('depth', float('nan')):.3f} | {c.get('speed', float('nan')):.3f} | "
+                         f"{min(s.pairwise.values()):.3g} |")
+        with open(tmp / "report.md", "a") as fh:
+            fh.write("\n".join(lines) + "\n")
+        (tmp / "diagnosis.json").write_text(json.dumps(json_obj, indent=1) + "\n")
+        return names
+
+    return write

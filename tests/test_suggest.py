@@ -1,0 +1,114 @@
+"""The experiment that decides (tacest.diagnosis.suggest): the expected discrimination
+between candidate models' predictions and the search for the poke that maximizes it."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from tacest.diagnosis import suggest as S
+from tacest.diagnosis.diagnose import CandidateResult
+
+NOISE = {"force": 0.02, "normal": 0.02, "position": 1.0, "angle": 1.0}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A 2-D box poked twice by tacest's simulator, its plain estimate and the model state."""
+    from tacest.dims import estimate_runs, record_sim
+    from tacest.information.expected import ModelState
+    from tacest.io.run import write_run
+    from tacest.sim.record import SimOptions
+
+    run = record_sim(SimOptions(dim=2, seed=3, pokes=2))
+    path = tmp_path_factory.mktemp("suggest") / "run.h5"
+    write_run(run, path)
+    est = estimate_runs([run], "box")
+    return SimpleNamespace(run=run, path=path, est=est, model=ModelState.from_estimate(est, [run]))
+
+
+def _action(model, angle, style="dynamic"):
+    from tacest.planning.actions import ActionSpace, object_height
+
+    space = ActionSpace(n_fingers=1, style=style, object_height=object_height(model), up=np.asarray(model.up, float))
+    lo, hi = space.bounds()
+    u = (lo + hi) / 2
+    u[0] = angle
+    return space.action(0, u, model.centroid__world)
+
+
+def test_discrimination_is_zero_for_one_model_and_symmetric(recorded):
+    a = _action(recorded.model, math.radians(40))
+    p0 = S.predicted_measurements(recorded.model, a, [], False)
+    p1 = S.predicted_measurements(recorded.model, a, S.sim_effects_of("linear_drag", {"linear_drag.b": 1.0}), False)
+    assert S.discrimination(p0, p0, NOISE) == 0.0
+    assert S.discrimination(p0, p1, NOISE) == pytest.approx(S.discrimination(p1, p0, NOISE), rel=1e-12)
+
+
+def test_a_force_bias_is_worth_its_known_log_likelihood_ratio(recorded):
+    """Known answer: a bias b on every force sample and nothing else between two models
+    is worth 0.5 T (b / sigma)² nats (the physics is the same: the bias is on the sensor)."""
+    a = _action(recorded.model, math.radians(40))
+    p0 = S.predicted_measurements(recorded.model, a, [], False)
+    p1 = S.predicted_measurements(recorded.model, a, S.sim_effects_of("force_bias", {"force_bias.fx": 0.3,
+                                                                                    "force_bias.fy": -0.1}), False)
+    T, F = p0["contact"].shape
+    want = 0.5 * T * F * (0.3 ** 2 + 0.1 ** 2) / NOISE["force"] ** 2
+    assert S.discrimination(p0, p1, NOISE) == pytest.approx(want, rel=1e-9)
+
+
+def test_the_suggestion_prefers_a_poke_that_separates_the_candidates(recorded):
+    """A case built to need it: the plain model against strong linear drag (b = 1 N·s/m).
+    A poke pressing straight down onto the box moves nothing, so drag changes nothing
+    there (discrimination ~0); the search must choose a poke that moves the box, whose
+    discrimination is orders of magnitude larger."""
+    diag = SimpleNamespace(base=recorded.est, effects=[
+        CandidateResult(name="linear_drag", kind="nlp", n_params=1, params={"linear_drag.b": 1.0})])
+    down = _action(recorded.model, math.pi / 2)
+    p0 = S.predicted_measurements(recorded.model, down, [], False)
+    p1 = S.predicted_measurements(recorded.model, down, S.sim_effects_of("linear_drag", {"linear_drag.b": 1.0}),
+                                  False)
+    d_down = S.discrimination(p0, p1, NOISE)
+    assert d_down < 1.0
+    found = S.suggest(diag, [recorded.run], n=2, seed=1)
+    assert len(found) == 2 and found[0].models == ["none", "linear_drag"]
+    best = found[0].pairwise["none vs linear_drag"]
+    assert best > 100.0 and best > 100 * d_down
+    assert abs(found[0].plan.chosen_dict()["approach_angle"] - math.pi / 2) > math.radians(10)
+    # best first, and the plan's own scores say so
+    assert found[0].plan.scores.max() == pytest.approx(math.log1p(best), rel=1e-9)
+
+
+def test_candidates_without_a_prediction_are_left_out_and_none_left_is_an_error(recorded):
+    from tacest.errors import TacestError
+
+    diag = SimpleNamespace(base=recorded.est, effects=[
+        CandidateResult(name="time_scale", kind="transform", n_params=1, params={"scale": 1.05})])
+    with pytest.raises(TacestError, match="nothing to tell apart"):
+        S.suggest(diag, [recorded.run], n=1)
+    with pytest.raises(TacestError, match="missing"):
+        S.sim_effects_of("restitution", {})
+
+
+def test_diagnose_suggest_writes_plan_files_through_the_cli(recorded, tmp_path):
+    from tacest.io.plan import read_plan
+
+    out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", str(recorded.path), "--effects", "linear_drag",
+                          "--max-folds", "2", "--fit-iterations", "40", "--suggest", "1", "-o", str(tmp_path / "d"),
+                          "--json", "--quiet"], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    if not any(c["name"] == "linear_drag" and c["status"] == "ok" for c in d["effects"]):
+        pytest.skip("the drag candidate's fit did not succeed on this short run")
+    assert d["suggestions"][0]["file"] == "suggest_1.h5"
+    plan = read_plan(tmp_path / "d" / "suggest_1.h5")
+    assert plan.method == "discriminate" and plan.score == "expected_llr"
+    assert "Suggested next experiments" in (tmp_path / "d" / "report.md").read_text()
+    saved = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert saved["suggestions"] == d["suggestions"]
