@@ -13,7 +13,7 @@ from tacest.parallel import machine_workers
 
 
 @click.command()
-@click.argument("runs", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.argument("runs", nargs=-1, required=False, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", type=click.Path(file_okay=False), required=True,
               help="Report folder to write (report.md, PNG figures, diagnosis.json).")
 @click.option("--estimate", "estimate_path", type=click.Path(dir_okay=False), default=None,
@@ -45,11 +45,24 @@ from tacest.parallel import machine_workers
               "apart (2-D runs; docs/diagnosis.md).")
 @click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="dynamic", show_default=True,
               help="Action space of --suggest: the planner's gentle or dynamic pokes.")
+@click.option("--explore", is_flag=True, help="No RUNS: the closed loop in simulation (2-D): record a box with "
+              "--inject hidden, diagnose, add the suggested (or --policy random) poke, until the verdict names "
+              "an effect or --budget actions are spent (docs/diagnosis.md).")
+@click.option("--inject", default="none", show_default=True, metavar="NAME[:key=value,...]",
+              help="--explore: the effect the simulator adds (as tacest record --effect), hidden from the diagnosis.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="--explore: the recording's seed.")
+@click.option("--pokes", type=click.IntRange(min=2), default=4, show_default=True,
+              help="--explore: random pokes recorded before the first diagnosis.")
+@click.option("--budget", type=click.IntRange(min=0), default=6, show_default=True,
+              help="--explore: most actions added.")
+@click.option("--policy", type=click.Choice(["suggest", "random"]), default="suggest", show_default=True,
+              help="--explore: how the added pokes are chosen.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, reach, suggest, poke_style, as_json, quiet, workers, scheduler):
+             max_candidates, floor_mode, reach, suggest, poke_style, explore, inject, seed, pokes, budget, policy,
+             as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  The fits run in this process unless --workers or
@@ -69,6 +82,11 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
+    if explore:
+        return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
+                        fit_iterations, config_path, as_json, quiet)
+    if not runs:
+        raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
     ex = executor(workers, scheduler)  # the options checked before any work
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     names = parse_effect_list(effects)
@@ -109,6 +127,29 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         extra = functools.partial(suggestion_writer, found)
     _report(diag, write_report, out, as_json, quiet, extra)
     _hint_workers(ex)
+
+
+def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,
+             config_path, as_json, quiet):
+    """``tacest diagnose --explore`` (tacest.diagnosis.explore)."""
+    from tacest.cli.logs import step_progress
+    from tacest.diagnosis.candidates import parse_effect_list
+    from tacest.diagnosis.explore import ExploreDiagnosisOptions, explore_diagnosis
+    from tacest.errors import TacestError
+    from tacest.io.outputs import check_output
+
+    if runs:
+        raise TacestError("--explore records its own runs: give no RUNS")
+    check_output(output, inputs=[config_path], folder=True)
+    opts = ExploreDiagnosisOptions(effect=inject, seed=seed, pokes=pokes, budget=budget, policy=policy,
+                                   poke_style=poke_style, effects=parse_effect_list(effects), max_folds=max_folds,
+                                   fit_iterations=fit_iterations, config_path=config_path).validate()
+    summary = explore_diagnosis(opts, output, progress=step_progress(quiet, "diagnoses"))
+    if as_json:
+        click.echo(json.dumps(summary, default=str))
+    if not quiet:
+        click.echo(f"verdict after {summary['steps'][-1]['actions']} actions: {summary['verdict']} "
+                   f"({'decided' if summary['decided'] else 'not decided'}); wrote {output}/", err=True)
 
 
 def _hint_workers(ex):

@@ -52,10 +52,9 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
     plan the next poke with POLICY, repeat until POKES pokes; write per-step files,
     summary.json and a learning-curve plot (3-D: and views) to OUTPUT."""
     import sys
-    import time
     from pathlib import Path
 
-    from tacest.cli.logs import setup_logging
+    from tacest.cli.logs import setup_logging, step_progress
     from tacest.estimation.config import load_config
     from tacest.geometry.shapes import make_shape
     from tacest.geometry.shapes3d import make_shape_3d
@@ -75,17 +74,7 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
                           population=population, poke_style=poke_style).validate()
     setup_logging(quiet)
 
-    t_start = time.perf_counter()
-
-    def progress(done, total):
-        if quiet:
-            return
-        width = 30
-        k = int(round(width * done / total))
-        elapsed = time.perf_counter() - t_start
-        eta = elapsed / done * (total - done)  # the steps so far, extrapolated (later steps have more data)
-        click.echo(f"  [{'#' * k}{'.' * (width - k)}] {done}/{total} pokes, {elapsed:.0f} s, "
-                   f"ETA {eta:.0f} s", err=True)
+    progress = step_progress(quiet, "pokes")
 
     # an earlier loop's files are removed, never mistaken for this one's (put back on Ctrl-C)
     with replacing_files(out_dir, EXPLORE_FILES) as out:

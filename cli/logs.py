@@ -37,6 +37,25 @@ def progress_bar(p: dict) -> str:
             f"{done / total:4.0%}  {format_seconds(p['elapsed'])} elapsed, ~{format_seconds(p['eta'])} left")
 
 
+def step_progress(quiet: bool, what: str):
+    """``progress(done, total)`` for a loop of slow steps (an exploration): one
+    :func:`progress_bar` line per step on stderr, the time left extrapolated from the
+    steps so far (later steps, with more data, take longer); a no-op when quiet."""
+    import time
+
+    t_start = time.perf_counter()
+
+    def progress(done, total):
+        if quiet or done <= 0:
+            return
+        elapsed = time.perf_counter() - t_start
+        sys.stderr.write("  " + progress_bar({"done": done, "total": total, "what": what, "elapsed": elapsed,
+                                              "eta": elapsed / done * (total - done)}) + "\n")
+        sys.stderr.flush()
+
+    return progress
+
+
 class _Handler(logging.StreamHandler):
     """The CLI's handler: progress records as a bar redrawn in place on a terminal."""
 

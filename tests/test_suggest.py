@@ -112,3 +112,33 @@ def test_diagnose_suggest_writes_plan_files_through_the_cli(recorded, tmp_path):
     assert "Suggested next experiments" in (tmp_path / "d" / "report.md").read_text()
     saved = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     assert saved["suggestions"] == d["suggestions"]
+
+
+def test_diagnose_explore_decides_with_a_suggested_poke(tmp_path):
+    """The closed loop on a case built to need it: a box with strong linear drag
+    (b = 2 N·s/m) poked twice at random (gentle, slow pokes: drag hides, verdict none);
+    one suggested poke (dynamic: the box slides fast) and the verdict names the drag.
+    Candidates restricted to drag and a force bias, 2 folds and 40 iterations: cheap."""
+    out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", "--explore", "--inject", "linear_drag:b=2.0",
+                          "--seed", "3", "--pokes", "2", "--budget", "1", "--effects", "linear_drag,force_bias",
+                          "--max-folds", "2", "--fit-iterations", "40", "-o", str(tmp_path / "x"), "--json", "--quiet"],
+                         capture_output=True, text=True, timeout=1200)
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout)
+    steps = summary["steps"]
+    assert summary["injected"] == [{"name": "linear_drag", "b": 2.0}]
+    assert steps[0]["verdict"] == "none" and steps[0]["next_action"]
+    assert (tmp_path / "x" / "plan_1.h5").is_file() and (tmp_path / "x" / "diagnosis_0" / "report.md").is_file()
+    assert steps[-1]["actions"] == 1 and steps[-1]["verdict"] == "linear_drag" and summary["decided"] is True
+    assert (tmp_path / "x" / "candidates.png").is_file()
+    from tacest.io.plan import read_plan
+
+    assert read_plan(tmp_path / "x" / "plan_1.h5").method == "discriminate"
+
+
+def test_diagnose_explore_refuses_runs_and_needs_runs_otherwise(recorded, tmp_path):
+    for args, fragment in (([str(recorded.path), "--explore"], "give no RUNS"), ([], "needs RUNS")):
+        out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", *args, "-o", str(tmp_path / "y")],
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 2 and fragment in out.stderr and "Traceback" not in out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1

@@ -1,0 +1,204 @@
+"""``tacest diagnose --explore``: the diagnosis' closed loop in simulation (2-D).
+
+A box is recorded by tacest's simulator with an effect the diagnosis is not told about
+(``--effect``, or none), with ``pokes`` random pokes and no pose observations: touch
+alone.  Then, until the verdict names an effect or ``budget`` actions are spent:
+
+1. diagnose the run (the truth stripped; tacest.diagnosis.diagnose, one run cut at its
+   pokes into held-out folds);
+2. choose the next poke: ``suggest`` (the poke that best tells the plain model and the
+   leading candidates apart, tacest.diagnosis.suggest) or ``random`` (the planner's
+   random poke of the same action space: the side-by-side baseline);
+3. record it onto the run (``tacest record --plan``'s path).
+
+The verdict is decided when it names an effect: ``none`` (no effect shown yet) and
+``undetermined`` go on exploring.  DIR gets ``run.h5`` (with its truth), ``diagnosis_<n>/``
+(each step's report folder), ``plan_<n>.h5``, ``summary.json`` (``steps``: actions taken,
+verdict, each candidate's held-out reduction and score, wall times; the injected effect)
+and ``candidates.png``: each candidate's reduction of the held-out gap against actions
+taken.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from tacest.errors import TacestError
+
+log = logging.getLogger(__name__)
+
+POLICIES = ("suggest", "random")
+
+
+@dataclass
+class ExploreDiagnosisOptions:
+    """effect : the hidden effect, ``NAME[:key=value,...]`` as ``tacest record --effect``
+    (``none``: a clean recording); seed; object_spec; pokes : random pokes recorded
+    first; budget : most actions added; policy : ``suggest`` or ``random``; poke_style :
+    the action space (tacest.planning.actions); effects, max_folds, fit_iterations :
+    of every diagnosis (tacest.diagnosis.diagnose.DiagnoseOptions); config_path."""
+
+    effect: str = "none"
+    seed: int = 0
+    object_spec: str = "box"
+    pokes: int = 4
+    budget: int = 6
+    policy: str = "suggest"
+    poke_style: str = "dynamic"
+    effects: Optional[tuple] = None
+    max_folds: Optional[int] = None
+    fit_iterations: Optional[int] = None
+    config_path: Optional[str] = None
+
+    def validate(self):
+        if self.policy not in POLICIES:
+            raise TacestError(f"unknown policy {self.policy!r}: use {', '.join(POLICIES)}")
+        if int(self.pokes) < 2:
+            raise TacestError("--explore needs at least 2 random pokes to start from (a held-out fold each)")
+        if int(self.budget) < 0:
+            raise TacestError("--budget must be >= 0")
+        return self
+
+    def diagnose_options(self):
+        from tacest.diagnosis.diagnose import DiagnoseOptions
+
+        opts = DiagnoseOptions(effects=self.effects)
+        for key in ("max_folds", "fit_iterations"):
+            if getattr(self, key) is not None:
+                setattr(opts, key, int(getattr(self, key)))
+        return opts.validate()
+
+
+def decided(verdict: str) -> bool:
+    """A verdict that names an effect ends the loop (module docstring)."""
+    from tacest.diagnosis.diagnose import UNDETERMINED
+    from tacest.model.registry import NONE
+
+    return verdict not in (NONE, UNDETERMINED)
+
+
+def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> dict:
+    """Run the loop (module docstring); returns the summary dict.  progress :
+    callable(n_done, n_total) after each diagnosis."""
+    from tacest.diagnosis.diagnose import diagnose
+    from tacest.diagnosis.report import write_report
+    from tacest.diagnosis.suggest import suggest
+    from tacest.dims import record_sim
+    from tacest.estimation.config import load_config
+    from tacest.information.expected import ModelState
+    from tacest.io.plan import Plan, write_plan
+    from tacest.io.run import read_run, write_run
+    from tacest.planning.actions import ActionSpace, object_height
+    from tacest.sim.record import SimOptions
+
+    opts.validate()
+    dopts = opts.diagnose_options()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise TacestError(f"{out}: exists and is not a folder")
+    config = load_config(opts.config_path)
+    sim = SimOptions(dim=2, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
+                     effects=[] if opts.effect == "none" else [opts.effect]).validate()
+    out.mkdir(parents=True, exist_ok=True)
+    run_path = out / "run.h5"
+    for stale in [run_path, out / "summary.json", out / "candidates.png", *out.glob("plan_*.h5")]:
+        stale.unlink(missing_ok=True)
+    t_all = time.perf_counter()
+    write_run(record_sim(sim), run_path)
+    injected = read_run(run_path).truth.effects
+    steps = []
+    summary = {"effect": opts.effect, "injected": injected, "options": asdict(opts), "steps": steps}
+    rng = np.random.default_rng(np.random.SeedSequence([int(opts.seed), 37]))
+    total = int(opts.budget) + 1
+    for n in range(total):
+        run = read_run(run_path)
+        blind = run.replace(truth=None)
+        t0 = time.perf_counter()
+        diag = diagnose([blind], "box", config=config, options=dopts)
+        write_report(diag, out / f"diagnosis_{n}")
+        step = {"actions": n, "pokes": int(opts.pokes) + n, "samples": run.n_samples, "verdict": diag.verdict,
+                "reason": diag.reason, "diagnosis_time": time.perf_counter() - t0,
+                "candidates": {c.name: {"reduction": _num(c.reduction), "score": _num(c.score), "status": c.status}
+                               for c in diag.effects}}
+        done = decided(diag.verdict)
+        if not done and n < total - 1:
+            t1 = time.perf_counter()
+            if opts.policy == "suggest":
+                try:
+                    plan = suggest(diag, [blind], n=1, poke_style=opts.poke_style, seed=int(opts.seed) + n)[0].plan
+                except TacestError as exc:  # nothing to tell apart yet: a random poke instead
+                    step["suggest_error"] = str(exc)
+                    plan = None
+            else:
+                plan = None
+            if plan is None:
+                model = ModelState.from_estimate(diag.base, [blind])
+                space = ActionSpace(n_fingers=model.n_fingers, style=opts.poke_style,
+                                    object_height=object_height(model), up=np.asarray(model.up, float))
+                a = space.random_action(rng, model.centroid__world)
+                plan = Plan(chosen=a, candidates=a[None], scores=np.zeros(1), method="random", score="none",
+                            names=list(space.poke_names))
+            plan_path = out / f"plan_{n + 1}.h5"
+            write_plan(plan, plan_path)
+            step["next_action"] = plan.chosen_dict()
+            step["plan_method"] = plan.method
+            step["plan_time"] = time.perf_counter() - t1
+            write_run(record_sim(sim, plan_path=plan_path, append_to=run_path), run_path)
+        steps.append(step)
+        log.info(f"[{n}/{total - 1} actions] verdict {diag.verdict} ({step['diagnosis_time']:.0f} s)")
+        summary["wall_time"] = time.perf_counter() - t_all
+        summary["verdict"] = diag.verdict
+        summary["decided"] = done
+        (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_num) + "\n")
+        if progress is not None:
+            progress(n + 1, total)
+        if done:
+            break
+    plot_candidates(out / "candidates.png", summary)
+    summary["figure"] = "candidates.png"
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_num) + "\n")
+    return summary
+
+
+def _num(v):
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return f if np.isfinite(f) else None
+
+
+def plot_candidates(path, summary: dict) -> None:
+    """Each candidate's held-out reduction against actions taken (one line per
+    candidate; the verdict of each step above the axis)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = summary["steps"]
+    names = sorted({c for s in steps for c in s["candidates"]})
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for name in names:
+        xs = [s["actions"] for s in steps if name in s["candidates"]]
+        ys = [s["candidates"][name]["reduction"] for s in steps if name in s["candidates"]]
+        ys = [np.nan if y is None else y for y in ys]
+        ax.plot(xs, ys, marker="o", lw=1, label=name)
+    ax.axhline(0.0, color="k", lw=0.6)
+    for s in steps:
+        ax.annotate(s["verdict"], (s["actions"], 1.02), xycoords=("data", "axes fraction"), fontsize=6,
+                    ha="center", rotation=30)
+    ax.set_xlabel("actions taken (after the random pokes)")
+    ax.set_ylabel("held-out gap closed")
+    ax.set_title(f"hidden effect: {summary['effect']}, policy {summary['options']['policy']}", fontsize=9, pad=22)
+    ax.legend(fontsize=6, ncol=3)
+    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.8)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
