@@ -21,7 +21,7 @@ from tacest.parallel import machine_workers
 @click.option("--shape", default=None, help="Shape parameterization: box or polygon:K "
               "(default: the estimate's, else box).")
 @click.option("--effects", default=None, metavar="a,b,...",
-              help="Candidate effects to compare (default: every SPEC effect).")
+              help="Candidate effects to compare (default: every SPEC effect; 3-D: every one the 3-D model has).")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="Estimator settings (TOML; `tacest config --defaults` prints every key).")
 @click.option("--window", type=click.IntRange(min=1), default=None,
@@ -89,17 +89,16 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
     ex = executor(workers, scheduler)  # the options checked before any work
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
-    names = parse_effect_list(effects)
     config = load_config(config_path)
     check_linear_solver(config.solver.linear_solver)
     loaded = read_runs(runs)
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or effects or reach is not None or suggest:
-            raise TacestError("--estimate, --effects, --reach and --suggest are for 2-D runs; 3-D runs compare "
-                              "the 3-D augmentations")
-        opts3 = Options3D(fit_iterations=fit_iterations)
+        if estimate_path or reach is not None or suggest:
+            raise TacestError("--estimate, --reach and --suggest are for 2-D runs")
+        names3 = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
+        opts3 = Options3D(fit_iterations=fit_iterations, effects=names3)
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
                 setattr(opts3, key, val)
@@ -108,6 +107,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         _report(diag, write_report_3d, out, as_json, quiet)
         _hint_workers(ex)
         return
+    names = parse_effect_list(effects)
     est = read_estimate(estimate_path) if estimate_path else None
     shape = shape or (est.shape if est is not None else "box")
     opts = DiagnoseOptions(effects=names, floor=floor_mode)

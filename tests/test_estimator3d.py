@@ -396,8 +396,8 @@ def test_diagnose_3d_finds_rounded_edges_on_held_out_tosses(tmp_path):
     eff = {e["name"]: e for e in d["effects"]}
     # every 3-D augmentation the tosses can show: no force stream, so no force effects
     assert set(eff) == {"edge_radius", "ground_offset", "angular_damping", "linear_drag", "soft_contact",
-                        "face_friction", "com_offset"}
-    assert {"force_bias", "force_scale", "restitution"} <= set(d["not_compared"])
+                        "face_friction", "com_offset", "time_scale"}
+    assert {"force_bias", "force_scale", "latency", "restitution"} <= set(d["not_compared"])
     # the sharp model misses the rounded contacts: a gap above the floor that the rounded
     # model closes by at least the blaming rule's 20 %
     assert eff["edge_radius"]["gap_before"] > 0
@@ -505,3 +505,19 @@ def test_drag_and_damping_are_recovered_from_tosses_that_show_them(name, key, va
     assert abs(est.params[key] - value) < 2.5 * est.std[key]
     assert est.objective < 0.75 * plain.objective
     np.testing.assert_allclose(np.ptp(est.vertices, axis=0), EXTENTS, rtol=0.015)
+
+
+def test_diagnose_3d_finds_a_clock_error_on_tosses(tmp_path):
+    """The transform candidate time_scale in 3-D: tosses whose clock runs 6 % fast (every
+    time stamp and dt times 1.06: gravity appears as g / 1.06²) are blamed on it, with the
+    scale within a grid step (1.5 %) of the truth; edge_radius is compared beside it."""
+    from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d
+
+    runs = _augmented_tosses(0.0, 0.0)
+    fast = [r.replace(dt=r.dt * 1.06, time=r.time * 1.06, filename=f"toss{i}") for i, r in enumerate(runs)]
+    held = [r.replace(extra_attrs={**r.extra_attrs, "copy_of": r.filename}, filename=r.filename + "b") for r in fast]
+    d = diagnose_3d(fast + held[::-1], "box", options=Options3D(effects=("time_scale", "edge_radius")))
+    eff = {e["name"]: e for e in d.effects}
+    assert set(eff) == {"time_scale", "edge_radius"}
+    assert d.verdict == "time_scale", d.reason
+    assert d.fits["time_scale"].params["time_scale.scale"] == pytest.approx(1.06, abs=0.016)

@@ -27,9 +27,9 @@ augmentations closes the gap on runs the fit did not see.
    floor and it closes at least MIN_REDUCTION of it (the 2-D rule, docs/diagnosis.md);
    the verdict is the largest such reduction, else ``none``.
 
-Restitution (no per-vertex impact memory in the 3-D NLP yet), latency and time_scale
-(data transforms the 3-D diagnosis does not search yet) are listed as not compared
-(docs/estimation3d.md, "Effects").
+The data transforms latency and time_scale are candidates as in 2-D (TRANSFORMS_3D: a line
+search of plain-model fits to the transformed runs).  Restitution (no per-vertex impact
+memory in the 3-D NLP yet) is listed as not compared (docs/estimation3d.md, "Effects").
 """
 
 from __future__ import annotations
@@ -62,10 +62,16 @@ AUGMENTATIONS = {
     "ground_offset": ({"edge_radius_sigma": 0.0, "ground_offset_sigma": 0.005}, ()),
     **{name: (PLAIN, (name,)) for name in SPEC_EFFECTS_3D},
 }
+#: data-transform candidates (tacest.diagnosis.transforms), searched as in 2-D: a line
+#: search over the grid of tacest.diagnosis.candidates, a fit of the plain model to the
+#: transformed training runs per value (latency first screened by fits with the plain
+#: model's parameters held)
+TRANSFORMS_3D = ("latency", "time_scale")
+#: full fits per transform candidate (the 2-D diagnosis' fits_per_candidate)
+TRANSFORM_FITS = 3
 #: SPEC effects without a 3-D model (reported as not compared): restitution needs an
-#: impact memory per vertex (states the 3-D NLP does not have yet); latency and time_scale
-#: are data transforms the 3-D diagnosis does not search yet
-NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D and n != NONE)
+#: impact memory per vertex (states the 3-D NLP does not have yet)
+NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D + TRANSFORMS_3D and n != NONE)
 #: expected per-sample loss of the pose (6 rows) and dynamics (6 rows) terms: half the rows
 FLOOR_PER_SAMPLE = {"pose": 3.0, "dynamics": 3.0}
 TERMS = ("pose", "dynamics", "penetration", "complementarity")
@@ -77,9 +83,14 @@ MIN_REDUCTION = 0.2
 
 @dataclass
 class Options3D:
+    """window, alpha : of the window tests; fit_iterations : IPOPT iterations of every
+    fit (None: the configuration's); effects : the candidates to compare (None: every
+    one the runs can show)."""
+
     window: int = 20
     alpha: float = 0.01
     fit_iterations: int | None = None
+    effects: tuple | None = None
 
 
 @dataclass
@@ -179,6 +190,8 @@ def applicable(name, runs, shape) -> str:
     """Why an augmentation cannot be compared on these runs ("" when it can)."""
     if name in ("force_bias", "force_scale") and not any(r.force is not None for r in runs):
         return "no force stream"
+    if name == "latency" and not any(r.n_fingers for r in runs):
+        return "no tactile stream"
     if name in ("face_friction", "edge_radius") and shape != "box":
         return f"modelled for boxes only, not {shape}"
     return ""
@@ -264,7 +277,7 @@ def _plain_task(cfg, shape, train, held) -> tuple:
     fit = Fit3D(name=NONE, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
     _heldout(fit, est, out, shape, cfg, (), train, held)
     fit.seconds = time.perf_counter() - t0
-    return (fit, res) + flight_floor(est, out.z, res)
+    return (fit, res) + flight_floor(est, out.z, res) + (out.z[: est.problem.n_theta].copy(), out.objective)
 
 
 def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
@@ -279,6 +292,51 @@ def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
     fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
                 train_loss_per_sample=_losses(est, out.z)[1])
     _heldout(fit, est, out, shape, cfg, effects, train, held)
+    fit.seconds = time.perf_counter() - t0
+    return fit
+
+
+def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective) -> Fit3D:
+    """A transform candidate of a 3-D diagnosis, a task: the line search over its grid on
+    the training runs (each value a fit of the plain model to the transformed runs; the
+    identity's objective is the plain fit's), the value kept as in 2-D
+    (candidates.choose_transform_value), then the held-out runs transformed by it with
+    the parameters of its fit held."""
+    from tacest.diagnosis import candidates as cands
+    from tacest.diagnosis.transforms import apply_transform
+
+    t0 = time.perf_counter()
+    screening = None
+    if name == "latency":  # where the line search starts: quick fits, parameters held
+        screening = {}
+        for k in cands.latency_screen_values(min(r.n_samples for r in train)):
+            est = _estimator([apply_transform(r, name, k) for r in train], shape, cfg, (), fixed_theta=theta_plain)
+            try:
+                screening[k] = est.solve().objective
+            except TacestError:
+                continue
+    objectives = {cands.TRANSFORM_IDENTITY[name]: plain_objective}
+    queue, tried = cands.first_transform_values(name, screening), {}
+    while len(tried) < TRANSFORM_FITS:
+        value = queue.pop(0) if queue else cands.next_transform_value(name, objectives)
+        if value is None:
+            break
+        objectives[value] = None
+        est = _estimator([apply_transform(r, name, value) for r in train], shape, cfg, ())
+        try:
+            out = _check(est.solve())
+        except TacestError:
+            continue
+        objectives[value] = out.objective
+        tried[value] = (est, out)
+    if not tried:
+        raise TacestError(f"diagnose: every 3-D fit of {name} failed")
+    value = cands.choose_transform_value(name, {v: o.objective for v, (_, o) in tried.items()})
+    est, out = tried[value]
+    pname = cands.candidate(name, dim=3).param_names[0]
+    fit = Fit3D(name=name, params={**_params(est, out.z), f"{name}.{pname}": float(value)}, status=out.status,
+                seconds=0.0, train_loss_per_sample=_losses(est, out.z)[1])
+    _heldout(fit, est, out, shape, cfg, (), train, [apply_transform(r, name, value) for r in held])
     fit.seconds = time.perf_counter() - t0
     return fit
 
@@ -301,19 +359,28 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     train, held = runs[:n_train], runs[n_train:]
     names = [r.filename or f"run{i}" for i, r in enumerate(runs)]
     ex = executor or Executor()
-    models = [(n, ov, eff) for n, (ov, eff) in AUGMENTATIONS.items() if not applicable(n, runs, shape)]
-    skipped = {n: applicable(n, runs, shape) for n in AUGMENTATIONS if applicable(n, runs, shape)}
-    ex.plan(1 + len(models), what="diagnosis")
+    wanted = list(AUGMENTATIONS) + list(TRANSFORMS_3D)
+    if opts.effects is not None:
+        unknown = [n for n in opts.effects if n not in wanted and n not in NOT_MODELLED_3D]
+        if unknown:
+            raise TacestError(f"unknown 3-D candidate {', '.join(unknown)}; 3-D candidates: {', '.join(wanted)}")
+        wanted = [n for n in wanted if n in opts.effects]
+    skipped = {n: applicable(n, runs, shape) for n in wanted if applicable(n, runs, shape)}
+    models = [(n, *AUGMENTATIONS[n]) for n in wanted if n in AUGMENTATIONS and n not in skipped]
+    transforms = [n for n in wanted if n in TRANSFORMS_3D and n not in skipped]
+    ex.plan(1 + len(models) + len(transforms), what="diagnosis")
     train_h, held_h = ex.scatter(train), ex.scatter(held)
     plain_cfg = _config(config, PLAIN, opts.fit_iterations)
-    plain, res_plain, floor, n_flight = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
+    plain, res_plain, floor, n_flight, theta_plain, plain_objective = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
                                                                      name="3d-none"))
     fits = {NONE: plain}
     log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
              f"({plain.heldout_status}), {plain.seconds:.0f} s")
     handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), eff, shape, train_h, held_h,
                          name=f"3d-{name}") for name, ov, eff in models]
-    for (name, _, _), fit in zip(models, ex.gather(handles)):
+    handles += [ex.submit(_transform_task, name, plain_cfg, shape, train_h, held_h, theta_plain, plain_objective,
+                          name=f"3d-{name}") for name in transforms]
+    for name, fit in zip([m[0] for m in models] + transforms, ex.gather(handles)):
         fits[name] = fit
         log.info(f"{name}: trained on {len(train)} runs ({fit.status}), held out on {len(held)} runs "
                  f"({fit.heldout_status}), {fit.seconds:.0f} s")
@@ -322,7 +389,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         w["run"] = names[w["run"]]
     gap_before = fits[NONE].heldout_loss_per_sample - floor
     effects = []
-    for name, _, _ in models:
+    for name in [m[0] for m in models] + transforms:
         gap_after = fits[name].heldout_loss_per_sample - floor
         red = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
         # (reduction < 0: the augmented model does worse on the held-out runs)
