@@ -521,3 +521,45 @@ def test_diagnose_3d_finds_a_clock_error_on_tosses(tmp_path):
     assert set(eff) == {"time_scale", "edge_radius"}
     assert d.verdict == "time_scale", d.reason
     assert d.fits["time_scale"].params["time_scale.scale"] == pytest.approx(1.06, abs=0.016)
+
+
+def test_a_force_gain_is_recovered_in_3d_when_the_mass_is_weighed():
+    """force_scale in 3-D: a gain is the mass's twin unless the mass is known; with the
+    mass weighed (prior at +2 %, log sigma 0.02) a recorded gain of 1.3 (MuJoCo, 3 dynamic
+    pokes) comes back within 2.5 of its std (1.20 ± 0.056 seen: the +2 % on the mass moves
+    it by -2 %, the rest is the fit's)."""
+    from tacest.dims import record_sim
+    from tacest.estimation.config import load_config
+    from tacest.estimation.estimator3d import estimate_3d
+    from tacest.sim.record import SimOptions
+
+    run = record_sim(SimOptions(dim=3, seed=1, pokes=3, fingers=1, effects=["force_scale:gain=1.3"],
+                                observe_pose=0.0005, poke_style="dynamic"))
+    cfg = load_config(overrides={"prior": {"mass": run.truth.mass * 1.02, "mass_log_sigma": 0.02}})
+    est = estimate_3d([run], "box", cfg, effects=["force_scale"])
+    assert est.success, est.solver_status
+    assert abs(est.params["force_scale.gain"] - 1.3) < 2.5 * est.std["force_scale.gain"]
+
+
+def test_a_soft_ground_is_found_on_tosses_with_its_known_bias():
+    """soft_contact in 3-D (quasi-static sink) on two noiseless tosses of the project's own
+    model onto a ground of compliance 0.5 mm/N: the fit with the effect explains the
+    landings (objective 267 -> 25 seen) and finds the compliance 21 % low, the box 1-2 %
+    larger (a larger box sinks less for the same centre height: the two trade).  A known
+    limit, asserted as such: within 30 %, and the reported std (7 %) does not cover the
+    trade-off (docs/estimation3d.md, "Effects")."""
+    from tacest.estimation.estimator3d import estimate_3d
+    from tacest.estimation.rollout3d import simulate_toss
+
+    inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
+    runs = []
+    for axis, angle, v, w in (((1.0, 2.0, 0.5), 0.6, (0.5, -0.2, -0.4), (4.0, -6.0, 2.0)),
+                              ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
+        q0 = quat_from_axis_angle(np.array(axis), angle)
+        runs.append(simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w],
+                                  55, effect_params={"soft_contact.compliance": 0.0005}))
+    plain = estimate_3d(runs, "box")
+    est = estimate_3d(runs, "box", effects=["soft_contact"])
+    assert est.success, est.solver_status
+    assert est.params["soft_contact.compliance"] == pytest.approx(0.0005, rel=0.30)
+    assert est.objective < 0.25 * plain.objective
