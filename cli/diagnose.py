@@ -42,7 +42,7 @@ from tacest.parallel import machine_workers
               "costs its height (noise.complementarity_reach; default 0.01; 0: off). 2-D runs.")
 @click.option("--suggest", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also write N plan files (suggest_<k>.h5) of the pokes that best tell the leading candidates "
-              "apart (2-D runs; docs/diagnosis.md).")
+              "apart (docs/diagnosis.md).")
 @click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="dynamic", show_default=True,
               help="Action space of --suggest: the planner's gentle or dynamic pokes.")
 @click.option("--explore", is_flag=True, help="No RUNS: the closed loop in simulation (2-D): record a box with "
@@ -95,8 +95,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or reach is not None or suggest:
-            raise TacestError("--estimate, --reach and --suggest are for 2-D runs")
+        if estimate_path or reach is not None:
+            raise TacestError("--estimate and --reach are for 2-D runs")
         names3 = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
         opts3 = Options3D(fit_iterations=fit_iterations, effects=names3)
         for key, val in (("window", window), ("alpha", alpha)):
@@ -104,7 +104,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
                 setattr(opts3, key, val)
         with ex:
             diag = diagnose_3d(loaded, shape or "box", config=config, options=opts3, executor=ex)
-        _report(diag, write_report_3d, out, as_json, quiet)
+        extra = _suggestions(diag, diag.base_runs, suggest, poke_style, config) if suggest else None
+        _report(diag, write_report_3d, out, as_json, quiet, extra)
         _hint_workers(ex)
         return
     names = parse_effect_list(effects)
@@ -118,15 +119,18 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     check_heldout_data(loaded)  # before any fit: without held-out data nothing can be decided
     with ex:
         diag = run_diagnosis(loaded, shape, config=config, options=opts, estimate=est, executor=ex)
-    extra = None
-    if suggest:
-        from tacest.diagnosis.suggest import suggest as suggest_experiments
-        from tacest.diagnosis.suggest import suggestion_writer
-
-        found = suggest_experiments(diag, loaded, n=suggest, poke_style=poke_style)
-        extra = functools.partial(suggestion_writer, found)
+    extra = _suggestions(diag, loaded, suggest, poke_style, config) if suggest else None
     _report(diag, write_report, out, as_json, quiet, extra)
     _hint_workers(ex)
+
+
+def _suggestions(diag, runs, n, poke_style, config):
+    """``extra(obj)`` of :func:`_report` writing the ``n`` suggested plans
+    (tacest.diagnosis.suggest)."""
+    from tacest.diagnosis.suggest import suggest, suggestion_writer
+
+    found = suggest(diag, runs, n=n, poke_style=poke_style, config=config)
+    return functools.partial(suggestion_writer, found)
 
 
 def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,

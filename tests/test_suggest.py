@@ -142,3 +142,37 @@ def test_diagnose_explore_refuses_runs_and_needs_runs_otherwise(recorded, tmp_pa
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 2 and fragment in out.stderr and "Traceback" not in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_the_suggestion_works_in_3d_and_skips_what_it_cannot_predict():
+    """3-D (the MuJoCo world): the plain model against strong drag on a box whose poses
+    are observed; edge_radius (a tacest extension the simulator has no effect for) is
+    left out.  The chosen poke separates the two by far more than a press straight down
+    onto the box."""
+    from tacest.dims import record_sim
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.estimation.estimator3d import estimate_3d
+    from tacest.information.expected3d import ModelState3
+    from tacest.planning.actions import ActionSpace3, object_height
+    from tacest.sim.record import SimOptions
+
+    run = record_sim(SimOptions(dim=3, seed=1, pokes=2, fingers=1, observe_pose=0.0005, poke_style="dynamic"))
+    est = estimate_3d([run], "box")
+    diag = SimpleNamespace(base=est, effects=[{"name": "edge_radius"}, {"name": "linear_drag"}],
+                           fits={"linear_drag": SimpleNamespace(params={"linear_drag.b": 2.0}),
+                                 "edge_radius": SimpleNamespace(params={"edge_radius": 0.002})})
+    found = S.suggest(diag, [run], n=1, iterations=2, population=8)
+    assert found[0].models == ["none", "linear_drag"]
+    best = found[0].pairwise["none vs linear_drag"]
+    model = ModelState3.from_estimate(est, [run], EstimatorConfig())
+    space = ActionSpace3(p_finger__world=model.p_finger__world, n_fingers=1, style="dynamic",
+                         object_height=object_height(model), up=np.asarray(model.up, float))
+    lo, hi = space.bounds()
+    u = (lo + hi) / 2
+    u[space.names.index("approach_elevation")] = math.pi / 2
+    down = space.action(0, u, model.centroid__world)
+    drag = S.sim_effects_of("linear_drag", {"linear_drag.b": 2.0}, 3)
+    noise = {"force": 0.02, "normal": 0.02, "position": run.sigma_position, "angle": run.sigma_angle}
+    d_down = S.discrimination(S.predicted_measurements(model, down, [], True),
+                              S.predicted_measurements(model, down, drag, True), noise)
+    assert best > 10 * max(d_down, 1.0)

@@ -120,6 +120,10 @@ class Diagnosis3D:
     extra: dict = field(default_factory=dict)
     #: s, sample period of each training run (the residual figure's time axis)
     dts: list = field(default_factory=list)
+    #: the plain model's estimate of the held-out runs (its parameters those of the
+    #: training fit) and those runs: the object's state for --suggest
+    base: object = None
+    base_runs: list = field(default_factory=list)
 
     def to_json(self) -> dict:
         def num(v):
@@ -264,6 +268,7 @@ def _heldout(fit, est, out, shape, cfg, effects, train, held):
     out_h = _check(est_h.solve())
     fit.heldout_loss_per_sample = _losses(est_h, out_h.z)[1]
     fit.heldout_status = out_h.status
+    return est_h, out_h
 
 
 def _plain_task(cfg, shape, train, held) -> tuple:
@@ -275,9 +280,10 @@ def _plain_task(cfg, shape, train, held) -> tuple:
     out = _check(est.solve())
     res, per = _losses(est, out.z)
     fit = Fit3D(name=NONE, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
-    _heldout(fit, est, out, shape, cfg, (), train, held)
+    est_h, out_h = _heldout(fit, est, out, shape, cfg, (), train, held)
+    base = est_h.result(out_h, 0.0, information=False)  # the object now: the end of the last held-out run
     fit.seconds = time.perf_counter() - t0
-    return (fit, res) + flight_floor(est, out.z, res) + (out.z[: est.problem.n_theta].copy(), out.objective)
+    return (fit, res) + flight_floor(est, out.z, res) + (out.z[: est.problem.n_theta].copy(), out.objective, base)
 
 
 def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
@@ -371,7 +377,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     ex.plan(1 + len(models) + len(transforms), what="diagnosis")
     train_h, held_h = ex.scatter(train), ex.scatter(held)
     plain_cfg = _config(config, PLAIN, opts.fit_iterations)
-    plain, res_plain, floor, n_flight, theta_plain, plain_objective = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
+    plain, res_plain, floor, n_flight, theta_plain, plain_objective, base = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
                                                                      name="3d-none"))
     fits = {NONE: plain}
     log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
@@ -412,14 +418,15 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     reason += "; not compared: " + ", ".join(f"{n} ({why})" for n, why in not_compared.items())
     return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
-                       dts=[float(r.dt) for r in runs[:n_train]],
+                       dts=[float(r.dt) for r in runs[:n_train]], base=base, base_runs=list(held),
                        extra={"floor_flight_samples": n_flight,
                               "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values()),
                               "not_compared_reasons": not_compared})
 
 
-def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
-    """report.md, residuals_3d.png and diagnosis.json into ``folder`` (atomically)."""
+def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> list:
+    """report.md, residuals_3d.png and diagnosis.json into ``folder`` (atomically);
+    extra : as tacest.diagnosis.report.write_report's."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -467,4 +474,7 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None) -> list:
             lines.append(f"| {w['run']} | {w['start']} | {w['stop']} | {w['term']} | {w['share']:.1%} |")
         lines += ["", "![residuals](residuals_3d.png)", ""]
         (tmp / "report.md").write_text("\n".join(lines))
-    return ["report.md", "residuals_3d.png", "diagnosis.json"]
+        names = ["report.md", "residuals_3d.png", "diagnosis.json"]
+        if extra is not None:
+            names += extra(tmp)
+    return names

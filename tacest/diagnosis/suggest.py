@@ -1,5 +1,5 @@
 """The experiment that decides: the pokes whose predicted measurements differ most between
-the leading candidate models of a diagnosis (2-D).
+the leading candidate models of a diagnosis (2-D, and 3-D in the MuJoCo world).
 
 A diagnosis ends with a ranking of candidate effects; when the held-out data cannot tell
 the leaders apart (or show no effect at all), what to record next is the action under
@@ -11,7 +11,8 @@ action, when A is true, is
 
 the same in both directions: the expected discrimination :func:`discrimination`.  Its
 predictions m_A, m_B come from the same forward model as planning (the pymunk world of
-tacest.information.expected.predict_poke, the estimate's object at its last pose), with
+tacest.information.expected.predict_poke; in 3-D the MuJoCo world of
+tacest.information.expected3d.predict_poke_3d; the estimate's object at its last pose), with
 each candidate's fitted effect in the world (restitution, drag, damping, soft ground, COM
 offset) or on the sensor (force bias and gain, latency: tacest.sim.record.sensor_streams,
 noiseless).  Terms, per sample and finger: the force at every sample (a clean sensor reads
@@ -27,9 +28,10 @@ best distinct actions are written as plan files (SPEC ``tacest.plan``: ``method`
 ``discriminate``, ``score`` ``expected_llr``), each executable with ``tacest record --plan``.
 
 Not modelled by the predictions: ``time_scale`` (a clock error changes the time stamps,
-not what one poke measures against another) and ``face_friction`` (its per-face values
-are not kept in the diagnosis' candidate parameters); a candidate of these is left out
-and said so.
+not what one poke measures against another), ``face_friction`` (its per-face values
+are not kept in the diagnosis' candidate parameters) and tacest's 3-D extensions
+``edge_radius`` and ``ground_offset`` (the simulator has no such effect); a candidate of
+these is left out and said so.
 """
 
 from __future__ import annotations
@@ -67,10 +69,11 @@ class Suggestion:
     pairwise: dict = field(default_factory=dict)
 
 
-def sim_effects_of(name: str, params: dict) -> list:
+def sim_effects_of(name: str, params: dict, dim: int = 2) -> list:
     """The resolved simulator effects (tacest.sim.effects.Effect) of a candidate with its
     fitted parameters (/params names ``effect.parameter``, or the transform's parameter
-    name); [] for ``none``; TacestError for an effect a prediction cannot use."""
+    name) in a ``dim``-D world; [] for ``none``; TacestError for an effect a prediction
+    cannot use."""
     from tacest.sim.effects import EFFECTS, NONE, Effect
 
     if name == NONE:
@@ -80,7 +83,7 @@ def sim_effects_of(name: str, params: dict) -> list:
     values = {k.split(".", 1)[1] if k.startswith(name + ".") else k: v for k, v in params.items()}
     out = {}
     for p in EFFECTS[name].param_names:
-        if p in ("fz", "dz"):  # 3-D only
+        if p in ("fz", "dz") and dim == 2:  # 3-D only
             continue
         v = values.get(p)
         if v is None or not np.isfinite(float(v)):
@@ -90,12 +93,15 @@ def sim_effects_of(name: str, params: dict) -> list:
 
 
 def predicted_measurements(model, action, effects, has_pose: bool) -> dict:
-    """Noiseless measurements of one poke on ``model`` (ModelState) with ``effects``:
-    {contact (T, F) bool, force (T, F, 2) N, normal (T, F, 2), pose (T, 3) or None}."""
+    """Noiseless measurements of one poke on ``model`` (ModelState, or ModelState3 in the
+    MuJoCo world) with ``effects``: {contact (T, F) bool, force (T, F, D) N, normal
+    (T, F, D), pose (T, 3) [x, y, angle] or (T, 7) [p, q], or None}."""
     from tacest.information.expected import predict_poke
+    from tacest.information.expected3d import ModelState3, predict_poke_3d
     from tacest.sim.record import sensor_streams
 
-    pred = predict_poke(model, action, effects=effects)
+    predict = predict_poke_3d if isinstance(model, ModelState3) else predict_poke
+    pred = predict(model, action, effects=effects)
     contact, force, normal = sensor_streams(pred.contact, pred.impulse__world, pred.normal__world, pred.dt,
                                             effects, 0.0, 0.0, np.random.default_rng(0))
     return {"contact": contact.astype(bool), "force": force, "normal": normal,
@@ -114,47 +120,67 @@ def discrimination(a: dict, b: dict, noise: dict) -> float:
     dn = np.where(both[..., None], np.nan_to_num(a["normal"][:T]) - np.nan_to_num(b["normal"][:T]), 0.0)
     total += 0.5 * float(np.sum((dn / noise["normal"]) ** 2))
     if a["pose"] is not None and b["pose"] is not None:
-        dp = a["pose"][:T] - b["pose"][:T]
-        total += 0.5 * float(np.sum((dp[:, :2] / noise["position"]) ** 2) + np.sum((dp[:, 2] / noise["angle"]) ** 2))
+        pa, pb = a["pose"][:T], b["pose"][:T]
+        D = 2 if pa.shape[1] == 3 else 3
+        if D == 2:
+            angle = pa[:, 2] - pb[:, 2]
+        else:  # the rotation between the two orientations
+            angle = 2 * np.arccos(np.clip(np.abs(np.sum(pa[:, 3:] * pb[:, 3:], axis=1)), 0.0, 1.0))
+        total += 0.5 * float(np.sum(((pa[:, :D] - pb[:, :D]) / noise["position"]) ** 2)
+                             + np.sum((angle / noise["angle"]) ** 2))
     return total
 
 
-def leading_models(diag, leaders: int = LEADERS) -> tuple:
+def ranked_candidates(diag) -> list:
+    """[(name, fitted parameters)] of a diagnosis' candidates whose fits succeeded, best
+    first (2-D: tacest.diagnosis.diagnose.Diagnosis; 3-D: diagnose3d.Diagnosis3D)."""
+    if hasattr(diag, "fits"):  # 3-D
+        return [(e["name"], diag.fits[e["name"]].params) for e in diag.effects]
+    return [(c.name, c.params) for c in diag.effects if c.status == "ok"]
+
+
+def leading_models(diag, leaders: int = LEADERS, dim: int = 2) -> tuple:
     """([(name, sim effects)] of the plain model and the best candidates a prediction can
     use, in the diagnosis' order; [(name, why)] of the candidates left out)."""
     models, skipped = [("none", [])], []
-    for c in diag.effects:
+    for name, params in ranked_candidates(diag):
         if len(models) >= leaders:
             break
-        if c.status != "ok":
-            continue
         try:
-            models.append((c.name, sim_effects_of(c.name, c.params)))
+            models.append((name, sim_effects_of(name, params, dim)))
         except TacestError as exc:
-            skipped.append((c.name, str(exc)))
+            skipped.append((name, str(exc)))
     return models, skipped
 
 
 def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: str = "dynamic", seed: int = 0,
-            iterations: int = 3, population: int = 12) -> list:
+            iterations: int = 3, population: int = 12, config=None) -> list:
     """The ``n`` best distinct pokes to tell the diagnosis' leading models apart (module
-    docstring): a list of :class:`Suggestion`, best first.  runs : the diagnosed runs
-    (the object's state and fingers at the end of the last one)."""
+    docstring): a list of :class:`Suggestion`, best first.  runs : the runs of
+    ``diag.base`` (the plain model's estimate: the object's state and fingers at the end
+    of the last one; 3-D: the held-out runs, ``diag.base_runs``); config : the
+    diagnosis' EstimatorConfig (3-D; None: the defaults)."""
+    from tacest.estimation.config import EstimatorConfig
     from tacest.information.expected import ModelState
+    from tacest.information.expected3d import ModelState3
     from tacest.io.plan import Plan
-    from tacest.planning.actions import ActionSpace, object_height
+    from tacest.planning.actions import ActionSpace, ActionSpace3, object_height
     from tacest.planning.cem import cem_maximize
 
-    if int(runs[-1].dim) != 2:
-        raise TacestError("--suggest is for 2-D runs (the 3-D predictions of candidate effects are not built yet)")
     if n < 1:
         raise TacestError("--suggest needs N >= 1")
-    models, skipped = leading_models(diag, leaders)
+    dim = int(runs[-1].dim)
+    if not runs[-1].n_fingers:
+        raise TacestError("--suggest: the runs have no fingertip to poke with")
+    models, skipped = leading_models(diag, leaders, dim)
     for name, why in skipped:
         log.info(f"suggest: {name} left out ({why})")
     if len(models) < 2:
         raise TacestError("--suggest: no candidate besides the plain model can be predicted; nothing to tell apart")
-    model = ModelState.from_estimate(diag.base, runs)
+    if dim == 3:
+        model = ModelState3.from_estimate(diag.base, runs, config or EstimatorConfig())
+    else:
+        model = ModelState.from_estimate(diag.base, runs)
     last = runs[-1]
     cfg_noise = diag.base.config.get("noise", {}) if isinstance(diag.base.config, dict) else {}
     noise = {"force": float(last.extra_attrs.get("noise_force", cfg_noise.get("force", 0.05))) if last.has_force
@@ -165,8 +191,9 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     for k in ("force", "normal"):
         if noise[k] is not None:
             noise[k] = max(noise[k], 1e-3)  # a noiseless recording still has a resolution
-    space = ActionSpace(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
-                        up=np.asarray(model.up, float))
+    shared = dict(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
+                  up=np.asarray(model.up, float))
+    space = ActionSpace3(p_finger__world=model.p_finger__world, **shared) if dim == 3 else ActionSpace(**shared)
     target = model.centroid__world
 
     def pairwise(action) -> dict:

@@ -189,9 +189,10 @@ def theta_of_estimate(shape: Shape3D, effects: tuple, vertices, params: dict, in
 
 
 def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
-                    settle_time: float = SETTLE_TIME) -> PredictedPoke:
+                    settle_time: float = SETTLE_TIME, effects=()) -> PredictedPoke:
     """Simulate one 3-D poke (an (8,) POKE3_NAMES vector) on the estimated object,
-    noiseless, in the MuJoCo world (module docstring).  The object starts at rest at
+    noiseless, in the MuJoCo world (module docstring); effects : resolved
+    tacest.sim.effects.Effect of the world besides the estimate (as predict_poke's).  The object starts at rest at
     the model's pose lowered (or raised) onto the ground and settles for
     ``settle_time``; idle fingers are parked above it; the poking finger starts at
     ``target + d·(s_touch + CLEARANCE)`` and approaches ``target + d·(s_touch − depth)``
@@ -202,9 +203,15 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     from tacest.sim3d.pokes import Poke3
     from tacest.sim3d.world import World3
 
+    from tacest.sim.effects import find
+    from tacest.sim3d.objects import apply_com_offset
+
     F = model.n_fingers
     poke = Poke3.from_vector(action, F)
     obj = model.sim_object()
+    com = find(effects, "com_offset")
+    if com is not None:
+        obj = apply_com_offset(obj, [com["dx"], com["dy"], com["dz"]])
     pose = np.asarray(model.pose, float).copy()
     Vw = obj.vertices @ quat_to_matrix(pose[3:]).T + pose[:3]
     pose[:3] -= (float(np.min(Vw @ model.up)) - model.ground_height) * model.up
@@ -213,7 +220,7 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     parked = np.asarray(model.p_finger__world, float).copy()
     parked[:, 2] = np.maximum(parked[:, 2], top + radius + 0.02)
     h = model.dt / int(substeps)
-    world = World3(obj, pose, np.zeros(6), parked, radius, timestep=h)
+    world = World3(obj, pose, np.zeros(6), parked, radius, effects=effects, timestep=h)
     hold = world.p_control__world
     for _ in range(int(round(settle_time / h))):
         world.step(hold, h)
