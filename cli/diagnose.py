@@ -45,7 +45,7 @@ from tacest.parallel import machine_workers
               "apart (docs/diagnosis.md).")
 @click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="dynamic", show_default=True,
               help="Action space of --suggest: the planner's gentle or dynamic pokes.")
-@click.option("--explore", is_flag=True, help="No RUNS: the closed loop in simulation (2-D): record a box with "
+@click.option("--explore", is_flag=True, help="No RUNS: the closed loop in simulation: record a box with "
               "--inject hidden, diagnose, add the suggested (or --policy random) poke, until the verdict names "
               "an effect or --budget actions are spent (docs/diagnosis.md).")
 @click.option("--inject", default="none", show_default=True, metavar="NAME[:key=value,...]",
@@ -57,12 +57,14 @@ from tacest.parallel import machine_workers
               help="--explore: most actions added.")
 @click.option("--policy", type=click.Choice(["suggest", "random"]), default="suggest", show_default=True,
               help="--explore: how the added pokes are chosen.")
+@click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True,
+              help="--explore: the simulated world (3: MuJoCo, one finger, pose observed).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
              max_candidates, floor_mode, reach, suggest, poke_style, explore, inject, seed, pokes, budget, policy,
-             as_json, quiet, workers, scheduler):
+             dim, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  The fits run in this process unless --workers or
@@ -84,7 +86,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     setup_logging(quiet)
     if explore:
         return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
-                        fit_iterations, config_path, as_json, quiet)
+                        fit_iterations, config_path, as_json, quiet, int(dim))
     if not runs:
         raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
     ex = executor(workers, scheduler)  # the options checked before any work
@@ -134,7 +136,7 @@ def _suggestions(diag, runs, n, poke_style, config):
 
 
 def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,
-             config_path, as_json, quiet):
+             config_path, as_json, quiet, dim):
     """``tacest diagnose --explore`` (tacest.diagnosis.explore)."""
     from tacest.cli.logs import step_progress
     from tacest.diagnosis.candidates import parse_effect_list
@@ -145,9 +147,13 @@ def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effe
     if runs:
         raise TacestError("--explore records its own runs: give no RUNS")
     check_output(output, inputs=[config_path], folder=True)
+    if dim == 3:
+        names = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
+    else:
+        names = parse_effect_list(effects) if effects else None
     opts = ExploreDiagnosisOptions(effect=inject, seed=seed, pokes=pokes, budget=budget, policy=policy,
-                                   poke_style=poke_style, effects=parse_effect_list(effects), max_folds=max_folds,
-                                   fit_iterations=fit_iterations, config_path=config_path).validate()
+                                   poke_style=poke_style, effects=names, max_folds=max_folds,
+                                   fit_iterations=fit_iterations, config_path=config_path, dim=dim).validate()
     summary = explore_diagnosis(opts, output, progress=step_progress(quiet, "diagnoses"))
     if as_json:
         click.echo(json.dumps(summary, default=str))

@@ -1,11 +1,14 @@
-"""``tacest diagnose --explore``: the diagnosis' closed loop in simulation (2-D).
+"""``tacest diagnose --explore``: the diagnosis' closed loop in simulation (2-D and 3-D).
 
 A box is recorded by tacest's simulator with an effect the diagnosis is not told about
-(``--effect``, or none), with ``pokes`` random pokes and no pose observations: touch
-alone.  Then, until the verdict names an effect or ``budget`` actions are spent:
+(``--inject``, or none), with ``pokes`` random pokes: in 2-D with no pose observations
+(touch alone); in 3-D (the MuJoCo world, one force-sensing finger) with the pose observed
+at OBSERVE_POSE_3D, which the 3-D diagnosis needs.  Then, until the verdict names an
+effect or ``budget`` actions are spent:
 
-1. diagnose the run (the truth stripped; tacest.diagnosis.diagnose, one run cut at its
-   pokes into held-out folds);
+1. diagnose the run (the truth stripped; 2-D: tacest.diagnosis.diagnose, one run cut at
+   its pokes into held-out folds; 3-D: the run cut at its pokes into sub-runs, the first
+   half training, tacest.diagnosis.diagnose3d);
 2. choose the next poke: ``suggest`` (the poke that best tells the plain model and the
    leading candidates apart, tacest.diagnosis.suggest) or ``random`` (the planner's
    random poke of the same action space: the side-by-side baseline);
@@ -35,6 +38,8 @@ from tacest.errors import TacestError
 log = logging.getLogger(__name__)
 
 POLICIES = ("suggest", "random")
+#: m, sigma of the observed positions of a 3-D loop (motion capture)
+OBSERVE_POSE_3D = 0.0005
 
 
 @dataclass
@@ -56,6 +61,7 @@ class ExploreDiagnosisOptions:
     max_folds: Optional[int] = None
     fit_iterations: Optional[int] = None
     config_path: Optional[str] = None
+    dim: int = 2
 
     def validate(self):
         if self.policy not in POLICIES:
@@ -64,6 +70,8 @@ class ExploreDiagnosisOptions:
             raise TacestError("--explore needs at least 2 random pokes to start from (a held-out fold each)")
         if int(self.budget) < 0:
             raise TacestError("--budget must be >= 0")
+        if int(self.dim) not in (2, 3):
+            raise TacestError(f"--dim must be 2 or 3, got {self.dim}")
         return self
 
     def diagnose_options(self):
@@ -87,25 +95,24 @@ def decided(verdict: str) -> bool:
 def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> dict:
     """Run the loop (module docstring); returns the summary dict.  progress :
     callable(n_done, n_total) after each diagnosis."""
-    from tacest.diagnosis.diagnose import diagnose
-    from tacest.diagnosis.report import write_report
     from tacest.diagnosis.suggest import suggest
     from tacest.dims import record_sim
     from tacest.estimation.config import load_config
-    from tacest.information.expected import ModelState
     from tacest.io.plan import Plan, write_plan
     from tacest.io.run import read_run, write_run
-    from tacest.planning.actions import ActionSpace, object_height
     from tacest.sim.record import SimOptions
 
     opts.validate()
-    dopts = opts.diagnose_options()
+    if int(opts.dim) == 2:
+        opts.diagnose_options()  # bad diagnosis options are an error before anything is recorded
+    dim = int(opts.dim)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise TacestError(f"{out}: exists and is not a folder")
     config = load_config(opts.config_path)
-    sim = SimOptions(dim=2, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
-                     effects=[] if opts.effect == "none" else [opts.effect]).validate()
+    sim = SimOptions(dim=dim, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
+                     effects=[] if opts.effect == "none" else [opts.effect],
+                     observe_pose=OBSERVE_POSE_3D if dim == 3 else None).validate()
     out.mkdir(parents=True, exist_ok=True)
     run_path = out / "run.h5"
     for stale in [run_path, out / "summary.json", out / "candidates.png", *out.glob("plan_*.h5")]:
@@ -121,27 +128,23 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
         run = read_run(run_path)
         blind = run.replace(truth=None)
         t0 = time.perf_counter()
-        diag = diagnose([blind], "box", config=config, options=dopts)
-        write_report(diag, out / f"diagnosis_{n}")
+        diag, state_runs, candidates = _diagnose(blind, opts, config, out / f"diagnosis_{n}")
         step = {"actions": n, "pokes": int(opts.pokes) + n, "samples": run.n_samples, "verdict": diag.verdict,
-                "reason": diag.reason, "diagnosis_time": time.perf_counter() - t0,
-                "candidates": {c.name: {"reduction": _num(c.reduction), "score": _num(c.score), "status": c.status}
-                               for c in diag.effects}}
+                "reason": diag.reason, "diagnosis_time": time.perf_counter() - t0, "candidates": candidates}
         done = decided(diag.verdict)
         if not done and n < total - 1:
             t1 = time.perf_counter()
             if opts.policy == "suggest":
                 try:
-                    plan = suggest(diag, [blind], n=1, poke_style=opts.poke_style, seed=int(opts.seed) + n)[0].plan
+                    plan = suggest(diag, state_runs, n=1, poke_style=opts.poke_style, seed=int(opts.seed) + n,
+                                   config=config)[0].plan
                 except TacestError as exc:  # nothing to tell apart yet: a random poke instead
                     step["suggest_error"] = str(exc)
                     plan = None
             else:
                 plan = None
             if plan is None:
-                model = ModelState.from_estimate(diag.base, [blind])
-                space = ActionSpace(n_fingers=model.n_fingers, style=opts.poke_style,
-                                    object_height=object_height(model), up=np.asarray(model.up, float))
+                space, model = _action_space(diag, state_runs, opts.poke_style, config)
                 a = space.random_action(rng, model.centroid__world)
                 plan = Plan(chosen=a, candidates=a[None], scores=np.zeros(1), method="random", score="none",
                             names=list(space.poke_names))
@@ -165,6 +168,46 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
     summary["figure"] = "candidates.png"
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_num) + "\n")
     return summary
+
+
+def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
+    """One step's diagnosis of the run ``blind`` (no truth) and its report folder:
+    (diagnosis, the runs whose last state is the object's now, {candidate: reduction,
+    score, status})."""
+    if int(opts.dim) == 2:
+        from tacest.diagnosis.diagnose import diagnose
+        from tacest.diagnosis.report import write_report
+
+        diag = diagnose([blind], "box", config=config, options=opts.diagnose_options())
+        write_report(diag, folder)
+        return diag, [blind], {c.name: {"reduction": _num(c.reduction), "score": _num(c.score), "status": c.status}
+                               for c in diag.effects}
+    from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
+    from tacest.diagnosis.slicing import split_at_actions
+
+    parts = [p.replace(filename=f"part{i}") for i, p in enumerate(split_at_actions(blind))]
+    diag = diagnose_3d(parts, "box", config=config,
+                       options=Options3D(fit_iterations=opts.fit_iterations, effects=opts.effects))
+    write_report_3d(diag, folder)
+    return diag, diag.base_runs, {e["name"]: {"reduction": _num(e["reduction"]), "score": None,
+                                              "status": diag.fits[e["name"]].status} for e in diag.effects}
+
+
+def _action_space(diag, runs, poke_style, config) -> tuple:
+    """(the planner's action space, the model state) of a diagnosis' plain estimate."""
+    from tacest.planning.actions import ActionSpace, ActionSpace3, object_height
+
+    if int(runs[-1].dim) == 3:
+        from tacest.information.expected3d import ModelState3
+
+        model = ModelState3.from_estimate(diag.base, runs, config)
+        return ActionSpace3(p_finger__world=model.p_finger__world, n_fingers=model.n_fingers, style=poke_style,
+                            object_height=object_height(model), up=np.asarray(model.up, float)), model
+    from tacest.information.expected import ModelState
+
+    model = ModelState.from_estimate(diag.base, runs)
+    return ActionSpace(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
+                       up=np.asarray(model.up, float)), model
 
 
 def _num(v):
