@@ -84,6 +84,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     from tacest.cli.logs import setup_logging
 
     setup_logging(quiet)
+    _check_modes(explore)
     if explore:
         return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
                         fit_iterations, config_path, as_json, quiet, int(dim))
@@ -94,6 +95,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     config = load_config(config_path)
     check_linear_solver(config.solver.linear_solver)
     loaded = read_runs(runs)
+    if suggest and not loaded[-1].n_fingers:  # before hours of fits, not after
+        raise TacestError("--suggest: the runs have no fingertip to poke with")
     if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
@@ -128,11 +131,49 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
 
 def _suggestions(diag, runs, n, poke_style, config):
     """``extra(obj)`` of :func:`_report` writing the ``n`` suggested plans
-    (tacest.diagnosis.suggest)."""
+    (tacest.diagnosis.suggest).  When no poke can be suggested the finished diagnosis is
+    still written, with a note, and the command ends with the reason (exit 2) after it."""
     from tacest.diagnosis.suggest import suggest, suggestion_writer
+    from tacest.errors import TacestError
 
-    found = suggest(diag, runs, n=n, poke_style=poke_style, config=config)
+    try:
+        found = suggest(diag, runs, n=n, poke_style=poke_style, config=config)
+    except TacestError as exc:
+        err = str(exc)
+
+        def note(obj):
+            obj["suggestions_error"] = err
+            return lambda tmp: _append_note(tmp, f"No suggested experiment: {err}")
+
+        note.error = err
+        return note
     return functools.partial(suggestion_writer, found)
+
+
+def _append_note(tmp, text) -> list:
+    with open(tmp / "report.md", "a") as fh:
+        fh.write(f"\n{text}\n")
+    return []
+
+
+#: options of --explore only, and options of a diagnosis of given runs only
+EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim")
+RUNS_ONLY = ("estimate_path", "shape", "suggest", "window", "alpha", "max_candidates", "floor_mode", "reach",
+             "workers", "scheduler")
+
+
+def _check_modes(explore: bool):
+    """One line for an option given on the command line that the mode ignores."""
+    from click.core import ParameterSource
+
+    from tacest.errors import TacestError
+
+    ctx = click.get_current_context()
+    given = [n for n in (RUNS_ONLY if explore else EXPLORE_ONLY)
+             if ctx.get_parameter_source(n) == ParameterSource.COMMANDLINE]
+    if given:
+        names = ", ".join("--" + n.replace("_path", "").replace("_mode", "").replace("_", "-") for n in given)
+        raise TacestError(f"{names}: not an option of {'--explore' if explore else 'a diagnosis of RUNS'}")
 
 
 def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,
@@ -174,11 +215,16 @@ def _hint_workers(ex):
 def _report(diag, write, out, as_json: bool, quiet: bool, extra=None):
     """Write the report folder with write(diag, out, obj) -> file names, print the JSON
     object (--json) on stdout and the verdict line on stderr (unless --quiet).  extra :
-    ``extra(obj) -> writer`` of more files in the folder (write_report's ``extra``)."""
+    ``extra(obj) -> writer`` of more files in the folder (write_report's ``extra``); one
+    with an ``error`` attribute ends the command with it after the report is written."""
     from tacest.provenance import provenance
 
     obj = {**diag.to_json(), **provenance()}
     written = write(diag, out, obj) if extra is None else write(diag, out, obj, extra=extra(obj))
+    if getattr(extra, "error", None) is not None:
+        from tacest.errors import TacestError
+
+        raise TacestError(f"wrote the diagnosis to {out}/, but {extra.error}")
     if as_json:
         click.echo(json.dumps(obj))
     if not quiet:

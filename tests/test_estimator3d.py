@@ -558,6 +558,7 @@ def test_a_soft_ground_is_found_on_tosses_with_its_known_bias():
         q0 = quat_from_axis_angle(np.array(axis), angle)
         runs.append(simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w],
                                   55, effect_params={"soft_contact.compliance": 0.0005}))
+        assert runs[-1].truth.effects == [{"name": "soft_contact", "damping": 0.0, "stiffness": 2000.0}]
     plain = estimate_3d(runs, "box")
     est = estimate_3d(runs, "box", effects=["soft_contact"])
     assert est.success, est.solver_status

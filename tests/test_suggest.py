@@ -193,3 +193,12 @@ def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
     assert (tmp_path / "x" / "diagnosis_0" / "report.md").is_file() and (tmp_path / "x" / "candidates.png").is_file()
     if not summary["decided"] or len(steps) == 2:
         assert len(steps) == 2 and steps[0]["next_action"] and (tmp_path / "x" / "plan_1.h5").is_file()
+
+
+def test_options_of_the_other_mode_are_refused_in_one_line(recorded, tmp_path):
+    for args, fragment in ((["--explore", "--window", "5"], "--window: not an option of --explore"),
+                           ([str(recorded.path), "--budget", "3"], "--budget: not an option of a diagnosis of RUNS")):
+        out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", *args, "-o", str(tmp_path / "z")],
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 2 and fragment in out.stderr and len(out.stderr.strip().splitlines()) == 1
+        assert not (tmp_path / "z").exists()

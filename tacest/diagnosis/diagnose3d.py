@@ -251,7 +251,7 @@ def flag_windows(res_runs, window, alpha, floor):
     return flags, stretches
 
 
-def _heldout(fit, est, out, shape, cfg, effects, train, held):
+def _heldout(fit, est, out, shape, cfg, effects, held):
     """The held-out half with the fitted model's parameters held, from the estimator's
     own start (the observed poses): fills ``fit``.  (Started from the plain model's
     held-out trajectories instead, candidates whose parameters differed from the plain
@@ -280,7 +280,7 @@ def _plain_task(cfg, shape, train, held) -> tuple:
     out = _check(est.solve())
     res, per = _losses(est, out.z)
     fit = Fit3D(name=NONE, params=_params(est, out.z), status=out.status, seconds=0.0, train_loss_per_sample=per)
-    est_h, out_h = _heldout(fit, est, out, shape, cfg, (), train, held)
+    est_h, out_h = _heldout(fit, est, out, shape, cfg, (), held)
     base = est_h.result(out_h, 0.0, information=False)  # the object now: the end of the last held-out run
     fit.seconds = time.perf_counter() - t0
     return (fit, res) + flight_floor(est, out.z, res) + (out.z[: est.problem.n_theta].copy(), out.objective, base)
@@ -293,11 +293,14 @@ def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
     stayed in the plain model's basin: the plain fit bends its trajectories round what it
     lacks.)"""
     t0 = time.perf_counter()
-    est = _estimator(train, shape, cfg, effects)
-    out = _check(est.solve())
-    fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
-                train_loss_per_sample=_losses(est, out.z)[1])
-    _heldout(fit, est, out, shape, cfg, effects, train, held)
+    try:
+        est = _estimator(train, shape, cfg, effects)
+        out = _check(est.solve())
+        fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
+                    train_loss_per_sample=_losses(est, out.z)[1])
+        _heldout(fit, est, out, shape, cfg, effects, held)
+    except TacestError as exc:  # one candidate's failure is its own, not the diagnosis'
+        fit = Fit3D(name=name, params={}, status=f"failed: {exc}", seconds=0.0)
     fit.seconds = time.perf_counter() - t0
     return fit
 
@@ -308,10 +311,20 @@ def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective)
     identity's objective is the plain fit's), the value kept as in 2-D
     (candidates.choose_transform_value), then the held-out runs transformed by it with
     the parameters of its fit held."""
+    t0 = time.perf_counter()
+    try:
+        fit = _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective)
+    except TacestError as exc:  # one candidate's failure is its own, not the diagnosis'
+        fit = Fit3D(name=name, params={}, status=f"failed: {exc}", seconds=0.0)
+    fit.seconds = time.perf_counter() - t0
+    return fit
+
+
+def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective) -> Fit3D:
+    """:func:`_transform_task`'s search and held-out fit (TacestError when every fit fails)."""
     from tacest.diagnosis import candidates as cands
     from tacest.diagnosis.transforms import apply_transform
 
-    t0 = time.perf_counter()
     screening = None
     if name == "latency":  # where the line search starts: quick fits, parameters held
         screening = {}
@@ -342,8 +355,7 @@ def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective)
     pname = cands.candidate(name, dim=3).param_names[0]
     fit = Fit3D(name=name, params={**_params(est, out.z), f"{name}.{pname}": float(value)}, status=out.status,
                 seconds=0.0, train_loss_per_sample=_losses(est, out.z)[1])
-    _heldout(fit, est, out, shape, cfg, (), train, [apply_transform(r, name, value) for r in held])
-    fit.seconds = time.perf_counter() - t0
+    _heldout(fit, est, out, shape, cfg, (), [apply_transform(r, name, value) for r in held])
     return fit
 
 
@@ -395,7 +407,10 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         w["run"] = names[w["run"]]
     gap_before = fits[NONE].heldout_loss_per_sample - floor
     effects = []
+    failed = {n: f.status for n, f in fits.items() if n != NONE and not np.isfinite(f.heldout_loss_per_sample)}
     for name in [m[0] for m in models] + transforms:
+        if name in failed:
+            continue
         gap_after = fits[name].heldout_loss_per_sample - floor
         red = 1.0 - gap_after / gap_before if gap_before > 0 else 0.0
         # (reduction < 0: the augmented model does worse on the held-out runs)
@@ -415,6 +430,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
                   f"above the floor {floor:g})" if gap_before > 0 else "the held-out loss is within the noise floor")
     not_compared = {n: "no 3-D model" for n in NOT_MODELLED_3D}
     not_compared.update(skipped)
+    not_compared.update(failed)
     reason += "; not compared: " + ", ".join(f"{n} ({why})" for n, why in not_compared.items())
     return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,6 +39,8 @@ from tacest.errors import TacestError
 log = logging.getLogger(__name__)
 
 POLICIES = ("suggest", "random")
+#: the loop's files in its folder (its report folders are diagnosis_<n>/)
+LOOP_FILES = ("run.h5", "summary.json", "candidates.png", "plan_*.h5")
 #: m, sigma of the observed positions of a 3-D loop (motion capture)
 OBSERVE_POSE_3D = 0.0005
 
@@ -95,11 +98,8 @@ def decided(verdict: str) -> bool:
 def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> dict:
     """Run the loop (module docstring); returns the summary dict.  progress :
     callable(n_done, n_total) after each diagnosis."""
-    from tacest.diagnosis.suggest import suggest
-    from tacest.dims import record_sim
     from tacest.estimation.config import load_config
-    from tacest.io.plan import Plan, write_plan
-    from tacest.io.run import read_run, write_run
+    from tacest.io.outputs import replacing_files
     from tacest.sim.record import SimOptions
 
     opts.validate()
@@ -107,21 +107,30 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
         opts.diagnose_options()  # bad diagnosis options are an error before anything is recorded
     dim = int(opts.dim)
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise TacestError(f"{out}: exists and is not a folder")
     config = load_config(opts.config_path)
     sim = SimOptions(dim=dim, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
                      effects=[] if opts.effect == "none" else [opts.effect],
                      observe_pose=OBSERVE_POSE_3D if dim == 3 else None).validate()
-    out.mkdir(parents=True, exist_ok=True)
+    with replacing_files(out, LOOP_FILES):  # an earlier loop's files never pass for this one's
+        for old in out.glob("diagnosis_*"):
+            if old.is_dir() and (old / "report.md").is_file():  # an earlier loop's report folder
+                shutil.rmtree(old)
+        return _loop(opts, sim, config, out, progress)
+
+
+def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> dict:
+    from tacest.diagnosis.suggest import suggest
+    from tacest.dims import record_sim
+    from tacest.io.plan import Plan, write_plan
+    from tacest.io.run import read_run, write_run
+
     run_path = out / "run.h5"
-    for stale in [run_path, out / "summary.json", out / "candidates.png", *out.glob("plan_*.h5")]:
-        stale.unlink(missing_ok=True)
     t_all = time.perf_counter()
     write_run(record_sim(sim), run_path)
     injected = read_run(run_path).truth.effects
     steps = []
-    summary = {"effect": opts.effect, "injected": injected, "options": asdict(opts), "steps": steps}
+    summary = {"effect": opts.effect, "injected": injected, "options": asdict(opts), "steps": steps,
+               "complete": False}
     rng = np.random.default_rng(np.random.SeedSequence([int(opts.seed), 37]))
     total = int(opts.budget) + 1
     for n in range(total):
@@ -159,15 +168,23 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
         summary["wall_time"] = time.perf_counter() - t_all
         summary["verdict"] = diag.verdict
         summary["decided"] = done
-        (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_num) + "\n")
+        _write_summary(out, summary)  # after every step: a partial loop is readable (complete: false)
         if progress is not None:
             progress(n + 1, total)
         if done:
             break
     plot_candidates(out / "candidates.png", summary)
     summary["figure"] = "candidates.png"
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_num) + "\n")
+    summary["complete"] = True
+    _write_summary(out, summary)
     return summary
+
+
+def _write_summary(out: Path, summary: dict) -> None:
+    from tacest.io.outputs import atomic_file
+
+    with atomic_file(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps({"complete": False, **summary}, indent=1, default=_num) + "\n")
 
 
 def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:

@@ -81,6 +81,12 @@ def sim_effects_of(name: str, params: dict, dim: int = 2) -> list:
     if name not in PREDICTABLE:
         raise TacestError(f"{name}: its fitted model cannot be predicted (tacest.diagnosis.suggest)")
     values = {k.split(".", 1)[1] if k.startswith(name + ".") else k: v for k, v in params.items()}
+    if name == "soft_contact" and "damping" not in values and values.get("stiffness") is not None:
+        # the 3-D model's ground sinks quasi-statically (no damper fitted): the simulator's
+        # plate damped critically, the quickest settling a damper gives
+        from tacest.sim3d.world import SOFT_PLATE_MASS
+
+        values["damping"] = 2.0 * math.sqrt(float(values["stiffness"]) * SOFT_PLATE_MASS)
     out = {}
     for p in EFFECTS[name].param_names:
         if p in ("fz", "dz") and dim == 2:  # 3-D only
@@ -243,7 +249,8 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
 def suggestion_writer(suggestions: list, json_obj: dict):
     """``extra(tmp)`` for tacest.diagnosis.report.write_report: the plan files
     ``suggest_<k>.h5`` (best first) and a section of report.md; adds ``suggestions`` to
-    ``json_obj`` (file, models, chosen action, pairwise discrimination in nats)."""
+    ``json_obj`` (file, models, chosen action, pairwise discrimination in nats) now, before
+    the report writes it."""
     from tacest.io.plan import write_plan
 
     json_obj["suggestions"] = [
@@ -252,25 +259,27 @@ def suggestion_writer(suggestions: list, json_obj: dict):
         for k, s in enumerate(suggestions, 1)]
 
     def write(tmp) -> list:
-        import json
-
         names = []
         lines = ["", "## Suggested next experiments", "",
                  "Pokes whose predicted measurements differ most between "
                  f"{', '.join(suggestions[0].models)} (expected log-likelihood ratio, nats; "
                  "`tacest record --plan suggest_<k>.h5` records one):", "",
                  "| file | approach (deg) | depth (m) | speed (m/s) | smallest pairwise |", "|---|---|---|---|---|"]
+
+        def approach(c):
+            if "approach_angle" in c:
+                return f"{math.degrees(c['approach_angle']):.0f}"
+            return f"azimuth {math.degrees(c['approach_azimuth']):.0f}, elevation {math.degrees(c['approach_elevation']):.0f}"
+
         for k, s in enumerate(suggestions, 1):
             name = f"suggest_{k}.h5"
             write_plan(s.plan, tmp / name)
             names.append(name)
             c = s.plan.chosen_dict()
-            lines.append(f"| {name} | {math.degrees(c.get('approach_angle', float('nan'))):.0f} | "
-                         f"{c.get('depth', float('nan')):.3f} | {c.get('speed', float('nan')):.3f} | "
-                         f"{min(s.pairwise.values()):.3g} |")
+            lines.append(f"| {name} | {approach(c)} | {c.get('depth', float('nan')):.3f} | "
+                         f"{c.get('speed', float('nan')):.3f} | {min(s.pairwise.values()):.3g} |")
         with open(tmp / "report.md", "a") as fh:
             fh.write("\n".join(lines) + "\n")
-        (tmp / "diagnosis.json").write_text(json.dumps(json_obj, indent=1) + "\n")
         return names
 
     return write

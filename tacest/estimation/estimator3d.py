@@ -431,7 +431,9 @@ class Estimator3D:
         problem for the current poses, shape and parameters: with those held, every
         residual is affine in the interval's impulses lambda_n (K,) (the dynamics, the
         closed-form friction and the complementarity are linear in them), so the problem
-        splits into one K-variable non-negative least squares per interval."""
+        splits into one K-variable non-negative least squares per interval.  (With
+        soft_contact the gaps depend on the load, and the linearization at lambda_n = 0
+        is only a start.)"""
         from scipy.optimize import nnls
 
         pr = self.problem

@@ -262,11 +262,20 @@ def simulate_toss(shape, shape_params, mass, inertia, friction, pose0, velocity0
 
 
 def _truth_effects(effect_params) -> list:
-    """/truth effects (SPEC: [{"name": ..., parameter: value}]) of ``effect_params``."""
+    """/truth effects (SPEC: [{"name": ..., parameter: value}], the simulator's parameter
+    names) of ``effect_params``: the 3-D model's quasi-static soft ground as a plate of
+    stiffness 1/compliance without damper."""
+    from tacest.sim.effects import EFFECTS
+
     out = {}
     for k, v in (effect_params or {}).items():
         name, _, par = k.partition(".")
-        out.setdefault(name, {"name": name})[par or name] = v
+        if name not in EFFECTS:  # tacest's own extensions (edge_radius, ground_offset) are no SPEC effect
+            continue
+        if name == "soft_contact" and par == "compliance":
+            par, v = "stiffness", 1.0 / float(v)
+            out.setdefault(name, {"name": name, "damping": 0.0})
+        out.setdefault(name, {"name": name})[par] = v
     return list(out.values())
 
 

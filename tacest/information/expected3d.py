@@ -165,7 +165,9 @@ def theta_of_estimate(shape: Shape3D, effects: tuple, vertices, params: dict, in
     L, m0 = scales.L, scales.m0
     mass = float(params["mass"])
     th = np.zeros(model.n_theta)
-    th[: model.n_shape] = shape_parameters(shape, vertices) / L
+    # the shape's own frame: the body frame's vertices plus the COM offset (com_offset)
+    d = np.array([float(params.get(f"com_offset.d{a}", 0.0)) for a in "xyz"])
+    th[: model.n_shape] = shape_parameters(shape, np.asarray(vertices, float) + d) / L
     th[model.theta_index("log_mass")] = math.log(mass / m0)
     ns = model.n_shape
     th[ns + 1: ns + 7] = cholesky_from_inertia(np.asarray(inertia, float) / (mass * L * L))

@@ -557,10 +557,15 @@ def read_run(path) -> Run:
 
 def run_sha256(run: Run) -> str:
     """The SHA-256 of the file ``run`` came from: the one taken when it was read, else
-    the file's own (read now); "" for a run that came from no file."""
+    the file's own (read now); "" for a run that came from no file, or whose file is not
+    there to read (a run made in memory and named, e.g. a sub-run cut from another)."""
+    import os
+
     if not run.filename:
         return ""
-    return run.sha256 or sha256_file(run.filename)
+    if run.sha256:
+        return run.sha256
+    return sha256_file(run.filename) if os.path.isfile(run.filename) else ""
 
 
 def read_runs(paths) -> list:
