@@ -120,10 +120,13 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
 
 def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> dict:
     from tacest.diagnosis.suggest import suggest
-    from tacest.dims import record_sim
     from tacest.io.plan import Plan, write_plan
     from tacest.io.run import read_run, write_run
 
+    if int(opts.dim) == 3:
+        from tacest.sim3d.record import record_sim
+    else:
+        from tacest.sim.record import record_sim
     run_path = out / "run.h5"
     t_all = time.perf_counter()
     write_run(record_sim(sim), run_path)

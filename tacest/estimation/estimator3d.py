@@ -613,14 +613,6 @@ class Estimator3D:
             out.update(e.report(u[e.name], self.scales, pr.K, mu_g))
         return out
 
-    def edge_radius(self, z) -> float:
-        """Estimated radius (m) of the box's rounded edges (0 when not estimated)."""
-        return float(self.effect_params(z).get("edge_radius", 0.0))
-
-    def ground_offset(self, z) -> float:
-        """Estimated ground offset (m) above /scene's ground_height (0 when not estimated)."""
-        return float(self.effect_params(z).get("ground_offset", 0.0))
-
     def com_offset(self, z) -> np.ndarray:
         """(3,) m: the estimated centre of mass in the shape's frame (zeros when not
         estimated)."""
