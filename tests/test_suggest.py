@@ -202,3 +202,10 @@ def test_options_of_the_other_mode_are_refused_in_one_line(recorded, tmp_path):
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 2 and fragment in out.stderr and len(out.stderr.strip().splitlines()) == 1
         assert not (tmp_path / "z").exists()
+
+
+def test_an_unknown_injected_effect_is_refused_before_the_folder_is_made(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", "--explore", "--inject", "wobble",
+                          "-o", str(tmp_path / "w")], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "unknown effect 'wobble'" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "w").exists()

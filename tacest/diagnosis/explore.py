@@ -107,6 +107,10 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
         opts.diagnose_options()  # bad diagnosis options are an error before anything is recorded
     dim = int(opts.dim)
     out = Path(out_dir)
+    from tacest.sim.effects import parse_effect
+
+    if opts.effect != "none":
+        parse_effect(opts.effect)  # a bad --inject is an error before the folder is touched
     config = load_config(opts.config_path)
     sim = SimOptions(dim=dim, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
                      effects=[] if opts.effect == "none" else [opts.effect],
