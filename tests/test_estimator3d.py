@@ -398,6 +398,8 @@ def test_diagnose_3d_finds_rounded_edges_on_held_out_tosses(tmp_path):
     assert set(eff) == {"edge_radius", "ground_offset", "angular_damping", "linear_drag", "soft_contact",
                         "face_friction", "com_offset", "time_scale"}
     assert {"force_bias", "force_scale", "latency", "restitution"} <= set(d["not_compared"])
+    # where[].run is the run's index in 3-D as in 2-D (SPEC's where: run, start, stop, term, share)
+    assert all(isinstance(w["run"], int) and w["file"].endswith(".h5") for w in d["where"])
     # the sharp model misses the rounded contacts: a gap above the floor that the rounded
     # model closes by at least the blaming rule's 20 %
     assert eff["edge_radius"]["gap_before"] > 0

@@ -404,7 +404,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
                  f"({fit.heldout_status}), {fit.seconds:.0f} s")
     flags, where = flag_windows(res_plain, opts.window, opts.alpha, floor)
     for w in where:
-        w["run"] = names[w["run"]]
+        w["file"] = names[w["run"]]  # "run" stays the run's index, as in 2-D
     gap_before = fits[NONE].heldout_loss_per_sample - floor
     effects = []
     failed = {n: f.status for n, f in fits.items() if n != NONE and not np.isfinite(f.heldout_loss_per_sample)}
@@ -487,7 +487,7 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> lis
         lines += ["", "## Where (plain model, training runs)", "", "| run | start | stop | term | share |",
                   "|---|---|---|---|---|"]
         for w in diag.where[:30]:
-            lines.append(f"| {w['run']} | {w['start']} | {w['stop']} | {w['term']} | {w['share']:.1%} |")
+            lines.append(f"| {w['file']} | {w['start']} | {w['stop']} | {w['term']} | {w['share']:.1%} |")
         lines += ["", "![residuals](residuals_3d.png)", ""]
         (tmp / "report.md").write_text("\n".join(lines))
         names = ["report.md", "residuals_3d.png", "diagnosis.json"]
