@@ -132,17 +132,7 @@ def test_box_normal_is_the_gradient():
 @pytest.fixture(scope="module")
 def tosses():
     """Two noiseless tosses of the box, simulated by the project's own 3-D model."""
-    from tacest.estimation.rollout3d import simulate_toss
-
-    inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
-    runs = []
-    for axis, angle, v, w in (((1.0, 2.0, 0.5), 0.6, (0.5, -0.2, -0.4), (4.0, -6.0, 2.0)),
-                              ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
-        q0 = quat_from_axis_angle(np.array(axis), angle)
-        run = simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w], 55)
-        assert run.extra_attrs["simulation_unconverged_steps"] == 0
-        runs.append(run)
-    return runs
+    return _augmented_tosses()
 
 
 def _assert_derivatives_match_finite_differences(est, seed=3):
@@ -250,7 +240,9 @@ def test_noiseless_tosses_give_back_the_box(tosses):
     assert "starts" not in est.extra_attrs
 
 
-def _augmented_tosses(edge_radius, ground_height):
+def _augmented_tosses(edge_radius=0.0, ground_height=0.0, effect_params=None):
+    """The two noiseless tosses of the box by the project's own 3-D model, with rounded
+    edges, a ground offset and further effects (simulate_toss's arguments)."""
     from tacest.estimation.rollout3d import simulate_toss
 
     inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
@@ -259,7 +251,7 @@ def _augmented_tosses(edge_radius, ground_height):
                               ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
         q0 = quat_from_axis_angle(np.array(axis), angle)
         run = simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w], 55,
-                            edge_radius=edge_radius, ground_height=ground_height)
+                            edge_radius=edge_radius, ground_height=ground_height, effect_params=effect_params)
         assert run.extra_attrs["simulation_unconverged_steps"] == 0
         runs.append(run)
     return runs
@@ -488,18 +480,10 @@ def test_drag_and_damping_are_recovered_from_tosses_that_show_them(name, key, va
     are those of the configured 1 mm / 0.01 rad pose noise, the data are noiseless) and
     explains the tosses better than the plain fit (objective 19 -> 9.5 and 16 -> 8.5 seen)."""
     from tacest.estimation.estimator3d import estimate_3d
-    from tacest.estimation.rollout3d import simulate_toss
 
-    inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
-    runs = []
-    for axis, angle, v, w in (((1.0, 2.0, 0.5), 0.6, (0.5, -0.2, -0.4), (4.0, -6.0, 2.0)),
-                              ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
-        q0 = quat_from_axis_angle(np.array(axis), angle)
-        run = simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w], 55,
-                            effect_params={key: value})
-        assert run.extra_attrs["simulation_unconverged_steps"] == 0
+    runs = _augmented_tosses(effect_params={key: value})
+    for run in runs:
         assert run.truth.effects == [{"name": name, key.split(".")[1]: value}]
-        runs.append(run)
     plain = estimate_3d(runs, "box")
     est = estimate_3d(runs, "box", effects=[name])
     assert est.success, est.solver_status
@@ -551,16 +535,10 @@ def test_a_soft_ground_is_found_on_tosses_with_its_known_bias():
     limit, asserted as such: within 30 %, and the reported std (7 %) does not cover the
     trade-off (docs/estimation3d.md, "Effects")."""
     from tacest.estimation.estimator3d import estimate_3d
-    from tacest.estimation.rollout3d import simulate_toss
 
-    inertia = polytope_inertia(box_vertices_3d(EXTENTS), MASS)
-    runs = []
-    for axis, angle, v, w in (((1.0, 2.0, 0.5), 0.6, (0.5, -0.2, -0.4), (4.0, -6.0, 2.0)),
-                              ((0.5, -1.0, 0.2), 1.0, (0.6, 0.3, -0.3), (3.0, 2.0, -5.0))):
-        q0 = quat_from_axis_angle(np.array(axis), angle)
-        runs.append(simulate_toss("box", EXTENTS, MASS, inertia, FRICTION, np.r_[0.0, 0.0, 0.15, q0], np.r_[v, w],
-                                  55, effect_params={"soft_contact.compliance": 0.0005}))
-        assert runs[-1].truth.effects == [{"name": "soft_contact", "damping": 0.0, "stiffness": 2000.0}]
+    runs = _augmented_tosses(effect_params={"soft_contact.compliance": 0.0005})
+    for run in runs:
+        assert run.truth.effects == [{"name": "soft_contact", "damping": 0.0, "stiffness": 2000.0}]
     plain = estimate_3d(runs, "box")
     est = estimate_3d(runs, "box", effects=["soft_contact"])
     assert est.success, est.solver_status

@@ -383,14 +383,15 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         if unknown:
             raise TacestError(f"unknown 3-D candidate {', '.join(unknown)}; 3-D candidates: {', '.join(wanted)}")
         wanted = [n for n in wanted if n in opts.effects]
-    skipped = {n: applicable(n, runs, shape) for n in wanted if applicable(n, runs, shape)}
+    unfit = {n: applicable(n, runs, shape) for n in wanted}
+    skipped = {n: w for n, w in unfit.items() if w}
     models = [(n, *AUGMENTATIONS[n]) for n in wanted if n in AUGMENTATIONS and n not in skipped]
     transforms = [n for n in wanted if n in TRANSFORMS_3D and n not in skipped]
     ex.plan(1 + len(models) + len(transforms), what="diagnosis")
     train_h, held_h = ex.scatter(train), ex.scatter(held)
     plain_cfg = _config(config, PLAIN, opts.fit_iterations)
-    plain, res_plain, floor, n_flight, theta_plain, plain_objective, base = ex.result(ex.submit(_plain_task, plain_cfg, shape, train_h, held_h,
-                                                                     name="3d-none"))
+    plain, res_plain, floor, n_flight, theta_plain, plain_objective, base = ex.result(
+        ex.submit(_plain_task, plain_cfg, shape, train_h, held_h, name="3d-none"))
     fits = {NONE: plain}
     log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
              f"({plain.heldout_status}), {plain.seconds:.0f} s")

@@ -123,8 +123,9 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
 
 
 def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> dict:
-    from tacest.diagnosis.suggest import suggest
+    from tacest.diagnosis.suggest import model_of, suggest
     from tacest.io.plan import Plan, write_plan
+    from tacest.planning.actions import action_space_for
     from tacest.io.run import read_run, write_run
 
     if int(opts.dim) == 3:
@@ -160,7 +161,8 @@ def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> di
             else:
                 plan = None
             if plan is None:
-                space, model = _action_space(diag, state_runs, opts.poke_style, config)
+                model = model_of(diag, state_runs, config)
+                space = action_space_for(model, opts.poke_style)
                 a = space.random_action(rng, model.centroid__world)
                 plan = Plan(chosen=a, candidates=a[None], scores=np.zeros(1), method="random", score="none",
                             names=list(space.poke_names))
@@ -215,23 +217,6 @@ def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
     write_report_3d(diag, folder)
     return diag, diag.base_runs, {e["name"]: {"reduction": _num(e["reduction"]), "score": None,
                                               "status": diag.fits[e["name"]].status} for e in diag.effects}
-
-
-def _action_space(diag, runs, poke_style, config) -> tuple:
-    """(the planner's action space, the model state) of a diagnosis' plain estimate."""
-    from tacest.planning.actions import ActionSpace, ActionSpace3, object_height
-
-    if int(runs[-1].dim) == 3:
-        from tacest.information.expected3d import ModelState3
-
-        model = ModelState3.from_estimate(diag.base, runs, config)
-        return ActionSpace3(p_finger__world=model.p_finger__world, n_fingers=model.n_fingers, style=poke_style,
-                            object_height=object_height(model), up=np.asarray(model.up, float)), model
-    from tacest.information.expected import ModelState
-
-    model = ModelState.from_estimate(diag.base, runs)
-    return ActionSpace(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
-                       up=np.asarray(model.up, float)), model
 
 
 def _num(v):

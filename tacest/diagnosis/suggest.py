@@ -159,6 +159,20 @@ def leading_models(diag, leaders: int = LEADERS, dim: int = 2) -> tuple:
     return models, skipped
 
 
+def model_of(diag, runs: list, config=None):
+    """The planning model state (ModelState, 3-D ModelState3) of a diagnosis' plain
+    estimate ``diag.base`` at the end of its runs ``runs``; config : EstimatorConfig of
+    the 3-D diagnosis (None: the defaults)."""
+    if int(runs[-1].dim) == 3:
+        from tacest.estimation.config import EstimatorConfig
+        from tacest.information.expected3d import ModelState3
+
+        return ModelState3.from_estimate(diag.base, runs, config or EstimatorConfig())
+    from tacest.information.expected import ModelState
+
+    return ModelState.from_estimate(diag.base, runs)
+
+
 def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: str = "dynamic", seed: int = 0,
             iterations: int = 3, population: int = 12, config=None) -> list:
     """The ``n`` best distinct pokes to tell the diagnosis' leading models apart (module
@@ -166,11 +180,8 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     ``diag.base`` (the plain model's estimate: the object's state and fingers at the end
     of the last one; 3-D: the held-out runs, ``diag.base_runs``); config : the
     diagnosis' EstimatorConfig (3-D; None: the defaults)."""
-    from tacest.estimation.config import EstimatorConfig
-    from tacest.information.expected import ModelState
-    from tacest.information.expected3d import ModelState3
     from tacest.io.plan import Plan
-    from tacest.planning.actions import ActionSpace, ActionSpace3, object_height
+    from tacest.planning.actions import action_space_for
     from tacest.planning.cem import cem_maximize
 
     if n < 1:
@@ -183,10 +194,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
         log.info(f"suggest: {name} left out ({why})")
     if len(models) < 2:
         raise TacestError("--suggest: no candidate besides the plain model can be predicted; nothing to tell apart")
-    if dim == 3:
-        model = ModelState3.from_estimate(diag.base, runs, config or EstimatorConfig())
-    else:
-        model = ModelState.from_estimate(diag.base, runs)
+    model = model_of(diag, runs, config)
     last = runs[-1]
     cfg_noise = diag.base.config.get("noise", {}) if isinstance(diag.base.config, dict) else {}
     noise = {"force": float(last.extra_attrs.get("noise_force", cfg_noise.get("force", 0.05))) if last.has_force
@@ -197,9 +205,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     for k in ("force", "normal"):
         if noise[k] is not None:
             noise[k] = max(noise[k], 1e-3)  # a noiseless recording still has a resolution
-    shared = dict(n_fingers=model.n_fingers, style=poke_style, object_height=object_height(model),
-                  up=np.asarray(model.up, float))
-    space = ActionSpace3(p_finger__world=model.p_finger__world, **shared) if dim == 3 else ActionSpace(**shared)
+    space = action_space_for(model, poke_style)
     target = model.centroid__world
 
     def pairwise(action) -> dict:

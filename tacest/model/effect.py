@@ -196,6 +196,33 @@ class Effect:
         return f"<effect {self.name}>"
 
 
+def physics_gain(effects, u: dict):
+    """The factor on every force and mass the physics residuals see: the product of the
+    effects' :meth:`Effect.physics_gain` (force_scale), 1.0 when none has one.  u :
+    {effect name: {parameter: value}}."""
+    gain = 1.0
+    for e in effects:
+        factor = e.physics_gain(u[e.name])
+        if factor is not None:
+            gain = factor if isinstance(gain, float) else gain * factor
+    return gain
+
+
+def sensor_reading(effects, ctx, force):
+    """The force sensor's reading (D,) N of a model force (D,) N: every effect's gain, then
+    every effect's bias (force_scale, force_bias; the plain model reads the force itself).
+    ctx : the stage's context (u, m0, grav)."""
+    for e in effects:
+        gain = e.sensor_gain(ctx.u[e.name])
+        if gain is not None:
+            force = gain * force
+    for e in effects:
+        bias = e.sensor_bias(ctx.u[e.name], ctx)
+        if bias is not None:
+            force = force + bias
+    return force
+
+
 def parameter_table(effects, K: int, dim: int) -> list:
     """[(effect, EffectParameter)] of the effect block, in the order of ``effects``."""
     return [(e, p) for e in effects for p in e.parameters(K, dim)]

@@ -61,7 +61,7 @@ from tacest.dynamics.laws import (CONE_TOLERANCE, SLIP_EPS, contact_residual, di
                                   ground_gap_indicator, one_sided, reach_excess)
 from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_matrix_diag, perp, point_velocity
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_and_normal_function, rot2
-from tacest.model.effect import parameter_table
+from tacest.model.effect import parameter_table, physics_gain, sensor_reading
 from tacest.model.occam import OCCAM_TOUCH_SHARPNESS, occam_free_weights, pose_occam
 from tacest.model.registry import names_of, resolve
 
@@ -336,11 +336,7 @@ class StageModel2D:
         phi, slip, levers = ground_contacts(q, v, V, n_g, g[G["h"]])
         u = self.effect_values(phys, 2 * K + 4)
         # a factor on every force and the mass the physics residuals see (force_scale)
-        gain = 1.0
-        for e in self.effect_objects:
-            factor = e.physics_gain(u[e.name])
-            if factor is not None:
-                gain = factor if isinstance(gain, float) else gain * factor
+        gain = physics_gain(self.effect_objects, u)
         # gaps (m) and normal velocities (m/s) of the vertices at the end of the interval
         # seen by the ground contact laws (penetration, complementarity): the geometric
         # ones unless an effect moves the ground or relaxes the laws
@@ -487,7 +483,7 @@ class StageModel2D:
                      one_sided(gain * (mu_f * ln + lt), CONE_TOLERANCE) * CONE_TOLERANCE]
             imp_finger.append(imp)
             gen += generalized_impulse(lever, imp)
-            r_force.append(w_force[f] * (self.sensor_reading(imp / dt, ctx) - F_meas[:, f]) / g[G["sig_force"]])
+            r_force.append(w_force[f] * (sensor_reading(self.effect_objects, ctx, imp / dt) - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
             r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
         return {"gen": gen, "cone": cone, "diss": diss, "force": r_force, "normal": r_normal, "contact": r_contact,
@@ -535,20 +531,6 @@ class StageModel2D:
                                       touch + [contact[f] for f in range(F)], L / 2)
             occam = w_pose * sum(free[k] * pose_occam(log_lam[k]) for k in range(3))
         return r_dyn, occam
-
-    def sensor_reading(self, force, ctx):
-        """The force sensor's reading (2,) N of a model force (2,) N: every effect's gain,
-        then every effect's bias (force_scale, force_bias; the plain model reads the force
-        itself)."""
-        for e in self.effect_objects:
-            gain = e.sensor_gain(ctx.u[e.name])
-            if gain is not None:
-                force = gain * force
-        for e in self.effect_objects:
-            bias = e.sensor_bias(ctx.u[e.name], ctx)
-            if bias is not None:
-                force = force + bias
-        return force
 
     def start_function(self, F):
         """Terms at sample 0 (cached per F): rest (v ≈ 0, weighted by the run's w_rest: 0

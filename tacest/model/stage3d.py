@@ -72,7 +72,7 @@ from tacest.dynamics.laws import CONE_TOLERANCE, SLIP_EPS, contact_residual, one
 from tacest.errors import TacestError
 from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
 from tacest.geometry.shapes3d import Shape3D, shape_sd_and_normal_function
-from tacest.model.effect import parameter_table
+from tacest.model.effect import parameter_table, physics_gain, sensor_reading
 from tacest.model.registry import names_of, resolve
 
 #: squared-residual terms (weights from config.weights under the same names)
@@ -321,29 +321,6 @@ class StageModel3D:
         return ([ph - r for ph in phi], [sl - spin + ca.dot(n_g, spin) * n_g for sl in slip],
                 [lv - n_b for lv in levers], R)
 
-    def physics_gain(self, u):
-        """The factor on every force and mass the physics residuals see (force_scale), 1
-        without."""
-        gain = 1
-        for e in self.effect_objects:
-            f = e.physics_gain(u[e.name])
-            if f is not None:
-                gain = gain * f
-        return gain
-
-    def sensor_reading(self, ctx, force):
-        """The force sensor's reading (3,) N of a model force (3,) N: every effect's gain
-        and offset (reading = gain × force + bias)."""
-        for e in self.effect_objects:
-            gain = e.sensor_gain(ctx.u[e.name])
-            if gain is not None:
-                force = gain * force
-        for e in self.effect_objects:
-            bias = e.sensor_bias(ctx.u[e.name], ctx)
-            if bias is not None:
-                force = force + bias
-        return force
-
     def unpack_theta(self, th, L, m0):
         """(s (n_s), mass kg, a (3, 3) = I / m in m², mu_g, mu_f) from theta."""
         ns = self.n_shape
@@ -404,7 +381,7 @@ class StageModel3D:
         for e in self.effect_objects:
             e.ground_surface_3d(ctx)
             e.ground_friction_3d(ctx)
-        phi, mu_g, gain = ctx.phi, ctx.mu_g, self.physics_gain(ctx.u)
+        phi, mu_g, gain = ctx.phi, ctx.mu_g, physics_gain(self.effect_objects, ctx.u)
         shift = self.com_shift(th, L)
         imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
         torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
@@ -450,7 +427,7 @@ class StageModel3D:
             imp_world += imp_s
             torque_b += cross(r_b, ca.mtimes(R.T, imp_s))
             imp_f_out.append(Lam * imp_s)
-            r_force.append(w_force * (self.sensor_reading(ctx, Lam * imp_s / dt) - F_meas) / g[G3["sig_force"]])
+            r_force.append(w_force * (sensor_reading(self.effect_objects, ctx, Lam * imp_s / dt) - F_meas) / g[G3["sig_force"]])
             r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
             r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]]))
         for e in self.effect_objects:  # extra impulses on the body over the interval

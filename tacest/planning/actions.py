@@ -213,3 +213,13 @@ def object_height(model) -> float:
     V = np.asarray(model.vertices, float)
     Vw = transform_points(np.asarray(model.pose, float), V, V.shape[1])
     return float(np.ptp(Vw @ np.asarray(model.up, float)))
+
+
+def action_space_for(model, style: str = "gentle", vary=()) -> ActionSpace:
+    """The action space of a planning model state (ModelState: :class:`ActionSpace`;
+    ModelState3: :class:`ActionSpace3` over its fingertips), poke style ``style``."""
+    shared = dict(n_fingers=model.n_fingers, vary=tuple(vary), style=style, object_height=object_height(model),
+                  up=np.asarray(model.up, float))
+    if np.asarray(model.up).shape[0] == 3:
+        return ActionSpace3(p_finger__world=model.p_finger__world, **shared)
+    return ActionSpace(**shared)

@@ -38,7 +38,7 @@ from tacest.information.expected import (PREDICT_SUBSTEPS, ExpectedInformation, 
 from tacest.information.scores import SCORES, score
 from tacest.io.plan import Plan
 from tacest.information.sensitivity import INFORMATION_METHODS
-from tacest.planning.actions import ACTION_STYLES, ActionSpace, ActionSpace3, object_height
+from tacest.planning.actions import ACTION_STYLES, action_space_for
 from tacest.planning.cem import cem_maximize
 
 log = logging.getLogger(__name__)
@@ -216,12 +216,7 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
-    shared = dict(n_fingers=model.n_fingers, vary=tuple(settings.vary), style=settings.poke_style,
-                  object_height=object_height(model), up=np.asarray(model.up, float))
-    if int(est.dim) == 3:
-        space = ActionSpace3(p_finger__world=model.p_finger__world, **shared)
-    else:
-        space = ActionSpace(**shared)
+    space = action_space_for(model, settings.poke_style, settings.vary)
     target = model.centroid__world
     rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 4]))
     cands, scores = [], []
