@@ -42,7 +42,7 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
 @click.option("--observe-pose", type=click.FloatRange(min=0), default=None,
               help="[sim] also write pose observations with this position sigma (m).")
 @click.option("--toss", is_flag=True,
-              help="[sim, 2-D] start with the object tossed: released in the air at a random height, speed and "
+              help="[sim] start with the object tossed: released in the air at a random height, speed and "
                    "spin; it lands, and the pokes start once it is at rest (docs/simulation.md).")
 @click.option("--dt", type=click.FloatRange(min=1e-4, max=0.1), default=0.01, show_default=True,
               help="[sim] sample period, s.")

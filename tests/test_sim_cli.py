@@ -47,7 +47,7 @@ def test_cli_runner_no_truth_no_force_quiet(tmp_path):
     (["--dim", "3", "--object", "box:0.1,0.1"], "a 3-D box takes three extents"),
     (["--object", "sphere"], "--object sphere"),
     (["--seed", "-1"], "--seed must be >= 0"),
-    (["--toss", "--dim", "3"], "--toss is 2-D only"),
+    (["--toss", "--plan", "p.h5", "--dim", "3"], "p.h5"),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path, args, msg):
     out = tmp_path / "x.h5"

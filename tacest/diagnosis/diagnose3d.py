@@ -6,23 +6,24 @@ augmentations closes the gap on runs the fit did not see.
    ceil(n / 2)) and a held-out half.
 2. Plain fit.  The 3-D estimator (estimator3d) with no augmentation (sharp box, ground
    where the runs' /scene puts it) on the training runs.
-3. Where.  The per-sample loss 0.5 |r|² of every term against the noise floor.  The
-   floor is calibrated on the data: the mean loss per sample of the training runs' samples
-   in free flight (every vertex more than FLIGHT_GAP above the ground), where the model
-   (gravity, rigid body) has nothing unmodelled to miss; it is capped at the nominal floor
-   (half the rows: pose 6, dynamics 6, so 6 per sample) when the configured sigmas are
-   right.  Windows of ``window`` samples whose summed loss exceeds the floor by the
-   chi-square quantile of 12 degrees of freedom per sample, scaled to the floor, at the
-   false-alarm rate ``alpha`` (Bonferroni over all windows) are flagged; overlapping
-   flagged windows merge.  Each flagged stretch names the term with the most excess, and its
-   share of all runs' excess.
+3. Where.  The plain fit's residuals per term, run, window and contact state against the
+   noise floor, with the 2-D diagnosis' own machinery (tacest.estimation.floor: degrees
+   of freedom per sample and term, the floor's level calibrated as the bulk (median)
+   level of the windows, capped at the configured noise; window tests at the
+   false-alarm rate ``alpha``, Bonferroni over all tests; adjacent flagged windows
+   merge).  Each flagged stretch names its term and its share of the flagged excess.
+   The floor of the held-out comparison is the expected loss of the held-out samples
+   at those bulk levels (FloorModel.objective_floor), per sample: a poke recording
+   without free flight is measured against its own bulk level, not a nominal one.
 4. Candidates.  Each augmentation of AUGMENTATIONS (tacest's edge_radius and
    ground_offset, and every SPEC effect the 3-D NLP models: SPEC_EFFECTS_3D) that the
    runs can show (:func:`applicable`: force effects need a force stream) is fitted on the
    training runs; the plain and every augmented model are then evaluated on the held-out
    runs with their parameters held (the trajectories alone fitted).  Every fit starts
    from the observed poses; a fit that uses up its iteration budget is compared where it
-   ended, its status reported.  gap = held-out loss per sample - FLOOR; reduction = 1 -
+   ended, its status reported.  The loss is every term of the fit (0.5 |r|² per sample,
+   unweighted: pose and dynamics, contact constraints, and the tactile terms where the
+   runs have fingers).  gap = held-out loss per sample - floor; reduction = 1 -
    gap_after / gap_before.  A candidate is blamed if the plain model's gap is above the
    floor and it closes at least MIN_REDUCTION of it (the 2-D rule, docs/diagnosis.md);
    the verdict is the largest such reduction, else ``none``.
@@ -45,6 +46,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.estimation.floor import TERMS as FLOOR_TERMS
+from tacest.estimation.floor import contact_state, fit_floor, flagged_windows, residual_dof, window_tests
 from tacest.model.registry import NONE, model_effect_names
 from tacest.sim.effects import EFFECT_NAMES
 
@@ -72,11 +75,8 @@ TRANSFORM_FITS = 3
 #: SPEC effects without a 3-D model (reported as not compared): restitution needs an
 #: impact memory per vertex (states the 3-D NLP does not have yet)
 NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D + TRANSFORMS_3D and n != NONE)
-#: expected per-sample loss of the pose (6 rows) and dynamics (6 rows) terms: half the rows
-FLOOR_PER_SAMPLE = {"pose": 3.0, "dynamics": 3.0}
-TERMS = ("pose", "dynamics", "penetration", "complementarity")
-#: a sample is in free flight when every vertex is this far above the ground (m)
-FLIGHT_GAP = 0.005
+#: the loss terms (tacest.estimation.floor.TERMS: the estimator's own)
+TERMS = FLOOR_TERMS
 #: a candidate must close this fraction of the plain model's held-out gap (as in 2-D)
 MIN_REDUCTION = 0.2
 
@@ -116,7 +116,8 @@ class Diagnosis3D:
     effects: list
     verdict: str
     reason: str
-    floor: float
+    floor: float  # loss per sample expected of the held-out runs at the floor
+    floor_train: float = float("nan")  # the same of the training runs (the residual figure)
     extra: dict = field(default_factory=dict)
     #: s, sample period of each training run (the residual figure's time axis)
     dts: list = field(default_factory=list)
@@ -201,54 +202,36 @@ def applicable(name, runs, shape) -> str:
     return ""
 
 
-def flight_floor(est, z, res_runs):
-    """Mean loss per sample over the samples in free flight (floored at 1e-3, capped at
-    the nominal floor) and the number of such samples."""
-    st, _ = est.stage_outputs(z)
-    vals = []
-    for i, r in enumerate(res_runs):
-        phi = st["phi_ground"][:, est.layout.run_intervals(i)]  # (K, T-2) m
-        fly = np.r_[False, False, np.min(phi, axis=0) > FLIGHT_GAP]
-        tot = np.sum([r[t] for t in TERMS if t in r], axis=0)
-        vals.append(tot[fly])
-    v = np.concatenate(vals) if vals else np.zeros(0)
-    nominal = sum(FLOOR_PER_SAMPLE.values())
-    if v.size < 10:
-        return nominal, int(v.size)
-    return float(np.clip(np.mean(v), 1e-3, nominal)), int(v.size)
+def floor_model(est, res_runs, window: int):
+    """The noise floor of the plain fit's residuals ``res_runs`` (per run {term: (T,)}),
+    calibrated as in 2-D (tacest.estimation.floor.fit_floor: bulk level per term and
+    contact state, capped at the configured noise)."""
+    dofs = [residual_dof(r, est.problem.K) for r in est.runs]
+    states = [contact_state(r) for r in est.runs]
+    return fit_floor(res_runs, dofs, states, window=window, mode="calibrated")
 
 
-def flag_windows(res_runs, window, alpha, floor):
-    """(flags per run (T,) bool, where list): windows whose summed loss exceeds
-    floor · chi2.ppf(1 - alpha / n_windows, 12 w) / 12 (the chi-square quantile of the
-    pose and dynamics rows, scaled to the calibrated floor)."""
-    from scipy.stats import chi2
+def floor_per_sample(floor, runs, n_vertices: int) -> float:
+    """Expected loss per sample (0.5 |r|², unweighted, every term) of ``runs`` at the
+    floor's bulk levels (FloorModel.objective_floor)."""
+    total = sum(floor.objective_floor(residual_dof(r, n_vertices), contact_state(r)) for r in runs)
+    return total / max(sum(r.n_samples for r in runs), 1)
 
-    n_win = sum(max(len(r["pose"]) - window + 1, 1) for r in res_runs)
-    thr = floor * chi2.ppf(1 - alpha / max(n_win, 1), 12 * window) / 12.0
-    flags, stretches = [], []
-    excess_total = 0.0
-    for i, r in enumerate(res_runs):
-        T = len(r["pose"])
-        tot = np.sum([r[t] for t in TERMS if t in r], axis=0)
-        excess_total += float(np.sum(np.maximum(tot - floor, 0)))
-        c = np.concatenate([[0.0], np.cumsum(tot)])
-        f = np.zeros(T, bool)
-        for a in range(max(T - window + 1, 1)):
-            b = min(a + window, T)
-            if c[b] - c[a] > thr:
-                f[a:b] = True
-        flags.append(f)
-        edges = np.flatnonzero(np.diff(np.r_[0, f.astype(int), 0]))
-        for a, b in zip(edges[::2], edges[1::2]):
-            ex = {t: float(np.sum(r[t][a:b])) for t in TERMS if t in r}
-            term = max(ex, key=ex.get)
-            stretches.append({"run": i, "start": int(a), "stop": int(b), "term": term,
-                              "excess": float(np.sum(np.maximum(tot[a:b] - floor, 0)))})
-    for s in stretches:
-        s["share"] = s.pop("excess") / excess_total if excess_total > 0 else 0.0
-    stretches.sort(key=lambda s: -s["share"])
-    return flags, stretches
+
+def flag_windows(res_runs, runs, n_vertices: int, floor, alpha: float):
+    """(flags per run (T,) bool, where list of dicts): the window tests of the shared
+    floor (tacest.estimation.floor.window_tests, Bonferroni at ``alpha``), flagged
+    windows merged, largest share first; where[].run is the run's index."""
+    dofs = [residual_dof(r, n_vertices) for r in runs]
+    states = [contact_state(r) for r in runs]
+    stats = window_tests(res_runs, dofs, states, floor, alpha=alpha)
+    flags = [np.zeros(r.n_samples, bool) for r in runs]
+    where = []
+    for w in flagged_windows(stats):
+        flags[w.run][w.start:w.stop] = True
+        where.append({"run": int(w.run), "start": int(w.start), "stop": int(w.stop), "term": w.term,
+                      "share": float(w.share)})
+    return flags, where
 
 
 def _heldout(fit, est, out, shape, cfg, effects, held):
@@ -271,10 +254,11 @@ def _heldout(fit, est, out, shape, cfg, effects, held):
     return est_h, out_h
 
 
-def _plain_task(cfg, shape, train, held) -> tuple:
+def _plain_task(cfg, shape, train, held, window) -> tuple:
     """The plain model of a 3-D diagnosis, a task: its fit to the training runs, then to
-    the held-out runs with its parameters held; (Fit3D, its solution z, the residuals of
-    the training runs, the flight floor, flight samples)."""
+    the held-out runs with its parameters held; (Fit3D, the residuals of the training
+    runs, the floor (FloorModel), theta, objective, the held-out estimate, (its solution
+    z, its starting shape))."""
     t0 = time.perf_counter()
     est = _estimator(train, shape, cfg, ())
     out = _check(est.solve())
@@ -283,19 +267,38 @@ def _plain_task(cfg, shape, train, held) -> tuple:
     est_h, out_h = _heldout(fit, est, out, shape, cfg, (), held)
     base = est_h.result(out_h, 0.0, information=False)  # the object now: the end of the last held-out run
     fit.seconds = time.perf_counter() - t0
-    return (fit, res) + flight_floor(est, out.z, res) + (out.z[: est.problem.n_theta].copy(), out.objective, base)
+    return (fit, res, floor_model(est, res, window), out.z[: est.problem.n_theta].copy(), out.objective, base,
+            (out.z.copy(), est.s0.copy()))
 
 
-def _model_task(name, cfg, effects, shape, train, held) -> Fit3D:
+def _model_task(name, cfg, effects, shape, train, held, nested=None) -> Fit3D:
     """One augmented model of a 3-D diagnosis, a task: its fit to the training runs from
     the estimator's own start (the observed poses), then to the held-out runs with its
-    parameters held.  (Started from the plain fit's solution instead, a com_offset fit
-    stayed in the plain model's basin: the plain fit bends its trajectories round what it
-    lacks.)"""
+    parameters held.  nested : (objective, z, s0) of the plain fit when the plain model
+    is this one with its effects at their initial values (a SPEC effect); a fit from the
+    own start that ends above the plain fit's objective is in a worse basin than the
+    plain model's optimum, so the model is fitted again from that optimum
+    (Estimator3D.solve_nested) and the lower of the two kept.  (Started from the plain
+    fit's solution alone, a com_offset fit stayed in the plain model's basin: the plain
+    fit bends its trajectories round what it lacks; from its own start alone, a
+    linear_drag fit to tosses ended above the plain model.)"""
+    from tacest.estimation.solver import BUDGET_STATUSES, SUCCESS_STATUSES
+
     t0 = time.perf_counter()
     try:
         est = _estimator(train, shape, cfg, effects)
         out = _check(est.solve())
+        if nested is not None and out.objective > nested[0]:
+            log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {nested[0]:.6g}); "
+                     "fitting again from the plain model's optimum")
+            est_w = _estimator(train, shape, cfg, effects)
+            try:
+                out_w = est_w.solve_nested(nested[1], nested[2])
+            except TacestError:
+                out_w = None
+            if out_w is not None and out_w.status in SUCCESS_STATUSES + BUDGET_STATUSES \
+                    and out_w.objective < out.objective:
+                est, out = est_w, out_w
         fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
                     train_loss_per_sample=_losses(est, out.z)[1])
         _heldout(fit, est, out, shape, cfg, effects, held)
@@ -390,20 +393,23 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     ex.plan(1 + len(models) + len(transforms), what="diagnosis")
     train_h, held_h = ex.scatter(train), ex.scatter(held)
     plain_cfg = _config(config, PLAIN, opts.fit_iterations)
-    plain, res_plain, floor, n_flight, theta_plain, plain_objective, base = ex.result(
-        ex.submit(_plain_task, plain_cfg, shape, train_h, held_h, name="3d-none"))
+    plain, res_plain, floor_levels, theta_plain, plain_objective, base, plain_solution = ex.result(
+        ex.submit(_plain_task, plain_cfg, shape, train_h, held_h, opts.window, name="3d-none"))
+    K = int(np.asarray(base.vertices).shape[0])
+    floor = floor_per_sample(floor_levels, held, K)  # the held-out samples' floor
     fits = {NONE: plain}
     log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
              f"({plain.heldout_status}), {plain.seconds:.0f} s")
     handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), eff, shape, train_h, held_h,
-                         name=f"3d-{name}") for name, ov, eff in models]
+                         (plain_objective, *plain_solution) if ov is PLAIN else None, name=f"3d-{name}")
+               for name, ov, eff in models]
     handles += [ex.submit(_transform_task, name, plain_cfg, shape, train_h, held_h, theta_plain, plain_objective,
                           name=f"3d-{name}") for name in transforms]
     for name, fit in zip([m[0] for m in models] + transforms, ex.gather(handles)):
         fits[name] = fit
         log.info(f"{name}: trained on {len(train)} runs ({fit.status}), held out on {len(held)} runs "
                  f"({fit.heldout_status}), {fit.seconds:.0f} s")
-    flags, where = flag_windows(res_plain, opts.window, opts.alpha, floor)
+    flags, where = flag_windows(res_plain, train, K, floor_levels, opts.alpha)
     for w in where:
         w["file"] = names[w["run"]]  # "run" stays the run's index, as in 2-D
     gap_before = fits[NONE].heldout_loss_per_sample - floor
@@ -436,9 +442,8 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     return Diagnosis3D(runs=names, train=names[:n_train], heldout=names[n_train:], residuals=res_plain, flags=flags,
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
                        dts=[float(r.dt) for r in runs[:n_train]], base=base, base_runs=list(held),
-                       extra={"floor_flight_samples": n_flight,
-                              "floor_nominal_per_sample": sum(FLOOR_PER_SAMPLE.values()),
-                              "not_compared_reasons": not_compared})
+                       floor_train=floor_per_sample(floor_levels, train, K),
+                       extra={"floor_levels": floor_levels.to_dict(), "not_compared_reasons": not_compared})
 
 
 def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> list:
@@ -460,8 +465,9 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> lis
             dt = diag.dts[i] if i < len(diag.dts) else 1.0
             t = dt * np.arange(len(r["pose"]))  # s
             for term in TERMS:
-                ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term)
-            ax.axhline(diag.floor, color="k", ls="--", lw=0.8, label="floor")
+                if term in r and np.any(r[term] > 0):
+                    ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term)
+            ax.axhline(diag.floor_train, color="k", ls="--", lw=0.8, label="floor (all terms)")
             for a in np.flatnonzero(f):
                 ax.axvspan((a - 0.5) * dt, (a + 0.5) * dt, color="r", alpha=0.12, lw=0)
             ax.set_ylabel("loss per sample", fontsize=7)

@@ -600,6 +600,30 @@ class Estimator3D:
         self.bounds_final = self.variable_bounds(self.z)
         return out
 
+    def solve_nested(self, z_nested, s0) -> SolveOutcome:
+        """One solve of the final stage from the solution ``z_nested`` (scaled) of the
+        nested model of the same runs and shape: this model without its effects, whose
+        theta are the first entries of this one's; the effects start at their initial
+        values, where this model is the nested one.  s0 : that fit's starting shape (the
+        shape prior's reference, so that both objectives agree there).  Since the start
+        is the nested model's optimum, this fit ends at or below its objective."""
+        pr = self.problem
+        z_nested = np.asarray(z_nested, float)
+        n_plain = len(z_nested) - (pr.n_z - pr.n_theta)
+        if not 0 < n_plain <= pr.n_theta:
+            raise TacestError(f"a nested solution of {len(z_nested)} variables does not fit a problem of {pr.n_z}")
+        self.s0 = np.asarray(s0, float)
+        z = self.initial_guess()
+        z[:n_plain] = z_nested[:n_plain]
+        z[pr.n_theta:] = z_nested[n_plain:]
+        stages = self.stages()[-1:]
+        out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
+                         accept_budget=self.accept_budget)
+        self.z = out.z
+        self.p_final = self.stage_params(stages[-1])
+        self.bounds_final = self.variable_bounds(self.z)
+        return out
+
     # --------------------------------------------------------------------------------
     def effect_params(self, z) -> dict:
         """{estimate /params name: physical value} of the effects' parameters at z

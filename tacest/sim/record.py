@@ -150,8 +150,6 @@ class SimOptions:
             raise TacestError(f"--dt must be in [1e-4, 0.1] s, got {self.dt}")
         if not (0.001 <= self.finger_radius <= 0.05):
             raise TacestError(f"finger radius must be in [0.001, 0.05] m, got {self.finger_radius}")
-        if self.toss and int(self.dim) != 2:
-            raise TacestError("--toss is 2-D only (the 3-D simulator starts every object at rest)")
         if int(self.substeps) < 1 or not self.max_finger_force > 0:
             raise TacestError("substeps must be >= 1 and max_finger_force > 0")
         return self

@@ -6,7 +6,8 @@ Public API (the 3-D counterparts of tacest.sim.record; options are its SimOption
     WorldState3                                   object, its state, fingers, effects
     initial_state(opts) -> WorldState3 a new object at rest on the ground
     state_at_rest(obj, xy=(0, 0), quat=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState3
-    simulate_pokes(state, actions, opts=None, names=POKE3_NAMES) -> Run
+    toss_state(state, rng, xy=None) -> WorldState3  the object released in the air (a toss)
+    simulate_pokes(state, actions, opts=None, names=POKE3_NAMES, settle_first=False, random_pokes=0) -> Run
     record_sim(opts, plan_path=None, append_to=None) -> Run
     state_from_run(run) -> WorldState3            continue from a run's last truth state
 
@@ -36,9 +37,10 @@ from tacest.geometry.transforms import (quat_conjugate, quat_from_axis_angle, qu
 from tacest.io.run import Actions, Run, Truth
 from tacest.sim import effects as fx
 from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE_LEVER, PRE_ROLL, REST_OMEGA,
-                               REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, SimOptions, _rng,
-                               _STREAM_NOISE, _STREAM_OBJECT, _STREAM_POKES, _time_scale, append_run,
-                               note_sim_options, sensor_streams)
+                               REST_SPEED, REST_WAIT, SETTLE_TIME, SIZE_BOUND, TOSS_DROP, TOSS_LIFT, TOSS_SPEED,
+                               TOSS_SPIN, TOSS_WAIT, SimOptions, _rng, _STREAM_NOISE, _STREAM_OBJECT,
+                               _STREAM_POKES, _STREAM_TOSS, _time_scale, append_run, note_sim_options,
+                               sensor_streams)
 from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
                                   uniform_object)
 from tacest.sim.pokes import style_of_poke
@@ -154,13 +156,50 @@ def state_at_rest(obj: SimObject3, xy=(0.0, 0.0), quat=None, fingers=1, finger_r
     effects = list(effects)
     pose = resting_pose(obj.vertices, quat, xy=xy)
     top = float(np.max((obj.vertices @ quat_to_matrix(pose[3:]).T)[:, 2])) + pose[2]
-    F = int(fingers)
-    park = np.stack([xy[0] + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING, np.full(F, float(xy[1])),
-                     np.full(F, top + finger_radius + PARK_HEIGHT)], axis=1)
+    park = _park(xy, top, fingers, finger_radius)
     ground = _static_ground(obj, effects)
     pose = pose + np.array([0.0, 0.0, ground[0], 0.0, 0.0, 0.0, 0.0])
     return WorldState3(obj=obj, pose=pose, velocity=np.zeros(6), p_finger__world=park,
-                       finger_radius=np.full(F, float(finger_radius)), effects=effects, ground_state=ground)
+                       finger_radius=np.full(int(fingers), float(finger_radius)), effects=effects, ground_state=ground)
+
+
+def _park(xy, top, fingers, finger_radius) -> np.ndarray:
+    """(F, 3) m: ``fingers`` fingertips parked PARK_HEIGHT above height ``top`` (m),
+    PARK_SPACING apart along x about horizontal ``xy`` (2,) m."""
+    F = int(fingers)
+    return np.stack([xy[0] + (np.arange(F) - 0.5 * (F - 1)) * PARK_SPACING, np.full(F, float(xy[1])),
+                     np.full(F, top + finger_radius + PARK_HEIGHT)], axis=1)
+
+
+def toss_state(state: WorldState3, rng: np.random.Generator, xy=None) -> WorldState3:
+    """``state``'s object released in the air, as by a robot that lets go of it (the 3-D
+    ``--toss``; the ranges are the 2-D ones, tacest.sim.record.TOSS_*): at a uniformly
+    random orientation with its lowest vertex TOSS_DROP above the ground, its COM over
+    horizontal ``xy`` (2,) m (default: where it is now), moving at TOSS_SPEED in a random
+    horizontal direction and TOSS_LIFT upwards, spinning at TOSS_SPIN about a uniformly
+    random axis.  Draw order from ``rng``: orientation (4 normals), drop, horizontal
+    speed, its heading, lift, spin magnitude, spin axis (3 normals).  The fingers are
+    parked above the highest point any vertex can reach in the flight; a soft ground
+    starts unloaded."""
+    obj = state.obj
+    quat = quat_normalize(rng.normal(size=4))  # uniform on SO(3)
+    drop = float(rng.uniform(*TOSS_DROP))
+    speed = float(rng.uniform(*TOSS_SPEED))
+    heading = float(rng.uniform(-math.pi, math.pi))
+    lift = float(rng.uniform(*TOSS_LIFT))
+    spin = float(rng.uniform(*TOSS_SPIN))
+    axis = rng.normal(size=3)
+    axis /= max(float(np.linalg.norm(axis)), 1e-12)
+    xy = np.asarray(state.pose[:2] if xy is None else xy, float)
+    pose = resting_pose(obj.vertices, quat, xy=xy) + np.array([0.0, 0.0, drop, 0.0, 0.0, 0.0, 0.0])
+    reach = float(np.max(np.linalg.norm(obj.vertices, axis=1)))  # any vertex, any orientation
+    top = float(pose[2]) + lift * lift / (2.0 * GRAVITY) + reach
+    radius = np.asarray(state.finger_radius, float)
+    velocity = np.r_[speed * math.cos(heading), speed * math.sin(heading), lift, spin * axis]
+    return WorldState3(obj=obj, pose=pose, velocity=velocity,
+                       p_finger__world=_park(xy, top, len(radius), float(np.max(radius))),
+                       finger_radius=radius.copy(), effects=list(state.effects), time=state.time,
+                       ground_state=np.zeros(2))
 
 
 # ---------------------------------------------------------------------------------
@@ -188,10 +227,14 @@ def _at_rest(velocity) -> bool:
     return float(np.linalg.norm(velocity[:3])) < REST_SPEED and float(np.linalg.norm(velocity[3:])) < REST_OMEGA
 
 
-def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idle=False) -> _Trajectory:
+def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idle=False,
+              settle_first=False) -> _Trajectory:
     """Run the pokes ``sources`` (each a (8,) POKE3_NAMES vector or None for a random
     poke) from ``state``.  Every poke but the first (and the first too with
-    ``lead_idle``) starts after one idle sample interval, so segments tile the run."""
+    ``lead_idle``) starts after one idle sample interval, so segments tile the run.
+    With ``settle_first`` (a toss) the fingers first hold still until the object has
+    come to rest (at most TOSS_WAIT s; then SETTLE_TIME more when there are no pokes):
+    those samples belong to no action."""
     dt = float(opts.dt)
     n_sub = opts.n_substeps
     h = dt / n_sub
@@ -223,9 +266,18 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
                 world.step(p, h)
             record(world.take_measurement())
 
+    def hold_until_rest(limit_s):
+        for _ in range(int(round(limit_s / dt))):
+            if _at_rest(world.velocity):
+                return
+            hold(1)
+
     record()
     segments, params = [], []
     A = len(sources)
+    if settle_first:
+        log.info("tossed: waiting for the object to come to rest")
+        hold_until_rest(TOSS_WAIT)
     for i, src in enumerate(sources):
         log.info(f"poke {i + 1}/{A}")
         if i > 0 or lead_idle:
@@ -249,14 +301,11 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
                 world.step(ctl[k * n_sub + j], h)
             record(world.take_measurement())
         # like a robot, wait until the object has stopped (a tipped object may still fall)
-        for _ in range(int(round(REST_WAIT / dt))):
-            if _at_rest(world.velocity):
-                break
-            hold(1)
+        hold_until_rest(REST_WAIT)
         segments.append((start, len(cols["q"])))
         params.append(poke.to_vector())
     if A == 0:
-        hold(int(round(EMPTY_TIME / dt)))
+        hold(int(round((SETTLE_TIME if settle_first else EMPTY_TIME) / dt)))
     T = len(cols["q"])
     t_true = state.time + dt * np.arange(T)
     final = WorldState3.of(world, state.effects, t_true[-1])
@@ -316,7 +365,7 @@ def _make_run(traj: _Trajectory, state0: WorldState3, opts: SimOptions, rng_nois
 
 
 def simulate_pokes(state, actions, opts: SimOptions = None,
-                   names=POKE3_NAMES, noise_key: int = 0) -> Run:
+                   names=POKE3_NAMES, noise_key: int = 0, settle_first: bool = False, random_pokes: int = 0) -> Run:
     """Simulate the given 3-D pokes from ``state`` and return the recorded Run (with truth).
 
     state : WorldState3 (e.g. from :func:`initial_state` or :func:`state_from_run`), or
@@ -325,7 +374,12 @@ def simulate_pokes(state, actions, opts: SimOptions = None,
         POKE3_NAMES); targets are used as given;
     opts : noise levels, dt, streams (SimOptions; its object, seed, pokes and effects
         are not used: the object and effects are the state's).
-    Sample 0 is ``state`` itself; poke i covers /actions/segments[i].
+    Sample 0 is ``state`` itself; poke i covers /actions/segments[i].  With
+    ``settle_first`` (``state`` from :func:`toss_state`) the flight and landing come
+    first, until the object is at rest (and SETTLE_TIME more without actions).
+    ``random_pokes``: that many random pokes of ``opts.poke_style`` follow the given
+    ones, each drawn (from the pokes stream of ``opts.seed`` and ``noise_key``) where
+    the object is when it starts, as ``record`` draws them.
     """
     opts = (opts or SimOptions(dim=3)).validate()
     if isinstance(state, SimObject3):
@@ -335,8 +389,8 @@ def simulate_pokes(state, actions, opts: SimOptions = None,
         acts = acts.reshape(0, len(names))
     if acts.ndim == 1:
         acts = acts[None, :]
-    sources = [Poke3.from_vector(a, state.n_fingers, names).to_vector() for a in acts]
-    traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES, noise_key))
+    sources = [Poke3.from_vector(a, state.n_fingers, names).to_vector() for a in acts] + [None] * int(random_pokes)
+    traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES, noise_key), settle_first=settle_first)
     return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE, noise_key))
 
 
@@ -434,17 +488,21 @@ def _record(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     opts.validate()
     if append_to is None:
         state = initial_state(opts)
+        if opts.toss:
+            state = toss_state(state, _rng(opts.seed, _STREAM_TOSS))
         if plan_path is not None:
             sources = _plan_sources(plan_path, state.n_fingers)
         else:
             sources = [None] * int(opts.pokes)
-        traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES))
+        traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES), settle_first=opts.toss)
         log.info(f"deepest contact penetration: ground {1e3 * traj.max_penetration_ground:.3f} mm, "
                  f"finger {1e3 * traj.max_penetration_finger:.3f} mm")
         return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE))
 
     from tacest.io.run import read_run
 
+    if opts.toss:
+        raise TacestError(f"--toss starts a new recording; it cannot continue {append_to}")
     old = read_run(append_to)
     state = state_from_run(old)
     cont = SimOptions(**{**opts.__dict__})
