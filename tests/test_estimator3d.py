@@ -493,6 +493,27 @@ def test_drag_and_damping_are_recovered_from_tosses_that_show_them(name, key, va
     np.testing.assert_allclose(np.ptp(est.vertices, axis=0), EXTENTS, rtol=0.015)
 
 
+def test_a_nested_fit_from_the_plain_optimum_ends_at_or_below_it():
+    """Estimator3D.solve_nested (the 3-D diagnosis' second start for a candidate whose own
+    fit ends above the plain model): started at the plain fit's optimum with the drag at
+    0, the drag model of tosses that show b = 0.5 N·s/m ends below the plain objective
+    (it nests the plain model) and finds the drag within 2.5 reported stds, as a fit
+    from its own start does (test above).  A solution of another problem's size is
+    refused."""
+    from tacest.estimation.estimator3d import Estimator3D
+
+    runs = _augmented_tosses(effect_params={"linear_drag.b": 0.5})
+    plain = Estimator3D(runs, "box")
+    out_p = plain.solve()
+    drag = Estimator3D(runs, "box", effects=["linear_drag"])
+    out = drag.solve_nested(out_p.z, plain.s0)
+    assert out.objective <= out_p.objective
+    est = drag.result(out, 0.0)
+    assert abs(est.params["linear_drag.b"] - 0.5) < 2.5 * est.std["linear_drag.b"]
+    with pytest.raises(TacestError, match="does not fit"):
+        drag.solve_nested(out_p.z[:10], plain.s0)
+
+
 def test_diagnose_3d_finds_a_clock_error_on_tosses(tmp_path):
     """The transform candidate time_scale in 3-D: tosses whose clock runs 6 % fast (every
     time stamp and dt times 1.06: gravity appears as g / 1.06²) are blamed on it, with the

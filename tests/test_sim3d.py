@@ -451,3 +451,45 @@ def test_cli_records_3d_and_rejects_bad_options(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert ex.value.code == 2 and len(err) == 1 and err[0].startswith("tacest: error: ") and msg in err[0], err
         assert not bad.exists()
+
+
+# ---------------------------------------------------------------------------------
+# tosses
+
+
+def test_toss_flies_ballistically_lands_and_comes_to_rest_before_the_poke():
+    """``record --dim 3 --toss``: sample 0 is the release, TOSS_DROP above the ground and
+    moving as the TOSS_* ranges say; the COM flies a parabola under g until the first
+    touch of the ground; the object is at rest before the first poke starts."""
+    from tacest.sim.record import TOSS_DROP, TOSS_LIFT, TOSS_SPEED
+
+    run = record_sim(SimOptions(seed=3, pokes=1, toss=True, observe_pose=5e-4, **CLEAN))
+    low = _lowest_z(run)
+    assert TOSS_DROP[0] - 1e-9 <= low[0] <= TOSS_DROP[1] + 1e-9
+    land = int(np.argmax(low < 1e-3))
+    assert land > 5, "the object flies for a while"
+    P, dt = run.truth.pose, run.dt
+    v0 = (P[1, :3] - P[0, :3]) / dt
+    assert TOSS_SPEED[0] - 0.05 <= math.hypot(v0[0], v0[1]) <= TOSS_SPEED[1] + 0.05
+    assert TOSS_LIFT[0] - 0.05 <= v0[2] + 0.5 * G * dt <= TOSS_LIFT[1] + 0.05
+    # a parabola of g before the landing: the second differences of the COM height are
+    # -g to rounding (measured 5e-12 m/s²: constant acceleration makes MuJoCo's
+    # semi-implicit Euler exact at the samples); 1e-6 m/s² leaves room for rounding only
+    acc = np.diff(P[: land - 1, 2], 2) / dt ** 2
+    assert np.allclose(acc, -G, rtol=0, atol=1e-6)
+    assert np.allclose(np.diff(P[: land - 1, :2], 2, axis=0), 0.0, atol=1e-9), "no horizontal force in flight"
+    start = int(run.actions.segments[0, 0])
+    assert start > land
+    speed = np.linalg.norm(P[start, :3] - P[start - 1, :3]) / dt
+    assert speed < 5e-3, "at rest when the poke starts"
+    assert not run.contact[: start + 1].any(), "the parked finger never touches the flying object"
+    # the pose is observed from sample 0 on, so the estimator starts the run free
+    from tacest.estimation.data import starts_at_rest
+    assert run.pose_obs is not None and not starts_at_rest(run)
+
+
+def test_toss_cannot_continue_a_run(tmp_path):
+    path = tmp_path / "a.h5"
+    write_run(record_sim(SimOptions(seed=1, pokes=1, **CLEAN)), path)
+    with pytest.raises(TacestError, match="--toss starts a new recording"):
+        record_sim(SimOptions(seed=1, pokes=1, toss=True, **CLEAN), append_to=path)
