@@ -58,13 +58,16 @@ from tacest.parallel import machine_workers
 @click.option("--policy", type=click.Choice(["suggest", "random"]), default="suggest", show_default=True,
               help="--explore: how the added pokes are chosen.")
 @click.option("--dim", type=click.Choice(["2", "3"]), default="2", show_default=True,
-              help="--explore: the simulated world (3: MuJoCo, one finger, pose observed).")
+              help="--explore: the simulated world (2: pymunk; 3: MuJoCo), one force-sensing finger.")
+@click.option("--observe-pose", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SIGMA",
+              help="--explore: the recordings observe the object's pose with this position sigma (m, as motion "
+                   "capture); default: touch alone.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object on stdout.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
              max_candidates, floor_mode, reach, suggest, poke_style, explore, inject, seed, pokes, budget, policy,
-             dim, as_json, quiet, workers, scheduler):
+             dim, observe_pose, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
     the verdict (an effect or none).  The fits run in this process unless --workers or
@@ -87,7 +90,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     _check_modes(explore)
     if explore:
         return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
-                        fit_iterations, config_path, as_json, quiet, int(dim))
+                        fit_iterations, config_path, as_json, quiet, int(dim), observe_pose)
     if not runs:
         raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
     ex = executor(workers, scheduler)  # the options checked before any work
@@ -157,7 +160,7 @@ def _append_note(tmp, text) -> list:
 
 
 #: options of --explore only, and options of a diagnosis of given runs only
-EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim")
+EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim", "observe_pose")
 RUNS_ONLY = ("estimate_path", "shape", "suggest", "window", "alpha", "max_candidates", "floor_mode", "reach",
              "workers", "scheduler")
 
@@ -177,7 +180,7 @@ def _check_modes(explore: bool):
 
 
 def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,
-             config_path, as_json, quiet, dim):
+             config_path, as_json, quiet, dim, observe_pose=None):
     """``tacest diagnose --explore`` (tacest.diagnosis.explore)."""
     from tacest.cli.logs import step_progress
     from tacest.diagnosis.candidates import parse_effect_list
@@ -194,7 +197,8 @@ def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effe
         names = parse_effect_list(effects) if effects else None
     opts = ExploreDiagnosisOptions(effect=inject, seed=seed, pokes=pokes, budget=budget, policy=policy,
                                    poke_style=poke_style, effects=names, max_folds=max_folds,
-                                   fit_iterations=fit_iterations, config_path=config_path, dim=dim).validate()
+                                   fit_iterations=fit_iterations, config_path=config_path, dim=dim,
+                                   observe_pose=observe_pose).validate()
     summary = explore_diagnosis(opts, output, progress=step_progress(quiet, "diagnoses"))
     if as_json:
         click.echo(json.dumps(summary, default=str))

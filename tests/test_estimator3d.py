@@ -494,7 +494,7 @@ def test_drag_and_damping_are_recovered_from_tosses_that_show_them(name, key, va
 
 
 def test_a_nested_fit_from_the_plain_optimum_ends_at_or_below_it():
-    """Estimator3D.solve_nested (the 3-D diagnosis' second start for a candidate whose own
+    """Estimator3D.solve_warm (the 3-D diagnosis' second start for a candidate whose own
     fit ends above the plain model): started at the plain fit's optimum with the drag at
     0, the drag model of tosses that show b = 0.5 N·s/m ends below the plain objective
     (it nests the plain model) and finds the drag within 2.5 reported stds, as a fit
@@ -506,12 +506,39 @@ def test_a_nested_fit_from_the_plain_optimum_ends_at_or_below_it():
     plain = Estimator3D(runs, "box")
     out_p = plain.solve()
     drag = Estimator3D(runs, "box", effects=["linear_drag"])
-    out = drag.solve_nested(out_p.z, plain.s0)
+    out = drag.solve_warm(out_p.z, plain.s0)
     assert out.objective <= out_p.objective
     est = drag.result(out, 0.0)
     assert abs(est.params["linear_drag.b"] - 0.5) < 2.5 * est.std["linear_drag.b"]
     with pytest.raises(TacestError, match="does not fit"):
-        drag.solve_nested(out_p.z[:10], plain.s0)
+        drag.solve_warm(out_p.z[:10], plain.s0)
+
+
+@pytest.mark.slow
+def test_diagnose_3d_from_touch_alone_finds_a_force_bias():
+    """The 3-D diagnosis without pose observations (touch alone): MuJoCo pokes by one
+    force-sensing finger whose sensor reads (0.33, -0.34, 0.35) N too much, cut at the
+    pokes.  The plain model's held-out loss is above the shared floor, the force_bias
+    candidate (fitted from the plain optimum) closes most of it and gives the bias back
+    to 0.02 N (the force noise is 0.02 N per sample and the bias is seen on every one of
+    hundreds of samples: a few mN is its standard error); the verdict names it."""
+    from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d
+    from tacest.diagnosis.slicing import split_at_actions
+    from tacest.dims import record_sim
+    from tacest.sim.record import SimOptions
+
+    pytest.importorskip("mujoco")
+    run = record_sim(SimOptions(dim=3, seed=0, pokes=4, fingers=1, effects=["force_bias"], poke_style="gentle"))
+    truth = run.truth.effects  # SPEC: one object {"name": ..., parameters}
+    parts = [p.replace(filename=f"part{i}", truth=None) for i, p in enumerate(split_at_actions(run))]
+    assert all(p.pose_obs is None for p in parts)
+    d = diagnose_3d(parts, "box", options=Options3D(effects=("force_bias", "linear_drag")))
+    eff = {e["name"]: e for e in d.effects}
+    assert eff["force_bias"]["gap_before"] > 0
+    assert eff["force_bias"]["reduction"] >= 0.5
+    assert d.verdict == "force_bias"
+    for a in "xyz":
+        assert eff["force_bias"]["params"][f"force_bias.f{a}"] == pytest.approx(truth[f"f{a}"], abs=0.02)
 
 
 def test_diagnose_3d_finds_a_clock_error_on_tosses(tmp_path):

@@ -179,7 +179,7 @@ def test_the_suggestion_works_in_3d_and_skips_what_it_cannot_predict():
 
 
 def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
-    """The 3-D loop (MuJoCo, one finger, pose observed): a clean box, two random pokes,
+    """The 3-D loop (MuJoCo, one finger, touch alone): a clean box, two random pokes,
     at most one added poke; the loop's files and summary are what the 2-D loop writes
     (whether a clean recording is blamed is the benchmark's question, not this test's)."""
     out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", "--explore", "--dim", "3", "--inject", "none",
@@ -189,6 +189,7 @@ def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
     summary = json.loads(out.stdout)
     steps = summary["steps"]
     assert summary["options"]["dim"] == 3 and summary["injected"] == [{"name": "none"}]
+    assert summary["options"]["observe_pose"] is None
     assert set(steps[0]["candidates"]) == {"linear_drag", "force_bias"}
     assert (tmp_path / "x" / "diagnosis_0" / "report.md").is_file() and (tmp_path / "x" / "candidates.png").is_file()
     if not summary["decided"] or len(steps) == 2:
@@ -197,7 +198,9 @@ def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
 
 def test_options_of_the_other_mode_are_refused_in_one_line(recorded, tmp_path):
     for args, fragment in ((["--explore", "--window", "5"], "--window: not an option of --explore"),
-                           ([str(recorded.path), "--budget", "3"], "--budget: not an option of a diagnosis of RUNS")):
+                           ([str(recorded.path), "--budget", "3"], "--budget: not an option of a diagnosis of RUNS"),
+                           ([str(recorded.path), "--observe-pose", "5e-4"],
+                            "--observe-pose: not an option of a diagnosis of RUNS")):
         out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", *args, "-o", str(tmp_path / "z")],
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 2 and fragment in out.stderr and len(out.stderr.strip().splitlines()) == 1

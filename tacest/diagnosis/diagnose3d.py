@@ -1,6 +1,13 @@
-"""``tacest diagnose`` for 3-D pose-observed runs (e.g. tossed objects seen by motion
-capture): where the model disagrees with the recordings, and which of the 3-D model's
-augmentations closes the gap on runs the fit did not see.
+"""``tacest diagnose`` for 3-D runs, pose-observed (e.g. tossed objects seen by motion
+capture) or poked without pose observations (touch alone): where the model disagrees
+with the recordings, and which of the 3-D model's augmentations closes the gap on runs
+the fit did not see.
+
+Touch alone (some run has no pose observations): the plain fit is the estimator's own
+(sampled and push-tracked starts, restarts); every candidate and every data transform's
+fit starts from the plain optimum (Estimator3D.solve_warm) instead of the estimator's own
+starts, which would cost a sampler and restarts per fit; the held-out fits start from the
+push tracker's track of the held shape (Estimator3D.held_shape_tracks).
 
 1. Split.  The runs (in the order given) are split into a training half (the first
    ceil(n / 2)) and a held-out half.
@@ -24,9 +31,14 @@ augmentations closes the gap on runs the fit did not see.
    ended, its status reported.  The loss is every term of the fit (0.5 |r|² per sample,
    unweighted: pose and dynamics, contact constraints, and the tactile terms where the
    runs have fingers).  gap = held-out loss per sample - floor; reduction = 1 -
-   gap_after / gap_before.  A candidate is blamed if the plain model's gap is above the
-   floor and it closes at least MIN_REDUCTION of it (the 2-D rule, docs/diagnosis.md);
-   the verdict is the largest such reduction, else ``none``.
+   gap_after / gap_before.  The verdict rule is the 2-D diagnosis' own
+   (tacest.diagnosis.diagnose.counts, with the held-out half as its one fold, in totals
+   over the N held-out samples): a candidate with k parameters counts if its held-out
+   improvement over the plain model exceeds BIC's price 0.5 k ln N and closes at least
+   MIN_REDUCTION of the plain model's plausible gap (its gap plus FLOOR_SIGMAS standard
+   deviations of the floor, sqrt(floor · N)), force_scale only with a weighed mass; the
+   verdict is the counting candidate of highest score (improvement - price), else
+   ``none``.
 
 The data transforms latency and time_scale are candidates as in 2-D (TRANSFORMS_3D: a line
 search of plain-model fits to the transformed runs).  Restitution (no per-vertex impact
@@ -45,6 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tacest.diagnosis.diagnose import FLOOR_SIGMAS, KNOWN_MASS_LOG_SIGMA, MIN_REDUCTION
 from tacest.errors import TacestError
 from tacest.estimation.floor import TERMS as FLOOR_TERMS
 from tacest.estimation.floor import contact_state, fit_floor, flagged_windows, residual_dof, window_tests
@@ -77,8 +90,6 @@ TRANSFORM_FITS = 3
 NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D + TRANSFORMS_3D and n != NONE)
 #: the loss terms (tacest.estimation.floor.TERMS: the estimator's own)
 TERMS = FLOOR_TERMS
-#: a candidate must close this fraction of the plain model's held-out gap (as in 2-D)
-MIN_REDUCTION = 0.2
 
 
 @dataclass
@@ -271,29 +282,50 @@ def _plain_task(cfg, shape, train, held, window) -> tuple:
             (out.z.copy(), est.s0.copy()))
 
 
-def _model_task(name, cfg, effects, shape, train, held, nested=None) -> Fit3D:
-    """One augmented model of a 3-D diagnosis, a task: its fit to the training runs from
-    the estimator's own start (the observed poses), then to the held-out runs with its
-    parameters held.  nested : (objective, z, s0) of the plain fit when the plain model
-    is this one with its effects at their initial values (a SPEC effect); a fit from the
-    own start that ends above the plain fit's objective is in a worse basin than the
-    plain model's optimum, so the model is fitted again from that optimum
-    (Estimator3D.solve_nested) and the lower of the two kept.  (Started from the plain
-    fit's solution alone, a com_offset fit stayed in the plain model's basin: the plain
-    fit bends its trajectories round what it lacks; from its own start alone, a
-    linear_drag fit to tosses ended above the plain model.)"""
+def _rule_terms(e: dict, fits: dict, n_held: int, floor: float, gap_before: float, mass_known: bool) -> dict:
+    """The 2-D verdict rule's terms for one candidate (tacest.diagnosis.diagnose.counts,
+    one held-out fold), in totals over the n_held held-out samples: improvement (the
+    plain model's held-out loss minus the candidate's), penalty (0.5 ln(n_held) per
+    parameter: BIC's price), score = improvement - penalty, and ``counts``."""
+    from tacest.diagnosis.diagnose import counts, params_immaterial
+
+    k = max(sum(1 for name in fits[e["name"]].params if name.split(".")[0].split("[")[0] == e["name"]), 1)
+    improvement = (fits[NONE].heldout_loss_per_sample - fits[e["name"]].heldout_loss_per_sample) * n_held
+    penalty = k * 0.5 * math.log(max(n_held, 2))
+    score = improvement - penalty
+    ok = counts(score, int(improvement > penalty), 1, gap_before * n_held, improvement, floor * n_held,
+                name=e["name"], mass_known=mass_known, immaterial=params_immaterial(fits[e["name"]].params))
+    return {"improvement": float(improvement), "penalty": float(penalty), "score": float(score), "counts": bool(ok)}
+
+
+def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -> Fit3D:
+    """One augmented model of a 3-D diagnosis, a task: its fit to the training runs, then
+    to the held-out runs with its parameters held.  plain : (objective, z, s0) of the
+    plain fit; its objective is None unless the plain model is this one with its effects
+    at their initial values (a SPEC effect: nested; edge_radius and ground_offset change
+    the priors too).
+
+    With ``own_start`` (runs with pose observations) the fit starts from the estimator's
+    own start (the observed poses); one that ends above the plain fit's objective is in a
+    worse basin than the plain model's optimum, so the model is fitted again from that
+    optimum (Estimator3D.solve_warm) and the lower of the two kept.  (Started from the
+    plain fit's solution alone, a com_offset fit stayed in the plain model's basin: the
+    plain fit bends its trajectories round what it lacks; from its own start alone, a
+    linear_drag fit to tosses ended above the plain model.)  Without ``own_start`` (runs
+    poked without pose observations, where the estimator's own starts cost a sampler and
+    restarts per fit) the fit starts from the plain optimum only."""
     from tacest.estimation.solver import BUDGET_STATUSES, SUCCESS_STATUSES
 
     t0 = time.perf_counter()
     try:
         est = _estimator(train, shape, cfg, effects)
-        out = _check(est.solve())
-        if nested is not None and out.objective > nested[0]:
-            log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {nested[0]:.6g}); "
+        out = _check(est.solve() if own_start else est.solve_warm(plain[1], plain[2]))
+        if own_start and plain[0] is not None and out.objective > plain[0]:
+            log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {plain[0]:.6g}); "
                      "fitting again from the plain model's optimum")
             est_w = _estimator(train, shape, cfg, effects)
             try:
-                out_w = est_w.solve_nested(nested[1], nested[2])
+                out_w = est_w.solve_warm(plain[1], plain[2])
             except TacestError:
                 out_w = None
             if out_w is not None and out_w.status in SUCCESS_STATUSES + BUDGET_STATUSES \
@@ -308,7 +340,7 @@ def _model_task(name, cfg, effects, shape, train, held, nested=None) -> Fit3D:
     return fit
 
 
-def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective) -> Fit3D:
+def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective, warm=None) -> Fit3D:
     """A transform candidate of a 3-D diagnosis, a task: the line search over its grid on
     the training runs (each value a fit of the plain model to the transformed runs; the
     identity's objective is the plain fit's), the value kept as in 2-D
@@ -316,15 +348,17 @@ def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective)
     the parameters of its fit held."""
     t0 = time.perf_counter()
     try:
-        fit = _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective)
+        fit = _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective, warm)
     except TacestError as exc:  # one candidate's failure is its own, not the diagnosis'
         fit = Fit3D(name=name, params={}, status=f"failed: {exc}", seconds=0.0)
     fit.seconds = time.perf_counter() - t0
     return fit
 
 
-def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective) -> Fit3D:
-    """:func:`_transform_task`'s search and held-out fit (TacestError when every fit fails)."""
+def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective, warm=None) -> Fit3D:
+    """:func:`_transform_task`'s search and held-out fit (TacestError when every fit fails).
+    warm : (z, s0) of the plain fit: every fit to transformed runs starts there
+    (Estimator3D.solve_warm; runs without pose observations), else from its own start."""
     from tacest.diagnosis import candidates as cands
     from tacest.diagnosis.transforms import apply_transform
 
@@ -346,7 +380,7 @@ def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objectiv
         objectives[value] = None
         est = _estimator([apply_transform(r, name, value) for r in train], shape, cfg, ())
         try:
-            out = _check(est.solve())
+            out = _check(est.solve() if warm is None else est.solve_warm(*warm))
         except TacestError:
             continue
         objectives[value] = out.objective
@@ -363,7 +397,7 @@ def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objectiv
 
 
 def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None, executor=None) -> Diagnosis3D:
-    """Diagnose 3-D pose-observed runs (see the module docstring).  executor : where the
+    """Diagnose 3-D runs (see the module docstring).  executor : where the
     fits run (tacest.parallel; None: in this process); the result does not depend on it."""
     from tacest.estimation.config import EstimatorConfig
     from tacest.parallel import Executor
@@ -374,8 +408,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
         raise TacestError("diagnose: 3-D runs need at least 2 runs (a training and a held-out half)")
     if any(r.dim != 3 for r in runs):
         raise TacestError("diagnose: 3-D and 2-D runs cannot be mixed")
-    if any(r.pose_obs is None for r in runs):
-        raise TacestError("diagnose: 3-D diagnosis needs pose observations in every run")
+    touch_alone = any(r.pose_obs is None for r in runs)
     n_train = (len(runs) + 1) // 2
     train, held = runs[:n_train], runs[n_train:]
     names = [r.filename or f"run{i}" for i, r in enumerate(runs)]
@@ -401,10 +434,10 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     log.info(f"none: trained on {len(train)} runs ({plain.status}), held out on {len(held)} runs "
              f"({plain.heldout_status}), {plain.seconds:.0f} s")
     handles = [ex.submit(_model_task, name, _config(config, ov, opts.fit_iterations), eff, shape, train_h, held_h,
-                         (plain_objective, *plain_solution) if ov is PLAIN else None, name=f"3d-{name}")
-               for name, ov, eff in models]
+                         (plain_objective if ov is PLAIN else None, *plain_solution), not touch_alone,
+                         name=f"3d-{name}") for name, ov, eff in models]
     handles += [ex.submit(_transform_task, name, plain_cfg, shape, train_h, held_h, theta_plain, plain_objective,
-                          name=f"3d-{name}") for name in transforms]
+                          plain_solution if touch_alone else None, name=f"3d-{name}") for name in transforms]
     for name, fit in zip([m[0] for m in models] + transforms, ex.gather(handles)):
         fits[name] = fit
         log.info(f"{name}: trained on {len(train)} runs ({fit.status}), held out on {len(held)} runs "
@@ -425,16 +458,23 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
                         "params": {k: v for k, v in fits[name].params.items()
                                    if k.split(".")[0].split("[")[0] == name
                                    or k in ("extent_x", "extent_y", "extent_z", "mass", "friction_ground")}})
+    n_held = sum(r.n_samples for r in held)
+    mass_known = float(config.prior.mass_log_sigma) <= KNOWN_MASS_LOG_SIGMA
+    for e in effects:
+        e.update(_rule_terms(e, fits, n_held, floor, gap_before, mass_known))
     effects.sort(key=lambda e: -e["reduction"])
-    blamed = [e for e in effects if gap_before > 0 and e["reduction"] >= MIN_REDUCTION]
+    blamed = sorted((e for e in effects if e["counts"]), key=lambda e: -e["score"])
+    plausible = gap_before + FLOOR_SIGMAS * math.sqrt(max(floor * n_held, 0.0)) / max(n_held, 1)
     if blamed:
         verdict = blamed[0]["name"]
         reason = (f"{verdict} closes {blamed[0]['reduction']:.0%} of the plain model's held-out gap "
                   f"({gap_before:.3g} above the floor {floor:g} per sample)")
     else:
         verdict = NONE
-        reason = (f"no 3-D augmentation closes {MIN_REDUCTION:.0%} of the held-out gap ({gap_before:.3g} per sample "
-                  f"above the floor {floor:g})" if gap_before > 0 else "the held-out loss is within the noise floor")
+        reason = (f"no 3-D augmentation closes {MIN_REDUCTION:.0%} of the plain model's plausible held-out gap "
+                  f"({gap_before:.3g} per sample above the floor {floor:g}, plus {FLOOR_SIGMAS:g} sigma of it) "
+                  f"by more than its parameters' penalty" if plausible > 0
+                  else "the held-out loss is within the noise floor")
     not_compared = {n: "no 3-D model" for n in NOT_MODELLED_3D}
     not_compared.update(skipped)
     not_compared.update(failed)

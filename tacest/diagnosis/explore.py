@@ -1,10 +1,10 @@
 """``tacest diagnose --explore``: the diagnosis' closed loop in simulation (2-D and 3-D).
 
-A box is recorded by tacest's simulator with an effect the diagnosis is not told about
-(``--inject``, or none), with ``pokes`` random pokes: in 2-D with no pose observations
-(touch alone); in 3-D (the MuJoCo world, one force-sensing finger) with the pose observed
-at OBSERVE_POSE_3D, which the 3-D diagnosis needs.  Then, until the verdict names an
-effect or ``budget`` actions are spent:
+A box is recorded by tacest's simulator (2-D pymunk, or the 3-D MuJoCo world) with an
+effect the diagnosis is not told about (``--inject``, or none), with ``pokes`` random
+pokes by one force-sensing finger, touch alone (no pose observations) unless
+``observe_pose`` (m) asks for motion capture.  Then, until the verdict names an effect
+or ``budget`` actions are spent:
 
 1. diagnose the run (the truth stripped; 2-D: tacest.diagnosis.diagnose, one run cut at
    its pokes into held-out folds; 3-D: the run cut at its pokes into sub-runs, the first
@@ -41,8 +41,6 @@ log = logging.getLogger(__name__)
 POLICIES = ("suggest", "random")
 #: the loop's files in its folder (its report folders are diagnosis_<n>/)
 LOOP_FILES = ("run.h5", "summary.json", "candidates.png", "plan_*.h5")
-#: m, sigma of the observed positions of a 3-D loop (motion capture)
-OBSERVE_POSE_3D = 0.0005
 
 
 @dataclass
@@ -51,7 +49,8 @@ class ExploreDiagnosisOptions:
     (``none``: a clean recording); seed; object_spec; pokes : random pokes recorded
     first; budget : most actions added; policy : ``suggest`` or ``random``; poke_style :
     the action space (tacest.planning.actions); effects, max_folds, fit_iterations :
-    of every diagnosis (tacest.diagnosis.diagnose.DiagnoseOptions); config_path."""
+    of every diagnosis (tacest.diagnosis.diagnose.DiagnoseOptions); config_path; dim : 2
+    or 3; observe_pose : m, the recordings' pose observation sigma (None: touch alone)."""
 
     effect: str = "none"
     seed: int = 0
@@ -65,6 +64,7 @@ class ExploreDiagnosisOptions:
     fit_iterations: Optional[int] = None
     config_path: Optional[str] = None
     dim: int = 2
+    observe_pose: Optional[float] = None
 
     def validate(self):
         if self.policy not in POLICIES:
@@ -114,7 +114,7 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
     config = load_config(opts.config_path)
     sim = SimOptions(dim=dim, object_spec=opts.object_spec, seed=int(opts.seed), pokes=int(opts.pokes),
                      effects=[] if opts.effect == "none" else [opts.effect],
-                     observe_pose=OBSERVE_POSE_3D if dim == 3 else None).validate()
+                     observe_pose=opts.observe_pose).validate()
     with replacing_files(out, LOOP_FILES):  # an earlier loop's files never pass for this one's
         for old in out.glob("diagnosis_*"):
             if old.is_dir() and (old / "report.md").is_file():  # an earlier loop's report folder

@@ -31,7 +31,8 @@ from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
-from tacest.estimation.initial3d import Start3D, smoothed_start_track, start_candidates_3d, touch_inconsistency_3d
+from tacest.estimation.initial3d import (Start3D, push_tracker_3d, smoothed_start_track, start_candidates_3d,
+                                        touch_inconsistency_3d)
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
@@ -471,14 +472,22 @@ class Estimator3D:
         sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
         than ``solver3d.sampler_tip_deg``, else second): solve from the first; when that fit fails, or violates its own physics by more than
         ``solver3d.restart_physics`` objective units per sample, again from up to
-        ``solver3d.restarts`` others; keep the successful fit of lowest objective."""
+        ``solver3d.restarts`` others; keep the successful fit of lowest objective.  With
+        the parameters held (fixed_theta) and runs poked without pose observations, the
+        one solve starts from :meth:`held_shape_tracks`."""
         pr, cfg3 = self.problem, self.config.solver3d
         self.attempts = []
         if self.has_pose or self.fixed_theta is not None or not self.F:
             t0 = time.perf_counter()
             s0 = self.choose_start_shape() if self.fixed_theta is None else self.fixed_theta[: pr.n_shape].copy()
             log.info(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
-            return self.solve_from_shape(s0)
+            if self.fixed_theta is None or not self.F or all(r.pose_obs is not None for r in self.runs):
+                return self.solve_from_shape(s0)
+            self.start_tracks = self.held_shape_tracks(s0)  # a held shape, poked without poses seen
+            try:
+                return self.solve_from_shape(s0)
+            finally:
+                self.start_tracks = None
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
         sampled = self.sampled_start(starts[0])
@@ -600,28 +609,44 @@ class Estimator3D:
         self.bounds_final = self.variable_bounds(self.z)
         return out
 
-    def solve_nested(self, z_nested, s0) -> SolveOutcome:
-        """One solve of the final stage from the solution ``z_nested`` (scaled) of the
-        nested model of the same runs and shape: this model without its effects, whose
-        theta are the first entries of this one's; the effects start at their initial
-        values, where this model is the nested one.  s0 : that fit's starting shape (the
-        shape prior's reference, so that both objectives agree there).  Since the start
-        is the nested model's optimum, this fit ends at or below its objective."""
+    def solve_warm(self, z_other, s0) -> SolveOutcome:
+        """One solve of the final stage from the solution ``z_other`` (scaled) of another
+        fit of runs of the same lengths and fingers: the nested model (this one without
+        its effects, whose theta are the first entries of this one's; the effects start
+        at their initial values, where this model is the nested one), or the same model
+        of slightly other data (a data transform's runs).  s0 : that fit's starting
+        shape (the shape prior's reference, so that both objectives agree there).  From
+        the nested model's optimum this fit ends at or below its objective."""
         pr = self.problem
-        z_nested = np.asarray(z_nested, float)
-        n_plain = len(z_nested) - (pr.n_z - pr.n_theta)
+        z_other = np.asarray(z_other, float)
+        n_plain = len(z_other) - (pr.n_z - pr.n_theta)
         if not 0 < n_plain <= pr.n_theta:
-            raise TacestError(f"a nested solution of {len(z_nested)} variables does not fit a problem of {pr.n_z}")
+            raise TacestError(f"a solution of {len(z_other)} variables does not fit a problem of {pr.n_z}")
         self.s0 = np.asarray(s0, float)
         z = self.initial_guess()
-        z[:n_plain] = z_nested[:n_plain]
-        z[pr.n_theta:] = z_nested[n_plain:]
+        z[:n_plain] = z_other[:n_plain]
+        z[pr.n_theta:] = z_other[n_plain:]
+        if self.fixed_theta is not None:
+            z[: pr.n_theta] = self.fixed_theta
         stages = self.stages()[-1:]
         out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
                          accept_budget=self.accept_budget)
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(self.z)
+        return out
+
+    def held_shape_tracks(self, s0) -> list:
+        """Starting poses (T, 7) per run for a fit whose shape is held at s0 (scaled):
+        the observed poses where a run has them, else the push tracker's box of the
+        shape's extents (initial3d.push_tracker_3d: it slides and turns the box out of
+        the touching fingertips' way), instead of the object resting where it started."""
+        V = numeric_vertices_3d(self.shape, s0, self.scales.L)
+        extents = np.ptp(V, axis=0)
+        out = []
+        for run in self.runs:
+            poses = observed_poses(run, smooth=True)[0] if run.pose_obs is not None else None
+            out.append(poses if poses is not None else push_tracker_3d(run, extents[None])[0])
         return out
 
     # --------------------------------------------------------------------------------
