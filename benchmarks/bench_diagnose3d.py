@@ -3,7 +3,7 @@ recordings whose effect is hidden from it.
 
     nice -n 10 .venv/bin/python benchmarks/bench_diagnose3d.py [--effects none,com_offset,...]
         [--design toss|pokes] [--seeds 3] [--first-seed 0] [--runs 4] [--pokes 6]
-        [--poke-style STYLE] [--known-mass REL] [--cache DIR] [--timeout 1800]
+        [--poke-style STYLE] [--known-mass REL] [--touch-alone] [--cache DIR] [--timeout 1800]
         [--json OUT.json] [--quiet]
 
 For every effect (default: ``none`` and every SPEC effect, restitution included, which
@@ -26,7 +26,9 @@ Designs:
     truth's mass times exp(REL N(0, 1)), seeded per recording, as the mass prior of log
     sigma REL; 0: not weighed).
 ``--design pokes``: one run of ``--pokes`` pokes of ``--poke-style`` (default
-    ``dynamic``), cut at its pokes into sub-runs (tacest.diagnosis.slicing.split_at_actions).  Each diagnosis runs in its own subprocess
+    ``dynamic``), cut at its pokes into sub-runs (tacest.diagnosis.slicing.split_at_actions).
+    With ``--touch-alone`` the pose is not observed (a tactile-exploration user's data;
+    the 3-D diagnosis from touch alone, docs/estimation3d.md).  Each diagnosis runs in its own subprocess
 (this script with ``--worker``) under a time limit.  Results are cached per recording in
 ``<cache>/code_<digest>/<effect>-<seed>.json`` (digest: tacest.provenance.source_digest of
 tacest's sources and this script: a changed diagnosis never reprints old figures).
@@ -85,7 +87,7 @@ def worker(job: dict) -> dict:
 
     effect, seed = job["effect"], job["seed"]
     opts = SimOptions(dim=3, seed=seed, pokes=job["pokes"], fingers=1, effects=[] if effect == "none" else [effect],
-                      observe_pose=OBSERVE_POSE, poke_style=job["style"]).validate()
+                      observe_pose=None if job.get("touch_alone") else OBSERVE_POSE, poke_style=job["style"]).validate()
     if job["design"] == "toss":
         runs = toss_design(opts, job["runs"], seed)
     else:
@@ -163,6 +165,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=4, help="toss design: runs (a toss and a poke each)")
     ap.add_argument("--pokes", type=int, default=6, help="pokes design: pokes of the one run")
     ap.add_argument("--poke-style", default=None, help="default: high (toss design), dynamic (pokes design)")
+    ap.add_argument("--touch-alone", action="store_true", help="pokes design: no pose observations")
     ap.add_argument("--known-mass", type=float, default=None,
                     help="weighing error (log sigma) of the mass prior; 0: not weighed (default: 0.02 toss, 0 pokes)")
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "tacest_bench_diagnose3d"))
@@ -174,14 +177,17 @@ def main(argv=None):
     known_mass = args.known_mass if args.known_mass is not None else (0.02 if args.design == "toss" else 0.0)
     if args.runs < 2 or args.pokes < 2 or known_mass < 0:
         ap.error("--runs and --pokes must be >= 2, --known-mass >= 0")
+    if args.touch_alone and args.design == "toss":
+        ap.error("--touch-alone is for the pokes design (a toss touches nothing)")
     effects = [e.strip() for e in args.effects.split(",") if e.strip()]
     cache = Path(args.cache) / f"code_{source_digest(Path(__file__).resolve())}"
     cache.mkdir(parents=True, exist_ok=True)
     what = (f"toss design: {args.runs} runs of a toss and a {style} poke" if args.design == "toss"
-            else f"{args.pokes} {style} pokes")
+            else f"{args.pokes} {style} pokes" + (", touch alone" if args.touch_alone else ", pose observed"))
     print(f"cache {cache}; {what}, mass weighed to {known_mass:g} (0: not), seeds {args.first_seed}.."
           f"{args.first_seed + args.seeds - 1}", flush=True)
-    tag = (f"toss{args.runs}" if args.design == "toss" else str(args.pokes)) + f"-{style}-km{known_mass:g}"
+    tag = ((f"toss{args.runs}" if args.design == "toss" else str(args.pokes)) + f"-{style}-km{known_mass:g}"
+           + ("-touch" if args.touch_alone else ""))
     results = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for eff in effects:
@@ -190,7 +196,7 @@ def main(argv=None):
                 r = json.loads(path.read_text())
             else:
                 job = {"effect": eff, "seed": seed, "design": args.design, "runs": args.runs, "pokes": args.pokes,
-                       "style": style, "known_mass": known_mass}
+                       "style": style, "known_mass": known_mass, "touch_alone": args.touch_alone}
                 r = run_job(job, args.timeout)
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(json.dumps(r))

@@ -100,7 +100,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     loaded = read_runs(runs)
     if suggest and not loaded[-1].n_fingers:  # before hours of fits, not after
         raise TacestError("--suggest: the runs have no fingertip to poke with")
-    if any(r.dim == 3 for r in loaded):  # 3-D pose-observed runs: tacest/diagnosis/diagnose3d.py
+    if any(r.dim == 3 for r in loaded):  # 3-D runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
         if estimate_path or reach is not None:
