@@ -106,7 +106,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
         if estimate_path or reach is not None:
             raise TacestError("--estimate and --reach are for 2-D runs")
         names3 = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
-        opts3 = Options3D(fit_iterations=fit_iterations, effects=names3)
+        opts3 = Options3D(fit_iterations=fit_iterations, effects=names3, floor=floor_mode or "calibrated")
         for key, val in (("window", window), ("alpha", alpha)):
             if val is not None:
                 setattr(opts3, key, val)

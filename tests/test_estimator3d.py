@@ -539,6 +539,8 @@ def test_diagnose_3d_from_touch_alone_finds_a_force_bias():
     assert d.verdict == "force_bias"
     for a in "xyz":
         assert eff["force_bias"]["params"][f"force_bias.f{a}"] == pytest.approx(truth[f"f{a}"], abs=0.02)
+    assert eff["force_bias"]["counts"] and eff["force_bias"]["improvement"] > eff["force_bias"]["penalty"]
+    json.dumps(d.to_json(), allow_nan=False)  # strict JSON: a term without data has no level (None), not NaN
 
 
 def test_diagnose_3d_finds_a_clock_error_on_tosses(tmp_path):

@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tacest.diagnosis.diagnose import FLOOR_SIGMAS, KNOWN_MASS_LOG_SIGMA, MIN_REDUCTION
+from tacest.diagnosis.diagnose import FLOOR_SIGMAS, FORCE_SCALE_CAVEAT, KNOWN_MASS_LOG_SIGMA, MIN_REDUCTION
 from tacest.errors import TacestError
 from tacest.estimation.floor import TERMS as FLOOR_TERMS
 from tacest.estimation.floor import contact_state, fit_floor, flagged_windows, residual_dof, window_tests
@@ -96,12 +96,13 @@ TERMS = FLOOR_TERMS
 class Options3D:
     """window, alpha : of the window tests; fit_iterations : IPOPT iterations of every
     fit (None: the configuration's); effects : the candidates to compare (None: every
-    one the runs can show)."""
+    one the runs can show); floor : ``calibrated`` or ``nominal`` (tacest.estimation.floor)."""
 
     window: int = 20
     alpha: float = 0.01
     fit_iterations: int | None = None
     effects: tuple | None = None
+    floor: str = "calibrated"
 
 
 @dataclass
@@ -113,6 +114,10 @@ class Fit3D:
     train_loss_per_sample: float = float("nan")
     heldout_loss_per_sample: float = float("nan")
     heldout_status: str = ""
+    #: fitted parameters the candidate adds (its BIC price); effect parameters that ended
+    #: at a hard bound of their augmentation (not their "no effect" end)
+    n_params: int = 1
+    at_bound: list = field(default_factory=list)
 
 
 @dataclass
@@ -144,7 +149,7 @@ class Diagnosis3D:
 
         return {
             "verdict": self.verdict, "reason": self.reason, "dim": 3,
-            "effects": self.effects, "where": self.where,
+            "effects": _strict(self.effects), "where": self.where,
             "not_compared": list(self.extra.get("not_compared_reasons", {n: "" for n in NOT_MODELLED_3D})),
             "floor_per_sample": self.floor,
             "train": self.train, "heldout": self.heldout,
@@ -213,13 +218,24 @@ def applicable(name, runs, shape) -> str:
     return ""
 
 
-def floor_model(est, res_runs, window: int):
+def _strict(obj):
+    """``obj`` (dicts, lists, numbers) with every NaN or infinity replaced by None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def floor_model(est, res_runs, window: int, mode: str = "calibrated"):
     """The noise floor of the plain fit's residuals ``res_runs`` (per run {term: (T,)}),
     calibrated as in 2-D (tacest.estimation.floor.fit_floor: bulk level per term and
     contact state, capped at the configured noise)."""
     dofs = [residual_dof(r, est.problem.K) for r in est.runs]
     states = [contact_state(r) for r in est.runs]
-    return fit_floor(res_runs, dofs, states, window=window, mode="calibrated")
+    return fit_floor(res_runs, dofs, states, window=window, mode=mode)
 
 
 def floor_per_sample(floor, runs, n_vertices: int) -> float:
@@ -265,7 +281,7 @@ def _heldout(fit, est, out, shape, cfg, effects, held):
     return est_h, out_h
 
 
-def _plain_task(cfg, shape, train, held, window) -> tuple:
+def _plain_task(cfg, shape, train, held, window, floor_mode="calibrated") -> tuple:
     """The plain model of a 3-D diagnosis, a task: its fit to the training runs, then to
     the held-out runs with its parameters held; (Fit3D, the residuals of the training
     runs, the floor (FloorModel), theta, objective, the held-out estimate, (its solution
@@ -278,7 +294,8 @@ def _plain_task(cfg, shape, train, held, window) -> tuple:
     est_h, out_h = _heldout(fit, est, out, shape, cfg, (), held)
     base = est_h.result(out_h, 0.0, information=False)  # the object now: the end of the last held-out run
     fit.seconds = time.perf_counter() - t0
-    return (fit, res, floor_model(est, res, window), out.z[: est.problem.n_theta].copy(), out.objective, base,
+    return (fit, res, floor_model(est, res, window, floor_mode), out.z[: est.problem.n_theta].copy(), out.objective,
+            base,
             (out.z.copy(), est.s0.copy()))
 
 
@@ -289,13 +306,39 @@ def _rule_terms(e: dict, fits: dict, n_held: int, floor: float, gap_before: floa
     parameter: BIC's price), score = improvement - penalty, and ``counts``."""
     from tacest.diagnosis.diagnose import counts, params_immaterial
 
-    k = max(sum(1 for name in fits[e["name"]].params if name.split(".")[0].split("[")[0] == e["name"]), 1)
+    k = max(int(fits[e["name"]].n_params), 1)
     improvement = (fits[NONE].heldout_loss_per_sample - fits[e["name"]].heldout_loss_per_sample) * n_held
     penalty = k * 0.5 * math.log(max(n_held, 2))
     score = improvement - penalty
+    immaterial = params_immaterial(fits[e["name"]].params)
     ok = counts(score, int(improvement > penalty), 1, gap_before * n_held, improvement, floor * n_held,
-                name=e["name"], mass_known=mass_known, immaterial=params_immaterial(fits[e["name"]].params))
-    return {"improvement": float(improvement), "penalty": float(penalty), "score": float(score), "counts": bool(ok)}
+                at_bound=tuple(fits[e["name"]].at_bound), name=e["name"], mass_known=mass_known,
+                immaterial=immaterial)
+    return {"improvement": float(improvement), "penalty": float(penalty), "score": float(score), "counts": bool(ok),
+            "at_bound": list(fits[e["name"]].at_bound), "immaterial": immaterial}
+
+
+def params_at_bound_3d(est, z) -> list:
+    """Names (``effect.parameter``) of the effect parameters of a 3-D fit at z that sit
+    within diagnose.BOUND_TOLERANCE of their range from a bound of the fit
+    (Estimator3D.bounds_final, which holds the configured ranges of edge_radius and
+    ground_offset) that is not their "no effect" value (the 2-D rule's params_at_bound)."""
+    from tacest.diagnosis.diagnose import BOUND_TOLERANCE
+
+    pr = est.problem
+    if not pr.n_eff or est.bounds_final is None:
+        return []
+    lbx, ubx = est.bounds_final
+    a = pr.n_theta - pr.n_eff
+    out = []
+    for j, (eff, par) in enumerate(pr.effect_params):
+        lo, hi, u = float(lbx[a + j]), float(ubx[a + j]), float(z[a + j])
+        if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
+            continue
+        tol = BOUND_TOLERANCE * (hi - lo)
+        if (abs(u - lo) <= tol and abs(lo - par.centre) > tol) or (abs(hi - u) <= tol and abs(hi - par.centre) > tol):
+            out.append(f"{eff.name}.{par.name}")
+    return out
 
 
 def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -> Fit3D:
@@ -314,25 +357,34 @@ def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -
     linear_drag fit to tosses ended above the plain model.)  Without ``own_start`` (runs
     poked without pose observations, where the estimator's own starts cost a sampler and
     restarts per fit) the fit starts from the plain optimum only."""
-    from tacest.estimation.solver import BUDGET_STATUSES, SUCCESS_STATUSES
-
     t0 = time.perf_counter()
     try:
         est = _estimator(train, shape, cfg, effects)
-        out = _check(est.solve() if own_start else est.solve_warm(plain[1], plain[2]))
-        if own_start and plain[0] is not None and out.objective > plain[0]:
-            log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {plain[0]:.6g}); "
-                     "fitting again from the plain model's optimum")
+        try:
+            out = _check(est.solve() if own_start else est.solve_warm(plain[1], plain[2]))
+        except TacestError:
+            if not own_start:
+                raise
+            out = None  # the own start failed: the plain optimum is the other start
+        if own_start and (out is None or (plain[0] is not None and out.objective > plain[0])):
+            if out is not None:
+                log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {plain[0]:.6g}); "
+                         "fitting again from the plain model's optimum")
             est_w = _estimator(train, shape, cfg, effects)
             try:
-                out_w = est_w.solve_warm(plain[1], plain[2])
+                out_w = _check(est_w.solve_warm(plain[1], plain[2]))
             except TacestError:
+                if out is None:
+                    raise
                 out_w = None
-            if out_w is not None and out_w.status in SUCCESS_STATUSES + BUDGET_STATUSES \
-                    and out_w.objective < out.objective:
+            if out_w is not None and (out is None or out_w.objective < out.objective):
                 est, out = est_w, out_w
+        if plain[0] is not None and out.objective > plain[0]:
+            log.info(f"{name}: its training fit ends above the plain model's ({out.objective:.6g} > "
+                     f"{plain[0]:.6g}), although it nests it")
         fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
-                    train_loss_per_sample=_losses(est, out.z)[1])
+                    train_loss_per_sample=_losses(est, out.z)[1], n_params=int(est.problem.n_eff),
+                    at_bound=params_at_bound_3d(est, out.z))
         _heldout(fit, est, out, shape, cfg, effects, held)
     except TacestError as exc:  # one candidate's failure is its own, not the diagnosis'
         fit = Fit3D(name=name, params={}, status=f"failed: {exc}", seconds=0.0)
@@ -427,7 +479,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
     train_h, held_h = ex.scatter(train), ex.scatter(held)
     plain_cfg = _config(config, PLAIN, opts.fit_iterations)
     plain, res_plain, floor_levels, theta_plain, plain_objective, base, plain_solution = ex.result(
-        ex.submit(_plain_task, plain_cfg, shape, train_h, held_h, opts.window, name="3d-none"))
+        ex.submit(_plain_task, plain_cfg, shape, train_h, held_h, opts.window, opts.floor, name="3d-none"))
     K = int(np.asarray(base.vertices).shape[0])
     floor = floor_per_sample(floor_levels, held, K)  # the held-out samples' floor
     fits = {NONE: plain}
@@ -475,6 +527,13 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
                   f"({gap_before:.3g} per sample above the floor {floor:g}, plus {FLOOR_SIGMAS:g} sigma of it) "
                   f"by more than its parameters' penalty" if plausible > 0
                   else "the held-out loss is within the noise floor")
+    guarded = [e for e in effects if not e["counts"] and (e["at_bound"] or e["immaterial"])]
+    if guarded:
+        reason += "; not blamed: " + ", ".join(
+            f"{e['name']} ({', '.join([f'{k} at its bound' for k in e['at_bound']] + [f'{k} immaterial' for k in e['immaterial']])})"
+            for e in guarded)
+    if verdict == NONE and "force_scale" in fits and not mass_known:
+        reason += f"; {FORCE_SCALE_CAVEAT}"
     not_compared = {n: "no 3-D model" for n in NOT_MODELLED_3D}
     not_compared.update(skipped)
     not_compared.update(failed)
@@ -483,7 +542,7 @@ def diagnose_3d(runs, shape="box", config=None, options: Options3D | None = None
                        where=where, fits=fits, effects=effects, verdict=verdict, reason=reason, floor=floor,
                        dts=[float(r.dt) for r in runs[:n_train]], base=base, base_runs=list(held),
                        floor_train=floor_per_sample(floor_levels, train, K),
-                       extra={"floor_levels": floor_levels.to_dict(), "not_compared_reasons": not_compared})
+                       extra={"floor_levels": _strict(floor_levels.to_dict()), "not_compared_reasons": not_compared})
 
 
 def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> list:
@@ -505,8 +564,8 @@ def write_report_3d(diag: Diagnosis3D, folder, json_obj=None, extra=None) -> lis
             dt = diag.dts[i] if i < len(diag.dts) else 1.0
             t = dt * np.arange(len(r["pose"]))  # s
             for term in TERMS:
-                if term in r and np.any(r[term] > 0):
-                    ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term)
+                if term in r and np.any(r[term] > 0):  # one colour per term in every panel
+                    ax.semilogy(t, np.maximum(r[term], 1e-3), lw=0.8, label=term, color=f"C{TERMS.index(term)}")
             ax.axhline(diag.floor_train, color="k", ls="--", lw=0.8, label="floor (all terms)")
             for a in np.flatnonzero(f):
                 ax.axvspan((a - 0.5) * dt, (a + 0.5) * dt, color="r", alpha=0.12, lw=0)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -75,6 +76,8 @@ class ExploreDiagnosisOptions:
             raise TacestError("--budget must be >= 0")
         if int(self.dim) not in (2, 3):
             raise TacestError(f"--dim must be 2 or 3, got {self.dim}")
+        if self.observe_pose is not None and not (math.isfinite(float(self.observe_pose)) and self.observe_pose > 0):
+            raise TacestError(f"--observe-pose must be > 0 m, got {self.observe_pose}")
         return self
 
     def diagnose_options(self):
@@ -215,7 +218,7 @@ def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
     diag = diagnose_3d(parts, "box", config=config,
                        options=Options3D(fit_iterations=opts.fit_iterations, effects=opts.effects))
     write_report_3d(diag, folder)
-    return diag, diag.base_runs, {e["name"]: {"reduction": _num(e["reduction"]), "score": None,
+    return diag, diag.base_runs, {e["name"]: {"reduction": _num(e["reduction"]), "score": _num(e.get("score")),
                                               "status": diag.fits[e["name"]].status} for e in diag.effects}
 
 
