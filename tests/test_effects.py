@@ -297,3 +297,22 @@ def test_com_offset_moves_the_truth_vertices():
         assert np.allclose(p[2:4], q[:2] + rot2(q[2]) @ (-d), atol=1e-9)
     with pytest.raises(TacestError, match="outside the object"):
         record_sim(SimOptions(effects=["com_offset:dx=0.2,dy=0"], **opts))
+
+
+def test_face_friction_under_the_object_is_never_negative():
+    """The friction of the face below is friction_ground + d_i floored smoothly at 0
+    (effects_contact._floored): an offset below -friction_ground gives ~0, not a
+    negative friction that would push a sliding box along its slip; no offset gives the
+    ground's friction exactly; a positive one adds to within eps²/(4 mu) (eps = 1e-3:
+    below 1e-5 here)."""
+    import casadi as ca
+
+    from tacest.model.effects_contact import _floored
+
+    def f(mu, d):
+        return float(ca.DM(_floored(ca.DM(mu), ca.DM(d))))
+
+    assert f(0.3, 0.0) == pytest.approx(0.3, abs=1e-15)
+    assert abs(f(0.3, -1.4)) < 1e-5
+    assert f(0.3, 0.2) == pytest.approx(0.5, abs=1e-5)
+    assert f(0.3, -0.1) == pytest.approx(0.2, abs=1e-5)

@@ -494,24 +494,24 @@ def test_drag_and_damping_are_recovered_from_tosses_that_show_them(name, key, va
 
 
 def test_a_nested_fit_from_the_plain_optimum_ends_at_or_below_it():
-    """Estimator3D.solve_warm (the 3-D diagnosis' second start for a candidate whose own
+    """estimator3d.solve_warm (the 3-D diagnosis' second start for a candidate whose own
     fit ends above the plain model): started at the plain fit's optimum with the drag at
     0, the drag model of tosses that show b = 0.5 N·s/m ends below the plain objective
     (it nests the plain model) and finds the drag within 2.5 reported stds, as a fit
     from its own start does (test above).  A solution of another problem's size is
     refused."""
-    from tacest.estimation.estimator3d import Estimator3D
+    from tacest.estimation.estimator3d import Estimator3D, solve_warm
 
     runs = _augmented_tosses(effect_params={"linear_drag.b": 0.5})
     plain = Estimator3D(runs, "box")
     out_p = plain.solve()
     drag = Estimator3D(runs, "box", effects=["linear_drag"])
-    out = drag.solve_warm(out_p.z, plain.s0)
+    out = solve_warm(drag, out_p.z, plain.s0)
     assert out.objective <= out_p.objective
     est = drag.result(out, 0.0)
     assert abs(est.params["linear_drag.b"] - 0.5) < 2.5 * est.std["linear_drag.b"]
     with pytest.raises(TacestError, match="does not fit"):
-        drag.solve_warm(out_p.z[:10], plain.s0)
+        solve_warm(drag, out_p.z[:10], plain.s0)
 
 
 @pytest.mark.slow

@@ -5,9 +5,9 @@ the fit did not see.
 
 Touch alone (some run has no pose observations): the plain fit is the estimator's own
 (sampled and push-tracked starts, restarts); every candidate and every data transform's
-fit starts from the plain optimum (Estimator3D.solve_warm) instead of the estimator's own
+fit starts from the plain optimum (estimator3d.solve_warm) instead of the estimator's own
 starts, which would cost a sampler and restarts per fit; the held-out fits start from the
-push tracker's track of the held shape (Estimator3D.held_shape_tracks).
+push tracker's track of the held shape (estimator3d.held_shape_tracks).
 
 1. Split.  The runs (in the order given) are split into a training half (the first
    ceil(n / 2)) and a held-out half.
@@ -351,17 +351,19 @@ def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -
     With ``own_start`` (runs with pose observations) the fit starts from the estimator's
     own start (the observed poses); one that ends above the plain fit's objective is in a
     worse basin than the plain model's optimum, so the model is fitted again from that
-    optimum (Estimator3D.solve_warm) and the lower of the two kept.  (Started from the
+    optimum (estimator3d.solve_warm) and the lower of the two kept.  (Started from the
     plain fit's solution alone, a com_offset fit stayed in the plain model's basin: the
     plain fit bends its trajectories round what it lacks; from its own start alone, a
     linear_drag fit to tosses ended above the plain model.)  Without ``own_start`` (runs
     poked without pose observations, where the estimator's own starts cost a sampler and
     restarts per fit) the fit starts from the plain optimum only."""
+    from tacest.estimation.estimator3d import solve_warm
+
     t0 = time.perf_counter()
     try:
         est = _estimator(train, shape, cfg, effects)
         try:
-            out = _check(est.solve() if own_start else est.solve_warm(plain[1], plain[2]))
+            out = _check(est.solve() if own_start else solve_warm(est, plain[1], plain[2]))
         except TacestError:
             if not own_start:
                 raise
@@ -372,7 +374,7 @@ def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -
                          "fitting again from the plain model's optimum")
             est_w = _estimator(train, shape, cfg, effects)
             try:
-                out_w = _check(est_w.solve_warm(plain[1], plain[2]))
+                out_w = _check(solve_warm(est_w, plain[1], plain[2]))
             except TacestError:
                 if out is None:
                     raise
@@ -410,9 +412,10 @@ def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective,
 def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objective, warm=None) -> Fit3D:
     """:func:`_transform_task`'s search and held-out fit (TacestError when every fit fails).
     warm : (z, s0) of the plain fit: every fit to transformed runs starts there
-    (Estimator3D.solve_warm; runs without pose observations), else from its own start."""
+    (estimator3d.solve_warm; runs without pose observations), else from its own start."""
     from tacest.diagnosis import candidates as cands
     from tacest.diagnosis.transforms import apply_transform
+    from tacest.estimation.estimator3d import solve_warm
 
     screening = None
     if name == "latency":  # where the line search starts: quick fits, parameters held
@@ -432,7 +435,7 @@ def _transform_search(name, cfg, shape, train, held, theta_plain, plain_objectiv
         objectives[value] = None
         est = _estimator([apply_transform(r, name, value) for r in train], shape, cfg, ())
         try:
-            out = _check(est.solve() if warm is None else est.solve_warm(*warm))
+            out = _check(est.solve() if warm is None else solve_warm(est, *warm))
         except TacestError:
             continue
         objectives[value] = out.objective

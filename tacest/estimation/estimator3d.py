@@ -472,18 +472,16 @@ class Estimator3D:
         sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
         than ``solver3d.sampler_tip_deg``, else second): solve from the first; when that fit fails, or violates its own physics by more than
         ``solver3d.restart_physics`` objective units per sample, again from up to
-        ``solver3d.restarts`` others; keep the successful fit of lowest objective.  With
-        the parameters held (fixed_theta) and runs poked without pose observations, the
-        one solve starts from :meth:`held_shape_tracks`."""
+        ``solver3d.restarts`` others; keep the successful fit of lowest objective.  Held
+        parameters, runs poked unseen: the one solve starts from :func:`held_shape_tracks`."""
         pr, cfg3 = self.problem, self.config.solver3d
         self.attempts = []
         if self.has_pose or self.fixed_theta is not None or not self.F:
             t0 = time.perf_counter()
             s0 = self.choose_start_shape() if self.fixed_theta is None else self.fixed_theta[: pr.n_shape].copy()
             log.info(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
-            if self.fixed_theta is None or not self.F or all(r.pose_obs is not None for r in self.runs):
-                return self.solve_from_shape(s0)
-            self.start_tracks = self.held_shape_tracks(s0)  # a held shape, poked without poses seen
+            held = self.fixed_theta is not None and self.F and any(r.pose_obs is None for r in self.runs)
+            self.start_tracks = held_shape_tracks(self.runs, self.shape, s0, self.scales.L) if held else None
             try:
                 return self.solve_from_shape(s0)
             finally:
@@ -607,46 +605,6 @@ class Estimator3D:
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(self.z)
-        return out
-
-    def solve_warm(self, z_other, s0) -> SolveOutcome:
-        """One solve of the final stage from the solution ``z_other`` (scaled) of another
-        fit of runs of the same lengths and fingers: the nested model (this one without
-        its effects, whose theta are the first entries of this one's; the effects start
-        at their initial values, where this model is the nested one), or the same model
-        of slightly other data (a data transform's runs).  s0 : that fit's starting
-        shape (the shape prior's reference, so that both objectives agree there).  From
-        the nested model's optimum this fit ends at or below its objective."""
-        pr = self.problem
-        z_other = np.asarray(z_other, float)
-        n_plain = len(z_other) - (pr.n_z - pr.n_theta)
-        if not 0 < n_plain <= pr.n_theta:
-            raise TacestError(f"a solution of {len(z_other)} variables does not fit a problem of {pr.n_z}")
-        self.s0 = np.asarray(s0, float)
-        z = self.initial_guess()
-        z[:n_plain] = z_other[:n_plain]
-        z[pr.n_theta:] = z_other[n_plain:]
-        if self.fixed_theta is not None:
-            z[: pr.n_theta] = self.fixed_theta
-        stages = self.stages()[-1:]
-        out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
-                         accept_budget=self.accept_budget)
-        self.z = out.z
-        self.p_final = self.stage_params(stages[-1])
-        self.bounds_final = self.variable_bounds(self.z)
-        return out
-
-    def held_shape_tracks(self, s0) -> list:
-        """Starting poses (T, 7) per run for a fit whose shape is held at s0 (scaled):
-        the observed poses where a run has them, else the push tracker's box of the
-        shape's extents (initial3d.push_tracker_3d: it slides and turns the box out of
-        the touching fingertips' way), instead of the object resting where it started."""
-        V = numeric_vertices_3d(self.shape, s0, self.scales.L)
-        extents = np.ptp(V, axis=0)
-        out = []
-        for run in self.runs:
-            poses = observed_poses(run, smooth=True)[0] if run.pose_obs is not None else None
-            out.append(poses if poses is not None else push_tracker_3d(run, extents[None])[0])
         return out
 
     # --------------------------------------------------------------------------------
@@ -784,6 +742,47 @@ class Estimator3D:
 #: MIN_SIZE_FRACTION of the bound; a bound below half the scale leaves no room to start)
 MIN_BOUND_OVER_SCALE = 0.5
 
+
+
+def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
+    """One solve of ``est``'s final stage from the solution ``z_other`` (scaled) of another
+    fit of runs of the same lengths and fingers: the nested model (``est`` without its
+    effects, whose theta are the first entries of est's; the effects start at their
+    initial values, where est's model is the nested one), or the same model of slightly
+    other data (a data transform's runs).  s0 : that fit's starting shape (the shape
+    prior's reference, so that both objectives agree there).  From the nested model's
+    optimum the fit ends at or below its objective (up to the interior point's step
+    inside the effects' bounds)."""
+    pr = est.problem
+    z_other = np.asarray(z_other, float)
+    n_plain = len(z_other) - (pr.n_z - pr.n_theta)
+    if not 0 < n_plain <= pr.n_theta:
+        raise TacestError(f"a solution of {len(z_other)} variables does not fit a problem of {pr.n_z}")
+    est.s0 = np.asarray(s0, float)
+    z = est.initial_guess()
+    z[:n_plain] = z_other[:n_plain]
+    z[pr.n_theta:] = z_other[n_plain:]
+    if est.fixed_theta is not None:
+        z[: pr.n_theta] = est.fixed_theta
+    stages = est.stages()[-1:]
+    out = run_stages(est.built, z, stages, est.stage_params, est.stage_bounds, accept_budget=est.accept_budget)
+    est.z = out.z
+    est.p_final = est.stage_params(stages[-1])
+    est.bounds_final = est.variable_bounds(est.z)
+    return out
+
+
+def held_shape_tracks(runs, shape: Shape3D, s0, L: float) -> list:
+    """Starting poses (T, 7) per run for a fit whose shape is held at s0 (scaled, length
+    scale L m): the observed poses where a run has them, else the push tracker's box of
+    the shape's extents (initial3d.push_tracker_3d: it slides and turns the box out of
+    the touching fingertips' way), instead of the object resting where it started."""
+    extents = np.ptp(numeric_vertices_3d(shape, s0, L), axis=0)
+    out = []
+    for run in runs:
+        poses = observed_poses(run, smooth=True)[0] if run.pose_obs is not None else None
+        out.append(poses if poses is not None else push_tracker_3d(run, extents[None])[0])
+    return out
 
 def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
                 effects=()) -> Estimate:

@@ -287,6 +287,10 @@ FACE_FRICTION_PRIOR = (0.0, 0.5, -1.5, 1.5)
 #: (weights exp(-FACE_SHARPNESS · n_face·up)): between the faces of a box resting flat
 #: (n·up = -1 vs 0) the ratio is e^-20; at 45° the two lower faces share equally
 FACE_SHARPNESS = 20.0
+#: face_friction: smoothing of the floor at 0 of the friction of the face below
+#: (laws.smooth_pos): a friction coefficient is not negative (a negative one would push
+#: a sliding box along its slip); 1e-3 changes a friction of 0.1 by 2.5e-6
+FACE_FRICTION_FLOOR_EPS = 1e-3
 
 
 #: face_friction in 3-D (boxes): the outward body-frame normals of a box's six faces, in
@@ -295,10 +299,21 @@ FACE_SHARPNESS = 20.0
 BOX_FACE_NORMALS = np.array([[-1, 0, 0], [0, -1, 0], [0, 0, -1], [0, 0, 1], [0, 1, 0], [1, 0, 0]], float)
 
 
+def _floored(mu, offset):
+    """mu + offset floored smoothly at 0 (a friction coefficient is not negative: a
+    negative one would push a sliding box along its slip), exactly mu at offset 0 (the
+    effect at "no effect" is the plain model): mu + s(mu + offset) - s(mu), s the
+    smoothed max(x, 0) of width FACE_FRICTION_FLOOR_EPS (laws.smooth_pos), which is
+    x + O(eps² / x) above 0 and O(eps² / |x|) below."""
+    return mu + smooth_pos(mu + offset, FACE_FRICTION_FLOOR_EPS) - smooth_pos(mu, FACE_FRICTION_FLOOR_EPS)
+
+
 class FaceFriction(Effect):
-    """Ground friction differs from face to face: face i has friction_ground + d_i.  In
-    2-D face i runs from vertex i to i+1 of the CCW polygon; in 3-D the shape is a box and
-    its faces are in SPEC's order (BOX_FACE_NORMALS)."""
+    """Ground friction differs from face to face: face i has friction_ground + d_i, the
+    friction under the object is that of the face facing the ground most, floored
+    smoothly at 0 (:func:`_floored`: the offsets are bounded, not their sum with the
+    ground's friction).  In 2-D face i runs from vertex i to i+1 of the CCW polygon;
+    in 3-D the shape is a box and its faces are in SPEC's order (BOX_FACE_NORMALS)."""
 
     name = "face_friction"
     dims = (2, 3)
@@ -313,6 +328,7 @@ class FaceFriction(Effect):
                      for i in range(self.n_faces(K, dim)))
 
     def report(self, u, sc, K, mu_ground):
+        """friction_ground + d_i per face (the model floors a negative one at ~0)."""
         return {"face_friction.values": np.array([mu_ground + u[f"d{i}"] for i in range(len(u))])}
 
     def scaled(self, params, sc, K, mu_ground, dim):
@@ -331,7 +347,7 @@ class FaceFriction(Effect):
         scores = [-FACE_SHARPNESS * ca.dot(ctx.n_g, ca.mtimes(ctx.R, ca.DM(n))) for n in BOX_FACE_NORMALS]
         w = ca.exp(ca.vertcat(*scores))
         d = ca.vertcat(*(u[f"d{i}"] for i in range(len(BOX_FACE_NORMALS))))
-        ctx.mu_g = ctx.mu_g + ca.dot(w, d) / ca.sum1(w)
+        ctx.mu_g = _floored(ctx.mu_g, ca.dot(w, d) / ca.sum1(w))
 
     def ground_friction_2d(self, ctx):
         """Ground friction offset Σ_i w_i d_i of the face that faces the ground most:
@@ -346,7 +362,7 @@ class FaceFriction(Effect):
             scores.append(-FACE_SHARPNESS * ca.dot(ctx.n_g, R @ n_body))
             d.append(u[f"d{i}"])
         w = ca.exp(ca.vertcat(*scores))
-        ctx.mu_g = ctx.mu_g + ca.dot(w, ca.vertcat(*d)) / ca.sum1(w)
+        ctx.mu_g = _floored(ctx.mu_g, ca.dot(w, ca.vertcat(*d)) / ca.sum1(w))
 
 
 # ---------------------------------------------------------------------------------------
