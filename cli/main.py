@@ -94,6 +94,19 @@ def _first_line(exc) -> str:
     return text.splitlines()[0] if text else ""
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in the cause or context chain of ``exc``: a SIGINT
+    that arrives while a C extension function runs surfaces as ``SystemError: ...
+    returned a result with an exception set`` whose cause is the KeyboardInterrupt."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv=None):
     """Run the CLI; every failure is one line on stderr and an exit status (module doc).
 
@@ -124,6 +137,9 @@ def main(argv=None):
         click.echo(f"tacest: error: {where}{exc.strerror or _first_line(exc) or exc.__class__.__name__}", err=True)
         sys.exit(EXIT_BAD_INPUT)
     except Exception as exc:  # a bug: still one line, and its own status
+        if _caused_by_interrupt(exc):  # Ctrl-C inside a C extension's call (e.g. CasADi's DM.__array__)
+            click.echo("tacest: interrupted", err=True)
+            sys.exit(EXIT_INTERRUPTED)
         if os.environ.get("TACEST_DEBUG"):
             raise
         click.echo(f"tacest: internal error: {exc.__class__.__name__}: {_first_line(exc)} "

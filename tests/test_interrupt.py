@@ -150,3 +150,20 @@ def test_deferred_interrupts_deliver_at_the_end_of_the_block_at_the_latest():
             sum(range(1000))  # nothing raised inside the block
     check_interrupt()  # nothing pending any more
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_an_interrupt_inside_a_c_extension_call_is_an_interrupt():
+    """A SIGINT that arrives while a C extension function runs (seen: CasADi's
+    DM.__array__ during an explore loop's estimate) surfaces as SystemError("...
+    returned a result with an exception set") caused by the KeyboardInterrupt: the CLI
+    reads it as Ctrl-C (exit 130), not as a bug (exit 3)."""
+    from tacest.cli.main import _caused_by_interrupt
+
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as inner:
+            raise SystemError("<function DM.__array__> returned a result with an exception set") from inner
+    except SystemError as exc:
+        assert _caused_by_interrupt(exc)
+    assert not _caused_by_interrupt(ValueError("a bug"))
