@@ -1032,13 +1032,15 @@ def params_at_bound(theta, effects, K: int) -> list:
     a = len(theta) - len(rows)
     if a < len(PHYS_NAMES):
         return []
-    out = []
-    for j, (eff, par) in enumerate(rows):
-        lo, hi, centre = par.lower, par.upper, par.centre
-        u, tol = float(theta[a + j]), BOUND_TOLERANCE * (hi - lo)
-        if (abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol):
-            out.append(f"{eff.name}.{par.name}")
-    return out
+    return [f"{eff.name}.{par.name}" for j, (eff, par) in enumerate(rows)
+            if at_hard_bound(float(theta[a + j]), par.lower, par.upper, par.centre)]
+
+
+def at_hard_bound(u: float, lo: float, hi: float, centre: float) -> bool:
+    """Whether a scaled effect parameter u sits within BOUND_TOLERANCE of its range
+    [lo, hi] from a bound that is not its "no effect" value ``centre``."""
+    tol = BOUND_TOLERANCE * (hi - lo)
+    return bool((abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol))
 
 
 def params_immaterial(params: dict) -> list:

@@ -143,20 +143,16 @@ class Diagnosis3D:
     base_runs: list = field(default_factory=list)
 
     def to_json(self) -> dict:
-        def num(v):
-            v = float(v)
-            return v if math.isfinite(v) else None
-
         return {
             "verdict": self.verdict, "reason": self.reason, "dim": 3,
             "effects": _strict(self.effects), "where": self.where,
             "not_compared": list(self.extra.get("not_compared_reasons", {n: "" for n in NOT_MODELLED_3D})),
             "floor_per_sample": self.floor,
             "train": self.train, "heldout": self.heldout,
-            "fits": {k: {"params": {n: num(x) for n, x in f.params.items()}, "status": f.status,
-                         "seconds": num(f.seconds), "train_loss_per_sample": num(f.train_loss_per_sample),
-                         "heldout_loss_per_sample": num(f.heldout_loss_per_sample),
-                         "heldout_status": f.heldout_status} for k, f in self.fits.items()},
+            "fits": _strict({k: {"params": dict(f.params), "status": f.status, "seconds": f.seconds,
+                                 "train_loss_per_sample": f.train_loss_per_sample,
+                                 "heldout_loss_per_sample": f.heldout_loss_per_sample,
+                                 "heldout_status": f.heldout_status} for k, f in self.fits.items()}),
             **self.extra,
         }
 
@@ -323,22 +319,16 @@ def params_at_bound_3d(est, z) -> list:
     within diagnose.BOUND_TOLERANCE of their range from a bound of the fit
     (Estimator3D.bounds_final, which holds the configured ranges of edge_radius and
     ground_offset) that is not their "no effect" value (the 2-D rule's params_at_bound)."""
-    from tacest.diagnosis.diagnose import BOUND_TOLERANCE
+    from tacest.diagnosis.diagnose import at_hard_bound
 
     pr = est.problem
     if not pr.n_eff or est.bounds_final is None:
         return []
     lbx, ubx = est.bounds_final
     a = pr.n_theta - pr.n_eff
-    out = []
-    for j, (eff, par) in enumerate(pr.effect_params):
-        lo, hi, u = float(lbx[a + j]), float(ubx[a + j]), float(z[a + j])
-        if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
-            continue
-        tol = BOUND_TOLERANCE * (hi - lo)
-        if (abs(u - lo) <= tol and abs(lo - par.centre) > tol) or (abs(hi - u) <= tol and abs(hi - par.centre) > tol):
-            out.append(f"{eff.name}.{par.name}")
-    return out
+    return [f"{eff.name}.{par.name}" for j, (eff, par) in enumerate(pr.effect_params)
+            if np.isfinite(lbx[a + j]) and np.isfinite(ubx[a + j]) and ubx[a + j] > lbx[a + j]
+            and at_hard_bound(float(z[a + j]), float(lbx[a + j]), float(ubx[a + j]), par.centre)]
 
 
 def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -> Fit3D:
@@ -357,33 +347,9 @@ def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -
     linear_drag fit to tosses ended above the plain model.)  Without ``own_start`` (runs
     poked without pose observations, where the estimator's own starts cost a sampler and
     restarts per fit) the fit starts from the plain optimum only."""
-    from tacest.estimation.estimator3d import solve_warm
-
     t0 = time.perf_counter()
     try:
-        est = _estimator(train, shape, cfg, effects)
-        try:
-            out = _check(est.solve() if own_start else solve_warm(est, plain[1], plain[2]))
-        except TacestError:
-            if not own_start:
-                raise
-            out = None  # the own start failed: the plain optimum is the other start
-        if own_start and (out is None or (plain[0] is not None and out.objective > plain[0])):
-            if out is not None:
-                log.info(f"{name}: ended above the plain model ({out.objective:.6g} > {plain[0]:.6g}); "
-                         "fitting again from the plain model's optimum")
-            est_w = _estimator(train, shape, cfg, effects)
-            try:
-                out_w = _check(solve_warm(est_w, plain[1], plain[2]))
-            except TacestError:
-                if out is None:
-                    raise
-                out_w = None
-            if out_w is not None and (out is None or out_w.objective < out.objective):
-                est, out = est_w, out_w
-        if plain[0] is not None and out.objective > plain[0]:
-            log.info(f"{name}: its training fit ends above the plain model's ({out.objective:.6g} > "
-                     f"{plain[0]:.6g}), although it nests it")
+        est, out = _training_fit(name, cfg, effects, shape, train, plain, own_start)
         fit = Fit3D(name=name, params=_params(est, out.z), status=out.status, seconds=0.0,
                     train_loss_per_sample=_losses(est, out.z)[1], n_params=int(est.problem.n_eff),
                     at_bound=params_at_bound_3d(est, out.z))
@@ -392,6 +358,40 @@ def _model_task(name, cfg, effects, shape, train, held, plain, own_start=True) -
         fit = Fit3D(name=name, params={}, status=f"failed: {exc}", seconds=0.0)
     fit.seconds = time.perf_counter() - t0
     return fit
+
+
+def _training_fit(name, cfg, effects, shape, train, plain, own_start):
+    """(estimator, outcome) of :func:`_model_task`'s training fit: from the estimator's own
+    start (``own_start``), then from the plain optimum where there is no own fit or it
+    ended above the plain objective it nests; the lower objective kept (TacestError when
+    no start gives a fit)."""
+    from tacest.estimation.estimator3d import solve_warm
+
+    best = None
+    if own_start:
+        est = _estimator(train, shape, cfg, effects)
+        try:
+            best = (est, _check(est.solve()))
+        except TacestError:
+            pass  # the plain optimum is the other start
+    if best is not None and (plain[0] is None or best[1].objective <= plain[0]):
+        return best
+    if best is not None:
+        log.info(f"{name}: ended above the plain model ({best[1].objective:.6g} > {plain[0]:.6g}); "
+                 "fitting again from the plain model's optimum")
+    est = _estimator(train, shape, cfg, effects)
+    try:
+        warm = (est, _check(solve_warm(est, plain[1], plain[2])))
+    except TacestError:
+        if best is None:
+            raise
+        warm = None
+    if warm is not None and (best is None or warm[1].objective < best[1].objective):
+        best = warm
+    if plain[0] is not None and best[1].objective > plain[0]:
+        log.info(f"{name}: its training fit ends above the plain model's ({best[1].objective:.6g} > "
+                 f"{plain[0]:.6g}), although it nests it")
+    return best
 
 
 def _transform_task(name, cfg, shape, train, held, theta_plain, plain_objective, warm=None) -> Fit3D:

@@ -780,7 +780,7 @@ def held_shape_tracks(runs, shape: Shape3D, s0, L: float) -> list:
     extents = np.ptp(numeric_vertices_3d(shape, s0, L), axis=0)
     out = []
     for run in runs:
-        poses = observed_poses(run, smooth=True)[0] if run.pose_obs is not None else None
+        poses = observed_poses(run, smooth=True)[0]  # None without observations
         out.append(poses if poses is not None else push_tracker_3d(run, extents[None])[0])
     return out
 
