@@ -112,9 +112,15 @@ def setup_logging(quiet: bool = False, stream=None) -> logging.Logger:
 
 
 def warn_fit_quality(est) -> None:
-    """One warning line when the estimate ``est`` handed to the user failed its
-    goodness-of-fit test (the fits inside a diagnosis, which misfit on purpose, only
-    log it as information: tacest.estimation.result)."""
+    """One warning line when the estimate ``est`` handed to the user is IPOPT's last
+    iterate of a final stage that used up its iteration budget (kept because no start's
+    converged fit reached a lower objective: solver.solve_from_starts), and one when it
+    failed its goodness-of-fit test (the fits inside a diagnosis, which misfit on
+    purpose, only log it as information: tacest.estimation.result)."""
+    if not est.success and est.solver_status not in ("start guess",):
+        logging.getLogger("tacest.estimate").warning(
+            f"IPOPT did not converge ({est.solver_status}, {est.iterations} iterations): the estimate is the last "
+            "iterate of its final stage, kept as the fit of lowest objective among the starts (attr starts)")
     if est.consistent is False and est.fit_quality:
         from tacest.estimation.fitquality import quality_summary
 

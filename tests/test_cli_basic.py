@@ -184,3 +184,24 @@ def test_demo_output_that_is_a_file_is_an_error(tmp_path):
     res = _tacest("demo", "-o", "taken", cwd=tmp_path)
     assert res.returncode == 2
     assert "taken" in _one_error_line(res)
+
+
+def test_an_estimate_that_used_up_its_budget_is_warned_in_one_line():
+    """An estimate kept although its final stage used up IPOPT's iteration budget (it
+    beat every converged start's objective: solver.solve_from_starts) gets one warning
+    line naming the status; a converged, consistent one gets none."""
+    import io
+    from types import SimpleNamespace
+
+    from tacest.cli.logs import setup_logging, warn_fit_quality
+
+    stream = io.StringIO()
+    setup_logging(quiet=True, stream=stream)
+    warn_fit_quality(SimpleNamespace(success=True, solver_status="Solve_Succeeded", iterations=30, consistent=True,
+                                     fit_quality={}))
+    assert stream.getvalue() == ""
+    warn_fit_quality(SimpleNamespace(success=False, solver_status="Maximum_Iterations_Exceeded", iterations=861,
+                                     consistent=True, fit_quality={}))
+    lines = stream.getvalue().strip().splitlines()
+    assert len(lines) == 1 and "Maximum_Iterations_Exceeded" in lines[0] and "861 iterations" in lines[0]
+    setup_logging(quiet=False)

@@ -15,7 +15,7 @@ from tacest.estimation import estimator3d
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.initial3d import (EXTENT_GRID, Start3D, finger_gaps_3d, push_tracker_3d, start_candidates_3d,
                                          touch_inconsistency_3d, yaw_track)
-from tacest.estimation.solver import SolveOutcome
+from tacest.estimation.solver import SolveOutcome, StageInfo
 from tacest.io.run import Run
 
 DT = 0.01
@@ -113,7 +113,8 @@ class _FakeProblem:
 
 def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
-    ``outcomes`` in turn (None: the solve fails)."""
+    ``outcomes`` in turn (None: the solve fails; (objective, physics, status): a fit
+    ending with that IPOPT status, e.g. its iteration budget used up)."""
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
     # the sampled start is off here (its place among the starts: test_a_tipping_sampled_start_goes_first)
     cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts,
@@ -122,23 +123,27 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")
     est.scales = type("S", (), {"L": 0.1})()
-    est.start_tracks, est.attempts = None, []
+    est.start_tracks, est.attempts, est.accept_budget = None, [], False
     starts = [Start3D(np.full(3, 1.0 + 0.3 * k), [np.zeros((400, 7))], f"start {k}", float(k)) for k in range(3)]
     monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: starts[:n])
     calls = []
     offered = est.offered_starts = []
 
-    def solve_from(s0):
+    def solve_from(s0, accept_budget=None):
         k = len(calls)
         calls.append(np.asarray(s0, float))
         # the start's trajectory is used (a sampled start, when one is offered, is another)
         assert any(est.start_tracks is c.poses for c in (starts + offered if offered else starts[k:k + 1]))
+        # every start's final stage may end on its budget: solve_from_starts judges
+        assert accept_budget is True
         if outcomes[k] is None:
             raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1': Maximum_Iterations_Exceeded")
-        obj, phys = outcomes[k]
+        obj, phys, status = (*outcomes[k], "Solve_Succeeded")[:3]
         est.p_final, est.bounds_final = ("p", k), ("b", k)
-        return SolveOutcome(z=np.array([obj, phys]), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded",
-                            success=True, iterations=1, wall_time=0.0, objective=obj, stages=[])
+        stage = StageInfo(name="homotopy 2/2", status=status, iterations=800, wall_time=0.0, objective=obj)
+        return SolveOutcome(z=np.array([obj, phys]), lam_g=np.zeros(0), lam_x=None, status=status,
+                            success=status == "Solve_Succeeded", iterations=800, wall_time=0.0, objective=obj,
+                            stages=[stage])
 
     monkeypatch.setattr(est, "solve_from_shape", solve_from)
     monkeypatch.setattr(est, "physics_per_sample", lambda z: float(z[1]))
@@ -166,6 +171,31 @@ def test_restart_keeps_the_successful_fit_of_lowest_objective(monkeypatch):
 def test_no_restart_after_a_physically_consistent_fit(monkeypatch):
     est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), (10.0, 0.01), (5.0, 0.0)])
     assert est.solve().objective == 50.0 and len(calls) == 1
+
+
+def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):
+    """A start that creeps towards the right basin until its iteration budget ends below
+    a converged restart's objective is kept, with its status (success False); it does
+    not end the search; without any converged fit it is a failure (exit 2 on the CLI),
+    unless the caller accepts budget fits (the diagnosis)."""
+    budget = "Maximum_Iterations_Exceeded"
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), (75.8, 0.04), (10.0, 0.0)])
+    out = est.solve()
+    assert len(calls) == 2  # the converged restart is good: the search ends there
+    assert out.objective == 51.8 and out.status == budget and not out.success and est.p_final == ("p", 0)
+    assert [a["status"] for a in est.attempts] == [budget, "Solve_Succeeded"]
+    # a converged fit of lower objective wins over it
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), (40.0, 0.04)])
+    assert est.solve().objective == 40.0
+    # budget fits alone, and failures: no estimate
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), None, (60.0, 0.5, budget)])
+    with pytest.raises(SolveFailedError, match="no fit from any of 3 starts.*homotopy 2/2.*" + budget):
+        est.solve()
+    assert len(calls) == 3
+    # ... unless budget fits are accepted
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), None, (60.0, 0.5, budget)])
+    est.accept_budget = True
+    assert est.solve().objective == 51.8 and len(calls) == 3
 
 
 def test_every_start_failing_raises_one_solve_failure(monkeypatch):

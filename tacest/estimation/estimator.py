@@ -233,12 +233,13 @@ class ImplicitEstimator:
         self.bounds_final = self.variable_bounds(out.z)
         return out
 
-    def solve(self, accept_budget=False) -> SolveOutcome:
+    def solve(self) -> SolveOutcome:
         """Staged solves from the best start; when that fit fails, or violates its own
         physics by more than ``solver.restart_physics`` objective units per sample (a
         local minimum where the object floats, sinks or slides against friction to follow
         the touches), again from up to ``solver.restarts`` other starts, keeping the
-        successful fit of lowest objective.
+        fit of lowest objective (one that used up its iteration budget included, with its
+        status: solver.solve_from_starts).
 
         The starts: the sampler's (smc2d.py: the lineage of the best of
         ``solver.sampler_particles`` hypotheses followed through the runs) where every
@@ -258,7 +259,7 @@ class ImplicitEstimator:
         def solve_one(start):
             kind, value = start
             z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
-            out = self.solve_from(z0, accept_budget=accept_budget)
+            out = self.solve_from(z0, accept_budget=True)  # solve_from_starts judges budget fits
             V, mass, _, mu_g, mu_f = self.physical(out.z)
             found = {"vertices": np.asarray(V, float),
                      "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}

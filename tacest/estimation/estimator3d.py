@@ -242,7 +242,7 @@ class Estimator3D:
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
                  fixed_theta=None, effects=(), accept_budget: bool = False):
         check_runs_3d(runs)
-        self.accept_budget = bool(accept_budget)  # end on the iteration budget (solver.run_stages)
+        self.accept_budget = bool(accept_budget)  # a fit may end on its iteration budget (solver.run_stages)
         #: (n_theta,) scaled parameters to hold (the trajectories alone are fitted: a
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
@@ -472,7 +472,9 @@ class Estimator3D:
         sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
         than ``solver3d.sampler_tip_deg``, else second): solve from the first; when that fit fails, or violates its own physics by more than
         ``solver3d.restart_physics`` objective units per sample, again from up to
-        ``solver3d.restarts`` others; keep the successful fit of lowest objective.  Held
+        ``solver3d.restarts`` others; keep the fit of lowest objective (one whose final
+        stage used up its iteration budget included, with its status, when some start
+        converged: solver.solve_from_starts).  Held
         parameters, runs poked unseen: the one solve starts from :func:`held_shape_tracks`."""
         pr, cfg3 = self.problem, self.config.solver3d
         self.attempts = []
@@ -500,7 +502,7 @@ class Estimator3D:
             s0 = self.shape.initial(c.extents)
             self.start_tracks = c.poses
             try:
-                out = self.solve_from_shape(s0)
+                out = self.solve_from_shape(s0, accept_budget=True)  # solve_from_starts judges budget fits
             finally:
                 self.start_tracks = None
             V, mass, _, mu_g, mu_f = self.physical(out.z)
@@ -513,7 +515,8 @@ class Estimator3D:
                     "touch_inconsistency": float(c.inconsistency), **c.extra} for c in starts]
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts)
+                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
+                accept_budget=self.accept_budget)
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
@@ -583,10 +586,12 @@ class Estimator3D:
         ridge = max(self.config.solver3d.hessian_ridge, 1.0) if retry else None
         return self.params(stage.eps, stage.comp_mult, stage.dyn_mult, ridge=ridge)
 
-    def solve_from_shape(self, s0) -> SolveOutcome:
+    def solve_from_shape(self, s0, accept_budget=None) -> SolveOutcome:
         """One staged solve from the starting shape s0 (scaled): the ground impulses by
         non-negative least squares for the observed (or starting) trajectory, then the
-        stages of :meth:`stages` (solver.run_stages)."""
+        stages of :meth:`stages` (solver.run_stages; ``accept_budget``, by default the
+        estimator's: a final stage that uses up its budget keeps its last iterate and
+        status, success False)."""
         pr = self.problem
         self.s0 = np.asarray(s0, float)
         z = self.initial_guess()
@@ -598,7 +603,7 @@ class Estimator3D:
         nnls_time = time.perf_counter() - t0
         log.info(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
         out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
-                         accept_budget=self.accept_budget)
+                         accept_budget=self.accept_budget if accept_budget is None else accept_budget)
         out.stages.insert(0, StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
                                        wall_time=nnls_time, objective=float("nan")))
         out.wall_time += nnls_time

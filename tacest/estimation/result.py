@@ -144,7 +144,7 @@ def basin_spread(attempts: list, objective: float, vertices, params: dict) -> di
     """{name: how far another plausible basin's fit lies from the kept one}: "shape" (m,
     the Chamfer distance of the two shapes after the best rigid alignment) and mass,
     friction_ground, friction_finger (their differences), maximized over the other
-    successful fits of the estimate's starts whose objective is within half the
+    fits of the estimate's starts (those that used up their iteration budget included) whose objective is within half the
     BASIN_CONFIDENCE quantile of χ²(p) of the kept one's, p the number of compared
     parameters (shape parameters as vertices' coordinates, and the three): the fits a
     likelihood-ratio test cannot tell from the kept one.  A local Laplace std says

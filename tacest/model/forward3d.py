@@ -28,7 +28,7 @@ import numpy as np
 # the contact constants are forward2d's: the same springs, damping and regularization
 # hold a box in 3-D as a polygon in 2-D (GROUND_SINK per corner under a quarter of the
 # weight instead of half)
-from tacest.geometry.transforms import quat_from_rotvec, quat_multiply, quat_to_matrix
+from tacest.geometry.transforms import cross3, quat_from_rotvec, quat_multiply, quat_to_matrix
 from tacest.model.forward2d import (DAMPING_RATIO, FINGER_FORCE_LIMIT, FINGER_STIFFNESS, GROUND_SINK, MAX_STEP,
                                     SLIP_REGULARIZATION)
 
@@ -119,7 +119,7 @@ class World3D:
         lever = np.einsum("nij,nkj->nki", R, hyp.corners)  # (N, 8, 3) COM to corner, world
         phi = (lever + pos[:, None]) @ self.n_g - self.h
         pen = np.maximum(-phi, 0.0)
-        vv = vel[:, None] + np.cross(omega_w[:, None], lever)
+        vv = vel[:, None] + cross3(omega_w[:, None], lever)
         vn = vv @ self.n_g
         vt = vv - vn[..., None] * self.n_g
         k = (m * self.g_mag / (4 * GROUND_SINK))[:, None]
@@ -128,13 +128,13 @@ class World3D:
         speed = np.sqrt(np.sum(vt * vt, axis=-1) + SLIP_REGULARIZATION ** 2)
         F_k = fn[..., None] * self.n_g - (hyp.mu_ground[:, None] * fn / speed)[..., None] * vt
         force = F_k.sum(1)
-        torque = np.cross(lever, F_k).sum(1)
+        torque = cross3(lever, F_k).sum(1)
         out = []
         for f, centre, v_f in fingers:
             sd, n_w, point = box_finger_geometry(hyp.half, R, pos, np.asarray(centre, float))
             depth = self.radius[f] - sd
             r = point - pos
-            rel = np.asarray(v_f, float)[None] - (vel + np.cross(omega_w, r))
+            rel = np.asarray(v_f, float)[None] - (vel + cross3(omega_w, r))
             closing = -np.sum(rel * n_w, axis=1)
             cf = 2 * DAMPING_RATIO * np.sqrt(FINGER_STIFFNESS * m)
             f_n = np.where(depth > 0, np.clip(FINGER_STIFFNESS * depth + cf * closing, 0.0, FINGER_FORCE_LIMIT), 0.0)
@@ -142,15 +142,15 @@ class World3D:
             f_t = (hyp.mu_finger * f_n / np.sqrt(np.sum(slip * slip, 1) + SLIP_REGULARIZATION ** 2))[:, None] * slip
             F = -f_n[:, None] * n_w + f_t
             force = force + F
-            torque = torque + np.cross(r, F)
+            torque = torque + cross3(r, F)
             out.append(F)
         for point, F_meas in forces:
             r = np.asarray(point, float)[None] - pos
             F = np.broadcast_to(np.asarray(F_meas, float), r.shape)
             force = force + F
-            torque = torque + np.cross(r, F)
+            torque = torque + cross3(r, F)
         tau_b = np.einsum("nji,nj->ni", R, torque)
-        omega_b = omega_b + h * (tau_b - np.cross(omega_b, I * omega_b)) / I
+        omega_b = omega_b + h * (tau_b - cross3(omega_b, I * omega_b)) / I
         vel = vel + h * (force / m[:, None] + self.g)
         pos = pos + h * vel
         quat = _turned(quat, h * omega_b)
