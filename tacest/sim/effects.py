@@ -124,11 +124,11 @@ def _uniform(lo, hi):
     return lambda rng, ctx, params: float(rng.uniform(lo, hi))
 
 
-#: random draws of the effects whose diagnosis searches a range (docs/effects.md): wider
-#: than that search on purpose (tacest.diagnosis.candidates.TRANSFORM_GRIDS: latency 1-20
-#: samples, clock ±12 %; restitution is searched from 0), so that a benchmark drawing from
-#: them measures what the diagnosis does at and beyond the edges of its ranges, not only
-#: inside them.  Restitution: from nearly plastic (0.05) to a rubber ball (0.9).
+#: random draws of the effects whose diagnosis searches a range (docs/effects.md): the
+#: latency wider than that search on purpose (tacest.diagnosis.candidates.TRANSFORM_GRIDS:
+#: latency 1-20 samples, clock ±18 %; restitution is searched from 0), so that a benchmark
+#: drawing from them measures what the diagnosis does at and beyond the edges of its
+#: ranges, not only inside them; the clock draws reach 15 %, near the search's edge.  Restitution: from nearly plastic (0.05) to a rubber ball (0.9).
 RESTITUTION_DRAW = (0.05, 0.9)
 #: samples, inclusive (at 100 Hz: 10-250 ms)
 LATENCY_DRAW = (1, 25)
