@@ -64,6 +64,30 @@ def test_free_flight_is_ballistic_and_keeps_its_angular_momentum():
     assert abs(L1 / L0 - 1) < 0.01
 
 
+def test_advance_is_its_substeps_one_by_one():
+    """World3D.advance (the compiled kernel, every substep of a sample in one call) is
+    n_sub calls of step with the fingertip interpolated linearly from its start to its
+    end centre and the measured forces held, bit for bit (the same kernel)."""
+    world = World3D([0, 0, 1], 0.0, [0, 0, -G], [0.01, 0.012])
+    n = 5
+    hyp = Boxes(HALF[None] * np.linspace(0.8, 1.2, n)[:, None], np.linspace(0.1, 0.5, n), np.full(n, 0.6),
+                np.full(n, 0.3))
+    quat = quat_from_rotvec(np.tile([0.0, 0.2, 0.0], (n, 1)))
+    pos = world.rest_position(hyp.half, quat_to_matrix(quat), np.zeros((n, 3)))
+    state = (pos, quat, np.zeros((n, 3)), np.zeros((n, 3)))
+    c0, c1, v = np.array([-0.07, 0.0, 0.05]), np.array([-0.066, 0.0, 0.05]), np.array([0.4, 0.0, 0.0])
+    force = [(np.array([0.0, 0.02, 0.08]), np.array([0.0, -0.2, 0.0]))]
+    *a, F_a = world.advance(hyp, *state, 1e-3, 10, fingers=[(1, c1, v)], start_centres=[c0], forces=force)
+    b = state
+    for j in range(10):
+        *b, F_b = world.step(hyp, *b, 1e-3, fingers=[(1, c0 + (j + 1) / 10 * (c1 - c0), v)], forces=force)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(F_a[:, 0], F_b[0], rtol=0, atol=1e-12)
+    assert np.abs(F_a).max() > 0.1  # the finger pushed
+    assert np.abs(a[0] - pos).max() > 1e-5  # and the boxes moved
+
+
 def test_the_finger_geometry_is_the_box_signed_distance_and_its_gradient():
     """box_finger_geometry against initial3d's signed distance on random points (in and
     out) and its normal against central differences (h 1e-6 m; where the closest

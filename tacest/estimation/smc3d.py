@@ -140,16 +140,14 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             stats["skipped"] += 1
             continue
         pushing = [f for f in near if on[t, f] and np.all(np.isfinite(run.normal[t, f]))]
-        for j in range(n_sub):
-            a = (j + 1) / n_sub
-            if force_driven:  # the measured force at the measured contact point
-                forces = [(run.finger_position[t, f] - world.radius[f] * run.normal[t, f], run.force[t, f])
-                          for f in pushing]
-                pos, quat, vel, om, _ = world.step(hyp, pos, quat, vel, om, h, forces=forces)
-            else:  # kinematic fingertips push by penetration
-                kin = [(f, (1 - a) * run.finger_position[t - 1, f] + a * run.finger_position[t, f], v_f[t, f])
-                       for f in near]
-                pos, quat, vel, om, _ = world.step(hyp, pos, quat, vel, om, h, fingers=kin)
+        if force_driven:  # the measured force at the measured contact point
+            forces = [(run.finger_position[t, f] - world.radius[f] * run.normal[t, f], run.force[t, f])
+                      for f in pushing]
+            pos, quat, vel, om, _ = world.advance(hyp, pos, quat, vel, om, h, n_sub, forces=forces)
+        else:  # kinematic fingertips push by penetration, moving from sample t-1 to t
+            kin = [(f, run.finger_position[t, f], v_f[t, f]) for f in near]
+            pos, quat, vel, om, _ = world.advance(hyp, pos, quat, vel, om, h, n_sub, fingers=kin,
+                                                  start_centres=[run.finger_position[t - 1, f] for f in near])
         R = quat_to_matrix(quat)
         ll = _log_likelihood(run, t, on, hyp, R, pos, world, settings)
         ll = np.where(np.isfinite(ll), ll, -1e12)
