@@ -177,7 +177,7 @@ def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):
     """A start that creeps towards the right basin until its iteration budget ends below
     a converged restart's objective is kept, with its status (success False); it does
     not end the search; without any converged fit it is a failure (exit 2 on the CLI),
-    unless the caller accepts budget fits (the diagnosis)."""
+    unless the caller accepts budget fits (the diagnosis: they count as converged)."""
     budget = "Maximum_Iterations_Exceeded"
     est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), (75.8, 0.04), (10.0, 0.0)])
     out = est.solve()
@@ -192,10 +192,14 @@ def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):
     with pytest.raises(SolveFailedError, match="no fit from any of 3 starts.*homotopy 2/2.*" + budget):
         est.solve()
     assert len(calls) == 3
-    # ... unless budget fits are accepted
-    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), None, (60.0, 0.5, budget)])
+    # ... unless budget fits are accepted (the diagnosis): they count as converged ones,
+    # and a good one ends the search
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.5, budget), None, (60.0, 0.04, budget)])
     est.accept_budget = True
     assert est.solve().objective == 51.8 and len(calls) == 3
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), None, (60.0, 0.5, budget)])
+    est.accept_budget = True
+    assert est.solve().objective == 51.8 and len(calls) == 1
 
 
 def test_every_start_failing_raises_one_solve_failure(monkeypatch):

@@ -405,8 +405,9 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         and error), also when every solve fails;
     min_solves : the first this many starts are all solved, whatever their fits (starts
         whose objectives are to be compared: the sampler's);
-    accept_budget : fits that used up their budget are kept even when no start converged
-        (the fits inside a diagnosis); without it that is a failure, as a single solve's.
+    accept_budget : fits that used up their budget count as converged ones (the fits
+        inside a diagnosis: they may end the search, and are kept when no start
+        converged); without it that is a failure, as a single solve's.
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -445,7 +446,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
                          "physics_per_sample": float(physics), "misfit_local": local, **found})
         if best is None or out.objective < best[0].objective:
             best = (out, saved)
-        if out.status in SUCCESS_STATUSES and (converged is None or out.objective < converged[0]):
+        counts = out.status in SUCCESS_STATUSES or accept_budget
+        if counts and (converged is None or out.objective < converged[0]):
             converged = (out.objective, bool(physics <= restart_physics or local))
         if k + 1 >= min_solves and converged is not None and converged[1]:
             break
