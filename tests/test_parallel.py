@@ -346,3 +346,19 @@ def test_a_cluster_of_separate_processes_gives_the_in_process_results(dask_clust
     for name in ("one", "two"):
         ea, eb = (read_estimate(tmp_path / d / f"{name}.h5") for d in ("b_remote", "b_local"))
         assert ea.params == eb.params and ea.runs[0].source_sha256 == eb.runs[0].source_sha256
+
+
+def test_one_blas_thread_per_process_unless_the_user_chose():
+    """import tacest sets OPENBLAS_NUM_THREADS=1 when the environment does not set it
+    (docs/parallel.md, "Threads"), and leaves a user's choice alone."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import os, tacest; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "1"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"},
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "2"
