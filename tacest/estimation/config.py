@@ -190,6 +190,15 @@ class Solver3D:
     #: iterations (objective 75.0 -> 64.7, the last 100 within 0.01 %) and ended 1.9 mm
     #: from the truth; with 400 it was a failed solve (docs/estimation3d.md, "Sampled starts")
     max_iter_no_pose: int = 800
+    #: runs without pose observations: IPOPT's acceptable tolerance (scaled KKT error) of
+    #: every stage, as solver.acceptable_tol (the 2-D one).  At 1.0 the exact-Hessian stage
+    #: crept for hundreds of iterations with a dual infeasibility of 7-50 and 5-8
+    #: backtracks per step (a contact-smoothed loss the Newton model overshoots): 187 s
+    #: for a 5-poke, 9 s recording, objective 53.9 -> 51.8, Chamfer 0.95 mm; at 100 it
+    #: stops once the objective changes by < 1e-3 of itself for 5 iterations: 17 s,
+    #: objective 54.3, 1.15 mm (docs/estimation3d.md, "Speed").  The diagnosis keeps
+    #: acceptable_tol (it compares objectives to a few units)
+    acceptable_tol_no_pose: float = 100.0
     #: runs without pose observations only: further push-tracked (or resting) starts tried
     #: when a fit fails or violates its own physics by more than restart_physics
     #: (initial3d.py, estimator3d.Estimator3D.solve), besides the sampler's start (one
@@ -218,6 +227,10 @@ class Solver3D:
         _check_sampler(self, "solver3d", "sampler_runs")
         if self.max_iter_no_pose < 1:
             raise _InvalidSetting(f"solver3d.max_iter_no_pose must be >= 1, got {self.max_iter_no_pose}")
+        for k in ("acceptable_tol", "acceptable_tol_no_pose"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise _InvalidSetting(f"solver3d.{k} must be > 0, got {v!r}")
         if not (np.isfinite(self.sampler_tip_deg) and self.sampler_tip_deg >= 0):
             raise _InvalidSetting(f"solver3d.sampler_tip_deg must be >= 0, got {self.sampler_tip_deg!r}")
         _check_stages(self, "solver3d", "")

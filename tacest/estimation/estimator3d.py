@@ -566,13 +566,14 @@ class Estimator3D:
 
     def stages(self):
         """The stage plan (solver.plan_stages): runs without pose observations have stages
-        of their own (the pose-observed path keeps [solver3d] homotopy and hessian); an
-        impulses stage only where fingers push."""
+        of their own (the pose-observed path keeps [solver3d] homotopy, hessian and
+        acceptable_tol); an impulses stage only where fingers push."""
         cfg, cfg3 = self.config.solver, self.config.solver3d
         hom = cfg3.homotopy if self.has_pose else cfg3.homotopy_no_pose
         hessian = cfg3.hessian if self.has_pose else cfg3.hessian_no_pose
         max_iter = cfg.max_iter if self.has_pose else cfg3.max_iter_no_pose
-        return plan_stages(hom, hessian, max_iter, cfg.stage_max_iter, impulses_first=bool(self.F))
+        return plan_stages(hom, hessian, max_iter, cfg.stage_max_iter, impulses_first=bool(self.F),
+                           acceptable_tol=None if self.has_pose else cfg3.acceptable_tol_no_pose)
 
     def stage_bounds(self, stage, z):
         lbx, ubx = self.variable_bounds(z)

@@ -95,7 +95,8 @@ class SolveOutcome:
 class Stage:
     """One IPOPT solve of a staged fit: the homotopy's settings (epsilon, complementarity
     and dynamics multipliers), whether only the contact impulses (and states) are free,
-    the Hessian model, the iteration budget, and whether it is the final stage."""
+    the Hessian model, the iteration budget, whether it is the final stage, and IPOPT's
+    acceptable tolerance (None: the problem's)."""
 
     label: str
     eps: float
@@ -105,10 +106,11 @@ class Stage:
     hessian: str
     max_iter: int
     final: bool
+    acceptable_tol: Optional[float] = None
 
 
 def plan_stages(homotopy, hessian: str, max_iter: int, stage_max_iter: int, impulses_first: bool = True,
-                last_only: bool = False) -> list:
+                last_only: bool = False, acceptable_tol: Optional[float] = None) -> list:
     """The stages of one staged solve.
 
     homotopy : [[epsilon, complementarity multiplier, dynamics multiplier], ...];
@@ -118,7 +120,9 @@ def plan_stages(homotopy, hessian: str, max_iter: int, stage_max_iter: int, impu
         the first homotopy stage's settings: a convex least-squares problem, so that
         every later stage starts from a physically consistent point);
     last_only : only the last homotopy stage (a warm start: z0 is already a solution of
-        a nearby problem).
+        a nearby problem);
+    acceptable_tol : IPOPT's acceptable tolerance (scaled KKT error) of every stage
+        (None: the problem's, ipopt_options and its nlpsol_options).
     """
     hom = [tuple(float(x) for x in s) for s in homotopy]
     if last_only:
@@ -127,14 +131,15 @@ def plan_stages(homotopy, hessian: str, max_iter: int, stage_max_iter: int, impu
     if impulses_first:
         stages.append(Stage("impulses", *hom[0], impulses_only=True,
                             hessian="gauss-newton" if hessian == "gauss-newton-then-exact" else hessian,
-                            max_iter=stage_max_iter, final=False))
+                            max_iter=stage_max_iter, final=False, acceptable_tol=acceptable_tol))
     for k, (eps, w, wd) in enumerate(hom):
         final = k == len(hom) - 1
         mode = hessian
         if mode == "gauss-newton-then-exact":
             mode = "exact" if final and len(hom) > 1 else "gauss-newton"
         stages.append(Stage(f"homotopy {k + 1}/{len(hom)}", eps, w, wd, impulses_only=False, hessian=mode,
-                            max_iter=max_iter if final else stage_max_iter, final=final))
+                            max_iter=max_iter if final else stage_max_iter, final=final,
+                            acceptable_tol=acceptable_tol))
     return stages
 
 
@@ -260,7 +265,7 @@ class BuiltSolver:
         self.progress = _Progress(problem.n_z, problem.g.shape[0], config.solver.print_every)
         self.solvers = {}
 
-    def _make(self, mode, max_iter):
+    def _make(self, mode, max_iter, acceptable_tol=None):
         opts = {"expand": False, "print_time": False, "iteration_callback": self.progress,
                 "ipopt": ipopt_options(self.config.solver, max_iter)}
         if mode == "limited-memory":
@@ -270,15 +275,19 @@ class BuiltSolver:
         extra = dict(getattr(self.problem, "nlpsol_options", None) or {})
         opts["ipopt"].update(extra.pop("ipopt", {}))
         opts.update(extra)
+        if acceptable_tol is not None:
+            opts["ipopt"]["acceptable_tol"] = float(acceptable_tol)
         return ca.nlpsol(f"tacest_nlp_{mode.replace('-', '_')}", "ipopt", self.problem.nlp, opts)
 
-    def solve(self, z0, p, lbx, ubx, lam_x0=None, lam_g0=None, label="", hessian="gauss-newton", max_iter=None):
-        """One IPOPT solve; returns (solution dict, StageInfo).  An interrupt during the
-        solve raises KeyboardInterrupt (:func:`tacest.interrupt.raise_if_interrupted`)."""
+    def solve(self, z0, p, lbx, ubx, lam_x0=None, lam_g0=None, label="", hessian="gauss-newton", max_iter=None,
+              acceptable_tol=None):
+        """One IPOPT solve; returns (solution dict, StageInfo).  acceptable_tol : IPOPT's
+        acceptable tolerance (None: the problem's).  An interrupt during the solve raises
+        KeyboardInterrupt (:func:`tacest.interrupt.raise_if_interrupted`)."""
         max_iter = self.config.solver.max_iter if max_iter is None else int(max_iter)
-        key = (hessian, max_iter)
+        key = (hessian, max_iter, acceptable_tol)
         if key not in self.solvers:
-            self.solvers[key] = self._make(hessian, max_iter)
+            self.solvers[key] = self._make(hessian, max_iter, acceptable_tol)
         solver = self.solvers[key]
         pr = self.problem
         self.progress.label = label
@@ -352,7 +361,8 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
         z = np.clip(z, lbx, ubx)
         warm = not stage.impulses_only
         sol, info = built.solve(z, p, lbx, ubx, lam_x if warm else None, lam_g if warm else None,
-                                label=stage.label, hessian=stage.hessian, max_iter=stage.max_iter)
+                                label=stage.label, hessian=stage.hessian, max_iter=stage.max_iter,
+                                acceptable_tol=stage.acceptable_tol)
         log.info(f"stage {stage.label}: {info.status}, {info.iterations} iterations, "
                  f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
         x_last = np.asarray(sol["x"]).reshape(-1)
@@ -363,7 +373,8 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
             infos.append(info)
             label = stage.label + " (retry)"
             sol, info = built.solve(np.clip(x_last, lbx, ubx), params_of(stage, retry=True), lbx, ubx,
-                                    label=label, hessian="gauss-newton", max_iter=stage.max_iter)
+                                    label=label, hessian="gauss-newton", max_iter=stage.max_iter,
+                                    acceptable_tol=stage.acceptable_tol)
             info.name = label
             log.info(f"stage {label}: {info.status}, {info.iterations} iterations, "
                      f"objective {info.objective:.6g}, {info.wall_time:.1f} s")
