@@ -69,6 +69,11 @@ YAW_SMOOTH_TIME = 0.3
 #: step, holds the tracked object several mm off the touches, and the fit from it ends
 #: in a poor local minimum (seed 5: objective 931 vs 105 from the true extents)
 EXTENT_REFINE = np.geomspace(1 / 1.19, 1.19, 9)
+#: grid boxes refined at most by start_candidates_3d: each refinement tracks 729 boxes
+#: (0.5 s on a 10 s run); a grid box near an earlier start often refines into it, and one
+#: recording refined 32 grid boxes (19 s, half its estimate) to find a second distinct
+#: start from a grid box of far higher cost; six others needed 5-8
+MAX_REFINEMENTS = 12
 #: relative cost preference per squared log-extent (units of L) breaking ties between
 #: candidate boxes (start_candidates_3d)
 TIE_PREFERENCE = 0.02
@@ -288,8 +293,10 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     plain resting start of extents ``resting_extents`` (3,) (units of L).  Each later
     start's extents differ from every earlier one's by more than
     :data:`DISTINCT_EXTENT_RATIO` in some extent, or it is the resting start (the other
-    kind of trajectory), so that a restart explores another basin.  With n > 1 the
-    resting start is among them (last, if its cost does not rank it higher)."""
+    kind of trajectory), so that a restart explores another basin; at most
+    :data:`MAX_REFINEMENTS` grid boxes are refined (fewer starts come back when those
+    do not give n).  With n > 1 the resting start is among them (last, if its cost does
+    not rank it higher)."""
     g = EXTENT_GRID
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     cost = np.zeros(len(grid))
@@ -319,6 +326,7 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     all_cost = np.concatenate([[rest_cost], cost])
     order = np.argsort(cost_key(all_ext, all_cost), kind="stable")
     picked: list[Start3D] = []
+    refined = 0
     for k in order:
         if k == 0:
             cand = Start3D(rest, None, "resting", rest_cost)
@@ -327,9 +335,10 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
                 return any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(
                     DISTINCT_EXTENT_RATIO) for p in picked)
 
-            if close(grid[k - 1]):
+            if close(grid[k - 1]) or refined >= MAX_REFINEMENTS:
                 continue
             box, poses, c = refine(grid[k - 1])
+            refined += 1
             if close(box):  # refined into the neighbourhood of an earlier start
                 continue
             cand = Start3D(box, poses, "push-tracked", c)
