@@ -69,11 +69,6 @@ YAW_SMOOTH_TIME = 0.3
 #: step, holds the tracked object several mm off the touches, and the fit from it ends
 #: in a poor local minimum (seed 5: objective 931 vs 105 from the true extents)
 EXTENT_REFINE = np.geomspace(1 / 1.19, 1.19, 9)
-#: grid boxes refined at most by start_candidates_3d: each refinement tracks 729 boxes
-#: (0.5 s on a 10 s run); a grid box near an earlier start often refines into it, and one
-#: recording refined 32 grid boxes (19 s, half its estimate) to find a second distinct
-#: start from a grid box of far higher cost; six others needed 5-8
-MAX_REFINEMENTS = 12
 #: relative cost preference per squared log-extent (units of L) breaking ties between
 #: candidate boxes (start_candidates_3d)
 TIE_PREFERENCE = 0.02
@@ -218,9 +213,12 @@ def yaw_track(run: Run) -> np.ndarray:
 
 def _box_signed_distance(p: np.ndarray, half: np.ndarray) -> np.ndarray:
     """Signed distance (m) of body-frame points p (..., 3) to boxes of half extents
-    half (..., 3) m (negative inside)."""
+    half (..., 3) m (negative inside).  Written per component: the start search
+    evaluates it on (boxes, samples, fingers) arrays of millions of points."""
     q = np.abs(p) - half
-    return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(np.max(q, axis=-1), 0)
+    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
+    ox, oy, oz = np.maximum(qx, 0), np.maximum(qy, 0), np.maximum(qz, 0)
+    return np.sqrt(ox * ox + oy * oy + oz * oz) + np.minimum(np.maximum(np.maximum(qx, qy), qz), 0)
 
 
 def push_tracker_3d(run: Run, extents_m: np.ndarray) -> np.ndarray:
@@ -270,9 +268,16 @@ def finger_gaps_3d(run: Run, extents_m: np.ndarray, poses: np.ndarray) -> np.nda
     N, T, F = poses.shape[0], run.n_samples, run.n_fingers
     if not F:
         return np.zeros((N, T, 0))
-    R = quat_to_matrix(poses[..., 3:].reshape(-1, 4)).reshape(N, T, 3, 3)
-    rel = run.finger_position[None] - poses[:, :, None, :3]  # (N, T, F, 3) world
-    p_body = np.einsum("ntji,ntfj->ntfi", R, rel)
+    if np.array_equal(poses[:, :, 3:], np.broadcast_to(poses[:1, :, 3:], poses[:, :, 3:].shape)):
+        # one orientation per sample for every box (the push tracker's): rotate the
+        # fingertips and the centres once each, Rᵀ c - Rᵀ p (the same values to rounding)
+        R = quat_to_matrix(poses[0, :, 3:])  # (T, 3, 3)
+        c_body = np.einsum("tji,tfj->tfi", R, run.finger_position)  # (T, F, 3)
+        p_body = c_body[None] - np.einsum("tji,ntj->nti", R, poses[..., :3])[:, :, None, :]
+    else:
+        R = quat_to_matrix(poses[..., 3:].reshape(-1, 4)).reshape(N, T, 3, 3)
+        rel = run.finger_position[None] - poses[:, :, None, :3]  # (N, T, F, 3) world
+        p_body = np.einsum("ntji,ntfj->ntfi", R, rel)
     sd = _box_signed_distance(p_body, 0.5 * np.asarray(extents_m, float)[:, None, None, :])
     return np.where(np.isfinite(sd), sd, 0.0) - run.finger_radius[None, None, :]
 
@@ -293,10 +298,8 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     plain resting start of extents ``resting_extents`` (3,) (units of L).  Each later
     start's extents differ from every earlier one's by more than
     :data:`DISTINCT_EXTENT_RATIO` in some extent, or it is the resting start (the other
-    kind of trajectory), so that a restart explores another basin; at most
-    :data:`MAX_REFINEMENTS` grid boxes are refined (fewer starts come back when those
-    do not give n).  With n > 1 the resting start is among them (last, if its cost does
-    not rank it higher)."""
+    kind of trajectory), so that a restart explores another basin.  With n > 1 the
+    resting start is among them (last, if its cost does not rank it higher)."""
     g = EXTENT_GRID
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     cost = np.zeros(len(grid))
@@ -326,7 +329,6 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     all_cost = np.concatenate([[rest_cost], cost])
     order = np.argsort(cost_key(all_ext, all_cost), kind="stable")
     picked: list[Start3D] = []
-    refined = 0
     for k in order:
         if k == 0:
             cand = Start3D(rest, None, "resting", rest_cost)
@@ -335,10 +337,9 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
                 return any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(
                     DISTINCT_EXTENT_RATIO) for p in picked)
 
-            if close(grid[k - 1]) or refined >= MAX_REFINEMENTS:
+            if close(grid[k - 1]):
                 continue
             box, poses, c = refine(grid[k - 1])
-            refined += 1
             if close(box):  # refined into the neighbourhood of an earlier start
                 continue
             cand = Start3D(box, poses, "push-tracked", c)
