@@ -259,3 +259,17 @@ def test_a_poke_run_whose_every_start_fails_exits_2_without_output(tmp_path):
     # the push-tracked and resting starts and the sampler's
     assert re.search(r"no fit from any of [34] starts", lines[0]) and "Maximum_Iterations_Exceeded" in lines[0]
     assert not out.exists()
+
+
+def test_finger_gaps_with_one_orientation_per_sample_match_the_general_path():
+    """finger_gaps_3d's fast path (every box turned alike per sample, the push tracker's)
+    gives the general path's gaps: the same boxes with one quaternion negated (the same
+    rotation, another array) take the general path; to 1e-12 m (rounding)."""
+    run = _push_run()
+    boxes = np.array([[0.08, 0.1, 0.12], [0.1, 0.1, 0.1], [0.14, 0.06, 0.09]])
+    poses = push_tracker_3d(run, boxes)
+    fast = finger_gaps_3d(run, boxes, poses)
+    other = poses.copy()
+    other[1, :, 3:] *= -1.0
+    np.testing.assert_allclose(fast, finger_gaps_3d(run, boxes, other), rtol=0, atol=1e-12)
+    assert np.isfinite(fast).all() and fast.min() < 0.0 < fast.max()
