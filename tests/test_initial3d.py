@@ -111,14 +111,15 @@ class _FakeProblem:
     n_shape = 3
 
 
-def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2):
+def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, compare=False):
     """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
     ``outcomes`` in turn (None: the solve fails; (objective, physics, status): a fit
-    ending with that IPOPT status, e.g. its iteration budget used up)."""
+    ending with that IPOPT status, e.g. its iteration budget used up); ``compare``:
+    solver3d.compare_starts (off: the restart logic alone)."""
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
     # the sampled start is off here (its place among the starts: test_a_tipping_sampled_start_goes_first)
     cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts,
-                                                  "sampler_particles": 0}})
+                                                  "sampler_particles": 0, "compare_starts": compare}})
     est.config, est.problem = cfg, _FakeProblem()
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")
@@ -171,6 +172,15 @@ def test_restart_keeps_the_successful_fit_of_lowest_objective(monkeypatch):
 def test_no_restart_after_a_physically_consistent_fit(monkeypatch):
     est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), (10.0, 0.01), (5.0, 0.0)])
     assert est.solve().objective == 50.0 and len(calls) == 1
+
+
+def test_compared_starts_are_all_solved(monkeypatch):
+    """solver3d.compare_starts (the default): every start is solved, whatever the first
+    fits' physics, and the lowest objective is kept."""
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), None, (5.0, 0.0)], compare=True)
+    assert est.solve().objective == 5.0 and len(calls) == 3
+    assert [a["status"] for a in est.attempts] == ["Solve_Succeeded", "failed", "Solve_Succeeded"]
+    assert EstimatorConfig().solver3d.compare_starts
 
 
 def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):

@@ -158,10 +158,11 @@ class Diagnosis3D:
 
 
 def _config(config, overrides, fit_iterations):
-    # runs without pose observations converge as tightly as pose-observed ones: the
-    # diagnosis compares objectives to a few units (Solver3D.acceptable_tol_no_pose)
+    # runs without pose observations converge as tightly as pose-observed ones (the
+    # diagnosis compares objectives to a few units: Solver3D.acceptable_tol_no_pose), and
+    # stop at the first good start as the diagnosis was measured (compare_starts)
     s3 = dataclasses.replace(config.solver3d, **{"acceptable_tol_no_pose": config.solver3d.acceptable_tol,
-                                                 **overrides})
+                                                 "compare_starts": False, **overrides})
     cfg = dataclasses.replace(config, solver3d=s3)
     if fit_iterations:
         cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, max_iter=int(fit_iterations)))

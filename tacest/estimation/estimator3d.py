@@ -470,9 +470,10 @@ class Estimator3D:
         initial3d.start_candidates_3d's (push-tracked boxes of a few extents and the
         plain resting start, best agreement with the contact flags first) and the
         sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
-        than ``solver3d.sampler_tip_deg``, else second): solve from the first; when that fit fails, or violates its own physics by more than
-        ``solver3d.restart_physics`` objective units per sample, again from up to
-        ``solver3d.restarts`` others; keep the fit of lowest objective (one whose final
+        than ``solver3d.sampler_tip_deg``, else second): solve from every one
+        (``solver3d.compare_starts``; else from the first, and when that fit fails, or
+        violates its own physics by more than ``solver3d.restart_physics`` objective
+        units per sample, again from up to ``solver3d.restarts`` others); keep the fit of lowest objective (one whose final
         stage used up its iteration budget included, with its status, when some start
         converged: solver.solve_from_starts).  Held
         parameters, runs poked unseen: the one solve starts from :func:`held_shape_tracks`."""
@@ -516,7 +517,7 @@ class Estimator3D:
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
-                accept_budget=self.accept_budget)
+                min_solves=len(starts) if cfg3.compare_starts else 0, accept_budget=self.accept_budget)
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
