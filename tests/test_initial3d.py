@@ -181,6 +181,17 @@ def test_compared_starts_are_all_solved(monkeypatch):
     assert est.solve().objective == 5.0 and len(calls) == 3
     assert [a["status"] for a in est.attempts] == ["Solve_Succeeded", "failed", "Solve_Succeeded"]
     assert EstimatorConfig().solver3d.compare_starts
+    # the resting start (no trajectory) goes last and is only a restart: not solved
+    # after a good compared fit, solved when none is
+    for outcomes, n_calls, kept in (([(50.0, 0.05), (40.0, 0.05), (5.0, 0.0)], 2, 40.0),
+                                    ([(50.0, 0.5), (40.0, 0.5), (5.0, 0.0)], 3, 5.0)):
+        est, calls = _fake_estimator(monkeypatch, outcomes, compare=True)
+        resting = estimator3d.start_candidates_3d(None, None, None, 3)
+        resting[0] = Start3D(np.ones(3), None, "resting", 0.0)
+        est.offered_starts.extend(resting)  # any order of the starts' trajectories
+        monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: resting[:n])
+        assert est.solve().objective == kept and len(calls) == n_calls
+        assert [a["start"] for a in est.attempts][-1] == ("resting" if n_calls == 3 else "start 2")
 
 
 def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):

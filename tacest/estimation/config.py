@@ -199,9 +199,9 @@ class Solver3D:
     #: objective 54.3, 1.15 mm (docs/estimation3d.md, "Speed").  The diagnosis keeps
     #: acceptable_tol (it compares objectives to a few units)
     acceptable_tol_no_pose: float = 100.0
-    #: runs without pose observations: solve from every start (the sampler's, the
-    #: push-tracked ones, the resting one) and keep the lowest objective, instead of
-    #: stopping at the first fit that passes restart_physics.  With the acceptable level
+    #: runs without pose observations: solve from every start (the sampler's and the
+    #: push-tracked ones; the resting one only as a restart) and keep the lowest
+    #: objective, instead of stopping at the first fit that passes restart_physics.  With the acceptable level
     #: above, a wrong basin converges fast and passes (a 23° dynamic recording: 36 mm,
     #: objective 105.3, marked consistent); the sampler's start, solved too, reaches
     #: 104.5 and 9.4 mm, and the fits within the likelihood-ratio bound widen the std
