@@ -466,18 +466,12 @@ class Estimator3D:
     def solve(self) -> SolveOutcome:
         """Staged solves (:meth:`solve_from_shape`).  Runs with pose observations (or held
         parameters, or no fingertip) solve once, from the observed poses and
-        :meth:`choose_start_shape`.  Without pose observations the starts are
-        initial3d.start_candidates_3d's (push-tracked boxes of a few extents and the
-        plain resting start, best agreement with the contact flags first) and the
-        sampler's (:meth:`sampled_start`: first when its lineage tips the box by more
-        than ``solver3d.sampler_tip_deg``, else second): solve from every one but the
-        resting start, which is then only a restart (``solver3d.compare_starts``; else
-        from the first, and when that fit fails, or
-        violates its own physics by more than ``solver3d.restart_physics`` objective
-        units per sample, again from up to ``solver3d.restarts`` others); keep the fit of lowest objective (one whose final
-        stage used up its iteration budget included, with its status, when some start
-        converged: solver.solve_from_starts).  Held
-        parameters, runs poked unseen: the one solve starts from :func:`held_shape_tracks`."""
+        :meth:`choose_start_shape`.  Without pose observations: the starts of
+        :func:`order_starts` (initial3d.start_candidates_3d's and :meth:`sampled_start`'s),
+        the compared ones all solved, then restarts while the fit of lowest objective
+        fails or violates its own physics by more than ``solver3d.restart_physics``
+        (solver.solve_from_starts: a fit that used up its budget competes by objective).
+        Held parameters, runs poked unseen: one solve from :func:`held_shape_tracks`."""
         pr, cfg3 = self.problem, self.config.solver3d
         self.attempts = []
         if self.has_pose or self.fixed_theta is not None or not self.F:
@@ -492,18 +486,7 @@ class Estimator3D:
                 self.start_tracks = None
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
-        sampled = self.sampled_start(starts[0])
-        if sampled is not None:
-            # a lineage that tips goes first (the push tracker never tips the box); a
-            # flat one is the first restart
-            starts.insert(0 if sampled.extra["max_tilt_deg"] > cfg3.sampler_tip_deg else 1, sampled)
-        compared = 0
-        if cfg3.compare_starts:
-            # the resting start (nothing moves) last, a restart only: compared, it was far
-            # worse on every recording of the benchmark but one, and it crept to the
-            # iteration budget on two (190 s)
-            starts = [c for c in starts if c.poses is not None] + [c for c in starts if c.poses is None]
-            compared = sum(c.poses is not None for c in starts)
+        starts, compared = order_starts(starts, self.sampled_start(starts[0]), cfg3)
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
@@ -785,6 +768,23 @@ def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
     est.p_final = est.stage_params(stages[-1])
     est.bounds_final = est.variable_bounds(est.z)
     return out
+
+
+def order_starts(starts: list, sampled, cfg3) -> tuple:
+    """(starts in the order they are solved, how many are compared) from the push-tracked
+    and resting starts (initial3d.start_candidates_3d) and the sampler's (or None): a
+    lineage that tips by more than ``cfg3.sampler_tip_deg`` goes first (the push tracker
+    never tips the box), a flat one second; with ``cfg3.compare_starts`` every start but
+    the resting one is compared and the resting one goes last, a restart only (compared,
+    it was far worse on all but one benchmark recording and crept to the iteration
+    budget on two, 190 s)."""
+    starts = list(starts)
+    if sampled is not None:
+        starts.insert(0 if sampled.extra["max_tilt_deg"] > cfg3.sampler_tip_deg else 1, sampled)
+    if not cfg3.compare_starts:
+        return starts, 0
+    moving = [c for c in starts if c.poses is not None]
+    return moving + [c for c in starts if c.poses is None], len(moving)
 
 
 def held_shape_tracks(runs, shape: Shape3D, s0, L: float) -> list:
