@@ -237,14 +237,3 @@ def test_shape_size_and_centroid():
         Shape(np.zeros((3, 4)))
     assert math.isfinite(Shape(RIGHT_TRIANGLE).size)
 
-
-def test_cross3_is_np_cross_broadcast():
-    """transforms.cross3 gives np.cross's values (to rounding) on batched and broadcast
-    shapes, in either order."""
-    from tacest.geometry.transforms import cross3
-
-    rng = np.random.default_rng(3)
-    for sa, sb in [((3,), (3,)), ((5, 3), (5, 3)), ((7, 8, 3), (7, 1, 3)), ((4, 3), (3,))]:
-        a, b = rng.normal(size=sa), rng.normal(size=sb)
-        np.testing.assert_allclose(cross3(a, b), np.cross(a, b), rtol=0, atol=1e-14)
-        np.testing.assert_allclose(cross3(b, a), np.cross(b, a), rtol=0, atol=1e-14)

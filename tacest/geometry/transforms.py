@@ -75,18 +75,6 @@ def quat_multiply(a, b) -> np.ndarray:
     ], -1)
 
 
-def cross3(a, b) -> np.ndarray:
-    """Cross products a × b of 3-vectors (..., 3), broadcast: np.cross's values at half
-    its cost on the small batched arrays of the forward models (np.cross moves axes)."""
-    a = np.asarray(a, float)
-    b = np.asarray(b, float)
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
-
-
 def quat_conjugate(q) -> np.ndarray:
     """Conjugate ``[w, -x, -y, -z]`` (the inverse of a unit quaternion), (..., 4)."""
     q = np.asarray(q, float)
