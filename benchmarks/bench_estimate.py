@@ -268,6 +268,8 @@ def median_figures(jobs: list[dict], rel_keys=REL_KEYS) -> dict:
     beyond 30 degrees and that topple (beyond 90)."""
     good = [j for j in jobs if j.get("ok")]
     s = {"runs": len(jobs), "failures": len(jobs) - len(good),
+         # scored estimates kept at their iteration budget (beside a converged start)
+         "not_converged": sum(1 for j in good if j.get("converged") is False),
          "failure_reasons": sorted({j["status"] for j in jobs if not j.get("ok")}),
          "chamfer": _median([j.get("chamfer") for j in good]),
          "chamfer_body": _median([j.get("chamfer_body") for j in good]),
@@ -365,6 +367,9 @@ def print_table(results: dict):
             if s["failures"]:
                 print(f"  {case:17s} {method:9s} failures: {s['failures']} of {s['runs']} "
                       f"({'; '.join(s['failure_reasons'])})")
+            if s.get("not_converged"):
+                print(f"  {case:17s} {method:9s} scored but not converged (kept at the iteration budget): "
+                      f"{s['not_converged']} of {s['runs']}")
     cal = calibration_target(results)
     print(f"  {'all':17s} {'':9s} {'PASS' if cal['met'] else 'FAIL'}  {cal['target']} (measured {cal['value']}, "
           f"{_fmt(cal['fraction'], pct=True, digits=0)}; needs at least 20)")

@@ -120,7 +120,8 @@ def warn_fit_quality(est) -> None:
     if not est.success and est.solver_status not in ("start guess",):
         logging.getLogger("tacest.estimate").warning(
             f"IPOPT did not converge ({est.solver_status}, {est.iterations} iterations): the estimate is the last "
-            "iterate of its final stage, kept as the fit of lowest objective among the starts (attr starts)")
+            "iterate of its final stage, kept as the fit of lowest objective among the starts (attr starts); its "
+            "stds come from a point that is not stationary")
     if est.consistent is False and est.fit_quality:
         from tacest.estimation.fitquality import quality_summary
 

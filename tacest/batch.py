@@ -226,6 +226,9 @@ def estimate_batch(objects: list, executor, shape: str = "box", config=None, met
         results[name] = BatchResult(name, obj.runs, obj.shape or shape, status, seconds=seconds,
                                     **({"estimate": value} if status == "ok" else {"reason": value}))
         log.info(f"{name}: " + (f"{value.solver_status}, {seconds:.1f} s" if status == "ok" else f"failed: {value}"))
+        if status == "ok" and not value.success:  # kept at its iteration budget (solver.solve_from_starts)
+            log.warning(f"{name}: IPOPT did not converge ({value.solver_status}); the estimate is the start of lowest "
+                        "objective, its last iterate (summary column solver_status)")
     return [results[o.name] for o in objects]
 
 

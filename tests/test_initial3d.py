@@ -205,12 +205,16 @@ def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):
     assert len(calls) == 2  # the converged restart is good: the search ends there
     assert out.objective == 51.8 and out.status == budget and not out.success and est.p_final == ("p", 0)
     assert [a["status"] for a in est.attempts] == [budget, "Solve_Succeeded"]
+    # a budget fit of lower objective that violates its physics does not let a good
+    # converged fit end the search
+    est, calls = _fake_estimator(monkeypatch, [(51.8, 0.5, budget), (75.8, 0.04), (60.0, 0.04)])
+    assert est.solve().objective == 51.8 and len(calls) == 3
     # a converged fit of lower objective wins over it
     est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), (40.0, 0.04)])
     assert est.solve().objective == 40.0
     # budget fits alone, and failures: no estimate
     est, calls = _fake_estimator(monkeypatch, [(51.8, 0.04, budget), None, (60.0, 0.5, budget)])
-    with pytest.raises(SolveFailedError, match="no fit from any of 3 starts.*homotopy 2/2.*" + budget):
+    with pytest.raises(SolveFailedError, match="no converged fit from any of 3 starts.*homotopy 2/2.*" + budget):
         est.solve()
     assert len(calls) == 3
     # ... unless budget fits are accepted (the diagnosis): they count as converged ones,
@@ -225,7 +229,7 @@ def test_a_fit_that_used_up_its_budget_competes_by_objective(monkeypatch):
 
 def test_every_start_failing_raises_one_solve_failure(monkeypatch):
     est, calls = _fake_estimator(monkeypatch, [None, None, None])
-    with pytest.raises(SolveFailedError, match="no fit from any of 3 starts.*Maximum_Iterations_Exceeded"):
+    with pytest.raises(SolveFailedError, match="no converged fit from any of 3 starts.*Maximum_Iterations_Exceeded"):
         est.solve()
     assert len(calls) == 3 and len(est.attempts) == 3
 
@@ -278,7 +282,7 @@ def test_a_poke_run_whose_every_start_fails_exits_2_without_output(tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("tacest: error:"), r.stderr
     # the push-tracked and resting starts and the sampler's
-    assert re.search(r"no fit from any of [34] starts", lines[0]) and "Maximum_Iterations_Exceeded" in lines[0]
+    assert re.search(r"no converged fit from any of [34] starts", lines[0]) and "Maximum_Iterations_Exceeded" in lines[0]
     assert not out.exists()
 
 

@@ -86,6 +86,11 @@ def test_advance_is_its_substeps_one_by_one():
     np.testing.assert_allclose(F_a[:, 0], F_b[0], rtol=0, atol=1e-12)
     assert np.abs(F_a).max() > 0.1  # the finger pushed
     assert np.abs(a[0] - pos).max() > 1e-5  # and the boxes moved
+    # a fingertip at NaN (lost tracking) pushes nothing, as the numpy model did
+    *c, F_c = world.advance(hyp, *state, 1e-3, 10, fingers=[(1, np.full(3, np.nan), v)], start_centres=[c0])
+    assert np.all(F_c == 0.0) and all(np.isfinite(x).all() for x in c)
+    with pytest.raises(ValueError, match="other sizes"):
+        world.advance(hyp, pos[:2], *state[1:], 1e-3, 10)
 
 
 def test_the_finger_geometry_is_the_box_signed_distance_and_its_gradient():

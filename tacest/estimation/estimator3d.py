@@ -109,8 +109,10 @@ def solver_for_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, eff
     """The cached solver of this structure (built on first use)."""
     import dataclasses
 
-    # the effects' prior sigmas are NLP parameters, not structure
-    s3 = dataclasses.replace(config.solver3d, ground_offset_sigma=0.0, edge_radius_sigma=0.0)
+    # the effects' prior sigmas are NLP parameters, and how starts are compared and
+    # stages stop is the solve's: not structure
+    s3 = dataclasses.replace(config.solver3d, ground_offset_sigma=0.0, edge_radius_sigma=0.0, compare_starts=True,
+                             acceptable_tol_no_pose=1.0)
     key = (shape.name, layout, repr(config.solver), repr(s3), tuple(effects))
     return _SOLVERS.get(key, lambda: BuiltSolver(Problem3D(shape, layout, config, effects), config))
 
@@ -512,7 +514,7 @@ class Estimator3D:
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
-            raise SolveFailedError(f"no fit from any of {len(starts)} starts; the first: {first}") from None
+            raise SolveFailedError(f"no converged fit from any of {len(starts)} starts; the first: {first}") from None
         self.z = out.z
         return out
 

@@ -423,7 +423,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
     reports it), but never ends the search (the search ends when the converged fit of
-    lowest objective is good enough): a start that creeps along a flat valley
+    lowest objective is good enough, and the fit of lowest objective is too): a start that creeps along a flat valley
     towards the right basin is worth more than a converged fit of a wrong one (a 3-D
     touch-only fit ended at objective 51.8 after 800 iterations, Chamfer 0.9 mm, the
     converged restart at 75.8, 17.7 mm).
@@ -455,19 +455,25 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             failure = failure or stage_failure(out.stages[-1])
         attempts.append({**record, "status": out.status, "objective": float(out.objective),
                          "physics_per_sample": float(physics), "misfit_local": local, **found})
+        if not np.isfinite(out.objective):
+            failure = failure or SolveFailedError(f"IPOPT ended at a non-finite objective ({out.status})")
+            continue
+        good = bool(physics <= restart_physics or local)
         if best is None or out.objective < best[0].objective:
-            best = (out, saved)
+            best = (out, saved, good)
         counts = out.status in SUCCESS_STATUSES or accept_budget
         if counts and (converged is None or out.objective < converged[0]):
-            converged = (out.objective, bool(physics <= restart_physics or local))
-        if k + 1 >= min_solves and converged is not None and converged[1]:
+            converged = (out.objective, good)
+        # the search ends at a good converged fit, unless the fit that would be kept (a
+        # budget fit of lower objective) violates its own physics
+        if k + 1 >= min_solves and converged is not None and converged[1] and best[2]:
             break
     if best is None or (converged is None and not accept_budget):
         raise failure
     if best[0].status in BUDGET_STATUSES:
         log.info(f"kept the fit of lowest objective ({best[0].objective:.6g}), whose final stage used up its "
                  f"iteration budget: {best[0].status}")
-    return best
+    return best[0], best[1]
 
 
 def attempts_json(attempts: list) -> str:

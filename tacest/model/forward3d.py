@@ -177,7 +177,7 @@ def _advance(half, mass, mu_g, mu_f, pos, quat, vel, om, n_g, h_ground, g, radiu
                     lever[r] = (R[r, 0] * half[i, 0] * CORNER_SIGNS[c, 0] + R[r, 1] * half[i, 1] * CORNER_SIGNS[c, 1]
                                 + R[r, 2] * half[i, 2] * CORNER_SIGNS[c, 2])
                 pen = h_ground - ((lever[0] + p[0]) * n_g[0] + (lever[1] + p[1]) * n_g[1] + (lever[2] + p[2]) * n_g[2])
-                if pen <= 0:
+                if not pen > 0:  # NaN: no force, as off the ground
                     continue
                 vv0 = v[0] + ow1 * lever[2] - ow2 * lever[1]
                 vv1 = v[1] + ow2 * lever[0] - ow0 * lever[2]
@@ -196,7 +196,7 @@ def _advance(half, mass, mu_g, mu_f, pos, quat, vel, om, n_g, h_ground, g, radiu
                     centre[r] = (1 - a) * c0[f, r] + a * c1[f, r]
                 sd = _closest(half[i], R, p, centre, n_w, point)
                 depth = radius[finger[f]] - sd
-                if depth <= 0:
+                if not depth > 0:  # NaN: no force, as out of reach
                     out[i, f, 0] = out[i, f, 1] = out[i, f, 2] = 0.0
                     continue
                 r0, r1, r2 = point[0] - p[0], point[1] - p[1], point[2] - p[2]
@@ -245,8 +245,12 @@ def box_finger_geometry(half, R, position, centre__world):
     """Signed distance (N,) m of a point centre__world (3,) to each box (negative
     inside), the outward normal (N, 3) world there, and the closest surface point
     (N, 3) world.  half (N, 3) m, R (N, 3, 3) body to world, position (N, 3) m."""
-    return _geometry(np.ascontiguousarray(half, float), np.ascontiguousarray(R, float),
-                     np.ascontiguousarray(position, float), np.asarray(centre__world, float))
+    half, R, position = (np.ascontiguousarray(a, float) for a in (half, R, position))
+    n = half.shape[0]
+    if half.shape != (n, 3) or R.shape != (n, 3, 3) or position.shape != (n, 3):
+        raise ValueError(f"box_finger_geometry: half {half.shape}, R {R.shape}, position {position.shape} "
+                         "are not (N, 3), (N, 3, 3), (N, 3)")  # the compiled kernel does not check
+    return _geometry(half, R, position, np.asarray(centre__world, float).reshape(3))
 
 
 class World3D:
@@ -284,11 +288,13 @@ class World3D:
     def advance(self, hyp: Boxes, pos, quat, vel, omega_b, h, n_sub, fingers=(), start_centres=(), forces=()):
         """n_sub steps of h s (semi-implicit Euler, module docstring): ``fingers`` [(finger
         index, centre at the end (3,) m, velocity (3,) m/s)] move linearly from
-        ``start_centres`` [(3,) m] to their end centres over the substeps (the k-th of
-        n_sub at fraction k / n_sub); ``forces`` [(point (3,) m, force (3,) N)] act
-        throughout.  Returns copies of the new state (pos, quat, vel, omega_b) and the
-        fingers' forces (N, K, 3) N of the last substep."""
+        ``start_centres`` [(3,) m] (default: the end centres) to their end centres over
+        the substeps (the k-th of n_sub at fraction k / n_sub); ``forces`` [(point (3,)
+        m, force (3,) N)] act throughout.  Returns copies of the new state (pos, quat,
+        vel, omega_b) and the fingers' forces (N, K, 3) N of the last substep."""
         K = len(fingers)
+        if not len(start_centres):
+            start_centres = [c for _, c, _ in fingers]
         idx = np.array([int(f) for f, _, _ in fingers], np.int64)
         c1 = np.array([np.asarray(c, float) for _, c, _ in fingers], float).reshape(K, 3)
         c0 = np.array([np.asarray(c, float) for c in start_centres], float).reshape(K, 3)
@@ -296,6 +302,11 @@ class World3D:
         f_points = np.array([np.asarray(p, float) for p, _ in forces], float).reshape(len(forces), 3)
         f_values = np.array([np.asarray(F, float) for _, F in forces], float).reshape(len(forces), 3)
         state = [np.array(a, float, order="C", copy=True) for a in (pos, quat, vel, omega_b)]
+        n = hyp.half.shape[0]
+        shapes = [a.shape for a in state] + [np.shape(a) for a in (hyp.half, hyp.mass, hyp.mu_ground, hyp.mu_finger)]
+        if shapes != [(n, 3), (n, 4), (n, 3), (n, 3), (n, 3), (n,), (n,), (n,)] or len(start_centres) != K:
+            raise ValueError(f"World3D.advance: hypotheses and state of other sizes {shapes}, or "
+                             f"{len(start_centres)} start centres for {K} fingers")  # the kernel does not check
         F = _advance(np.ascontiguousarray(hyp.half, float), np.ascontiguousarray(hyp.mass, float),
                      np.ascontiguousarray(hyp.mu_ground, float), np.ascontiguousarray(hyp.mu_finger, float),
                      *state, self.n_g, self.h, self.g, self.radius, idx, c0, c1, v_f, f_points, f_values,
