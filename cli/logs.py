@@ -117,11 +117,11 @@ def warn_fit_quality(est) -> None:
     converged fit reached a lower objective: solver.solve_from_starts), and one when it
     failed its goodness-of-fit test (the fits inside a diagnosis, which misfit on
     purpose, only log it as information: tacest.estimation.result)."""
-    if not est.success and est.solver_status not in ("start guess",):
-        logging.getLogger("tacest.estimate").warning(
-            f"IPOPT did not converge ({est.solver_status}, {est.iterations} iterations): the estimate is the last "
-            "iterate of its final stage, kept as the fit of lowest objective among the starts (attr starts); its "
-            "stds come from a point that is not stationary")
+    from tacest.estimation.result import not_converged_note
+
+    note = not_converged_note(est)
+    if note:
+        logging.getLogger("tacest.estimate").warning(note)
     if est.consistent is False and est.fit_quality:
         from tacest.estimation.fitquality import quality_summary
 

@@ -206,6 +206,7 @@ def estimate_batch(objects: list, executor, shape: str = "box", config=None, met
     """Estimate every object of ``objects`` (read_manifest) on ``executor``
     (tacest.parallel.Executor); [BatchResult] in the manifest's order.  The runs are read
     and checked here; ``config`` is sent once to each worker."""
+    from tacest.estimation.result import not_converged_note
     from tacest.io.run import read_runs
 
     results, handles = {}, {}
@@ -226,9 +227,9 @@ def estimate_batch(objects: list, executor, shape: str = "box", config=None, met
         results[name] = BatchResult(name, obj.runs, obj.shape or shape, status, seconds=seconds,
                                     **({"estimate": value} if status == "ok" else {"reason": value}))
         log.info(f"{name}: " + (f"{value.solver_status}, {seconds:.1f} s" if status == "ok" else f"failed: {value}"))
-        if status == "ok" and not value.success:  # kept at its iteration budget (solver.solve_from_starts)
-            log.warning(f"{name}: IPOPT did not converge ({value.solver_status}); the estimate is the start of lowest "
-                        "objective, its last iterate (summary column solver_status)")
+        note = not_converged_note(value) if status == "ok" else None
+        if note:  # kept at its iteration budget (solver.solve_from_starts)
+            log.warning(f"{name}: {note}")
     return [results[o.name] for o in objects]
 
 

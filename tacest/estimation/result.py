@@ -140,6 +140,17 @@ def identifiability(params: dict, info: Optional[Information], facts: FitFacts) 
 BASIN_CONFIDENCE = 0.95
 
 
+def not_converged_note(est) -> Optional[str]:
+    """The one line that tells a user an estimate is IPOPT's last iterate of a final
+    stage that used up its budget (kept as the fit of lowest objective among the starts:
+    solver.solve_from_starts), or None for a converged one (or a planner's start guess)."""
+    if est.success or est.solver_status == "start guess":
+        return None
+    return (f"IPOPT did not converge ({est.solver_status}, {est.iterations} iterations): the estimate is the last "
+            "iterate of its final stage, kept as the fit of lowest objective among the starts (attr starts); its "
+            "stds come from a point that is not stationary")
+
+
 def basin_spread(attempts: list, objective: float, vertices, params: dict) -> dict:
     """{name: how far another plausible basin's fit lies from the kept one}: "shape" (m,
     the Chamfer distance of the two shapes after the best rigid alignment) and mass,

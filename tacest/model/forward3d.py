@@ -56,10 +56,6 @@ class Boxes:
         e2 = (2.0 * self.half) ** 2
         return self.mass[:, None] * (e2[:, [1, 0, 0]] + e2[:, [2, 2, 1]]) / 12.0
 
-    @property
-    def corners(self) -> np.ndarray:
-        """(N, 8, 3) m body frame."""
-        return self.half[:, None, :] * CORNER_SIGNS[None]
 
 
 # ---------------------------------------------------------------------------------
@@ -141,15 +137,15 @@ def _geometry(half, R, position, centre):
 
 
 @njit(cache=True)
-def _advance(half, mass, mu_g, mu_f, pos, quat, vel, om, n_g, h_ground, g, radius, finger, c0, c1, v_f,
-             f_points, f_values, n_sub, h):
-    """n_sub steps of h s for every hypothesis, in place on pos, quat, vel, om (N, ...):
+def _advance(half, mass, inertia, mu_g, mu_f, pos, quat, vel, om, n_g, h_ground, g, g_mag, radius, finger, c0, c1,
+             v_f, f_points, f_values, n_sub, h):
+    """n_sub steps of h s for every hypothesis (Boxes' arrays, inertia (N, 3) principal),
+    in place on pos, quat, vel, om (N, ...):
     kinematic fingertips ``finger`` (K,) (indices into radius) moving linearly from c0 to
     c1 (K, 3) at v_f (K, 3) over the substeps, measured forces f_values (M, 3) N at
     f_points (M, 3).  Returns the fingers' forces (N, K, 3) N of the last substep.
     Scalar code: small arrays allocated in the loop cost more than the arithmetic."""
     N, K, M = half.shape[0], finger.shape[0], f_points.shape[0]
-    g_mag = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     eps2 = SLIP_REGULARIZATION ** 2
     out = np.zeros((N, K, 3))
     R = np.empty((3, 3))
@@ -159,8 +155,7 @@ def _advance(half, mass, mu_g, mu_f, pos, quat, vel, om, n_g, h_ground, g, radiu
     point = np.empty(3)
     for i in range(N):
         m = mass[i]
-        ex, ey, ez = (2.0 * half[i, 0]) ** 2, (2.0 * half[i, 1]) ** 2, (2.0 * half[i, 2]) ** 2
-        I0, I1, I2 = m * (ey + ez) / 12.0, m * (ex + ez) / 12.0, m * (ex + ey) / 12.0
+        I0, I1, I2 = inertia[i, 0], inertia[i, 1], inertia[i, 2]
         k_g = m * g_mag / (4 * GROUND_SINK)
         c_g = 2 * DAMPING_RATIO * math.sqrt(k_g * m / 4)
         c_f = 2 * DAMPING_RATIO * math.sqrt(FINGER_STIFFNESS * m)
@@ -280,9 +275,7 @@ class World3D:
         m/s)] kinematic spheres pushing by penetration; ``forces`` [(point (3,) m, force
         (3,) N)] applied to every hypothesis as measured.  Returns the new state and the
         fingers' forces on the object [(N, 3) N] in the order of ``fingers``."""
-        centres = [c for _, c, _ in fingers]
-        out = self.advance(hyp, pos, quat, vel, omega_b, h, 1, fingers=fingers, start_centres=centres,
-                           forces=forces)
+        out = self.advance(hyp, pos, quat, vel, omega_b, h, 1, fingers=fingers, forces=forces)
         return (*out[:4], [out[4][:, k] for k in range(len(fingers))])
 
     def advance(self, hyp: Boxes, pos, quat, vel, omega_b, h, n_sub, fingers=(), start_centres=(), forces=()):
@@ -307,8 +300,8 @@ class World3D:
         if shapes != [(n, 3), (n, 4), (n, 3), (n, 3), (n, 3), (n,), (n,), (n,)] or len(start_centres) != K:
             raise ValueError(f"World3D.advance: hypotheses and state of other sizes {shapes}, or "
                              f"{len(start_centres)} start centres for {K} fingers")  # the kernel does not check
-        F = _advance(np.ascontiguousarray(hyp.half, float), np.ascontiguousarray(hyp.mass, float),
-                     np.ascontiguousarray(hyp.mu_ground, float), np.ascontiguousarray(hyp.mu_finger, float),
-                     *state, self.n_g, self.h, self.g, self.radius, idx, c0, c1, v_f, f_points, f_values,
+        F = _advance(*(np.ascontiguousarray(a, float) for a in (hyp.half, hyp.mass, hyp.inertia, hyp.mu_ground,
+                                                                 hyp.mu_finger)),
+                     *state, self.n_g, self.h, self.g, self.g_mag, self.radius, idx, c0, c1, v_f, f_points, f_values,
                      int(n_sub), float(h))
         return (*state, F)
