@@ -13,8 +13,11 @@ import pytest
 from tacest.errors import SolveFailedError
 from tacest.estimation import estimator3d
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.initial3d import (EXTENT_GRID, Start3D, finger_gaps_3d, push_tracker_3d, start_candidates_3d,
-                                         touch_inconsistency_3d, yaw_track)
+from tacest.errors import TacestError
+from tacest.estimation.initial3d import (EXTENT_GRID, Start3D, continued_track, finger_gaps_3d, push_tracker_3d,
+                                         start_candidates_3d, touch_inconsistency_3d, yaw_track)
+from tacest.geometry.shapes3d import make_shape_3d, numeric_vertices_3d
+from tacest.io.estimate import Estimate, RunEstimate
 from tacest.estimation.solver import SolveOutcome, StageInfo
 from tacest.io.run import Run
 
@@ -298,3 +301,71 @@ def test_finger_gaps_with_one_orientation_per_sample_match_the_general_path():
     other[1, :, 3:] *= -1.0
     np.testing.assert_allclose(fast, finger_gaps_3d(run, boxes, other), rtol=0, atol=1e-12)
     assert np.isfinite(fast).all() and fast.min() < 0.0 < fast.max()
+
+
+def test_a_continued_track_keeps_the_earlier_poses_and_follows_the_newer_push():
+    run = _push_run()
+    full = push_tracker_3d(run, BOX[None])[0]
+    # continued from the tracker's own pose mid-push, it is the tracker's track (to
+    # rounding: the same steps from the same pose)
+    np.testing.assert_allclose(continued_track(run, BOX, full[:150]), full, atol=1e-12)
+    # an earlier trajectory 1 cm aside (+y) and 5 mm further along +x: kept exactly over
+    # its samples, then held and pushed on from its last pose; the fingertip is never
+    # inside the box after the tracker's step (as test_the_tracked_box_follows_...)
+    before = full[:150].copy()
+    before[:, :2] += [0.005, 0.01]
+    track = continued_track(run, BOX, before)
+    np.testing.assert_array_equal(track[:150], before)
+    np.testing.assert_allclose(track[150:, 1], 0.01, atol=1e-12)
+    assert finger_gaps_3d(run, BOX[None], track[None])[0, 150:, 0].min() > -1e-9
+    # the push goes on 2 cm/s until sample 300: it ends where the fingertip left it
+    assert track[-1, 0] == pytest.approx(full[-1, 0], abs=1e-3)
+    with pytest.raises(ValueError, match="poses_before"):
+        continued_track(run, BOX, np.zeros((run.n_samples + 1, 7)))
+
+
+@pytest.mark.parametrize("spec", ["box", "polytope:12"])
+def test_shape_parameters_come_back_from_their_vertices(spec):
+    shape = make_shape_3d(spec)
+    s = shape.initial(np.array([1.2, 0.8, 0.6])) * np.linspace(0.9, 1.1, shape.n_params)
+    V = numeric_vertices_3d(shape, s, 0.1)
+    np.testing.assert_allclose(shape.params_from_vertices(V, 0.1), s, rtol=1e-12)
+
+
+def _earlier_estimate(run, T0, shape="box", dim=3, n_runs=1):
+    poses = push_tracker_3d(run, BOX[None])[0][:T0]
+    V = numeric_vertices_3d(make_shape_3d("box"), BOX / 0.1, 0.1)
+    return Estimate(dim=dim, shape=shape, vertices=V, params={},
+                    runs=[RunEstimate(pose=poses, velocity=np.zeros((T0, 6)))] * n_runs)
+
+
+def test_an_earlier_estimate_is_a_start_with_its_shape_and_continued_trajectory():
+    run = _push_run()
+    start = estimator3d.previous_start([run], make_shape_3d("box"), _earlier_estimate(run, 150), 0.1)
+    assert start.label == "previous estimate"
+    np.testing.assert_allclose(start.shape_params, BOX / 0.1, rtol=1e-12)
+    np.testing.assert_allclose(start.poses[0], push_tracker_3d(run, BOX[None])[0], atol=1e-12)
+    for bad, what in ((_earlier_estimate(run, 150, shape="polytope:12"), "not a 3-D box"),
+                      (_earlier_estimate(run, 150, n_runs=2), "has 2 runs"),
+                      (_earlier_estimate(run, 150, dim=2), "2-D")):
+        with pytest.raises(TacestError, match=what):
+            estimator3d.previous_start([run], make_shape_3d("box"), bad, 0.1)
+    longer = _push_run()
+    longer = _earlier_estimate(longer, 400)
+    longer.runs[0].pose = np.concatenate([longer.runs[0].pose, longer.runs[0].pose[-1:]])
+    with pytest.raises(TacestError, match="does not fit a run of 400 samples"):
+        estimator3d.previous_start([run], make_shape_3d("box"), longer, 0.1)
+
+
+def test_the_previous_estimate_is_solved_first_and_compared(monkeypatch):
+    """An earlier estimate's start (a closed loop's) is solved first, from its own shape
+    parameters, and competes by objective with every compared start."""
+    est, calls = _fake_estimator(monkeypatch, [(30.0, 0.0), (50.0, 0.05), (40.0, 0.05), (5.0, 0.0)], compare=True)
+    prev = Start3D(np.ones(3), [np.zeros((400, 7))], "previous estimate", 0.0, shape_params=np.array([1.1, 0.7, 0.5]))
+    est.previous = prev
+    est.offered_starts.append(prev)
+    out = est.solve()
+    np.testing.assert_allclose(calls[0], [1.1, 0.7, 0.5])
+    assert [a["start"] for a in est.attempts][0] == "previous estimate"
+    # the previous start and the three compared ones are all solved; the lowest kept
+    assert len(calls) == 4 and out.objective == 5.0

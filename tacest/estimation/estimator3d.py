@@ -31,7 +31,7 @@ from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
-from tacest.estimation.initial3d import (Start3D, push_tracker_3d, smoothed_start_track, start_candidates_3d,
+from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
@@ -241,8 +241,12 @@ def global_vector_3d(config: EstimatorConfig, scales: Scales, eps, comp_mult, dy
 class Estimator3D:
     """Implicit estimator for a set of 3-D runs of one object."""
 
+    #: one more start from an earlier estimate of the first samples of these runs
+    #: (:func:`previous_start`), or None
+    previous: Start3D | None = None
+
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 fixed_theta=None, effects=(), accept_budget: bool = False):
+                 fixed_theta=None, effects=(), accept_budget: bool = False, previous: Estimate | None = None):
         check_runs_3d(runs)
         self.accept_budget = bool(accept_budget)  # a fit may end on its iteration budget (solver.run_stages)
         #: (n_theta,) scaled parameters to hold (the trajectories alone are fitted: a
@@ -262,6 +266,7 @@ class Estimator3D:
             raise TacestError(f"size bound {self.size_bound:g} m is below the length scale {self.scales.L:g} m "
                               f"times {MIN_BOUND_OVER_SCALE}: no shape fits")
         self.s0 = self.shape.initial(np.full(3, 1.0))  # a cube of the length scale
+        self.previous = None if previous is None else previous_start(runs, self.shape, previous, self.scales.L)
         #: the modelled effects (effects_3d)
         self.effects = effects_3d(self.shape, self.config, effects)
         t0 = time.perf_counter()
@@ -489,11 +494,14 @@ class Estimator3D:
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
         starts, compared = order_starts(starts, self.sampled_start(starts[0]), cfg3)
+        if self.previous is not None:
+            starts.insert(0, self.previous)
+            compared += bool(compared)
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
         def solve_one(c):
-            s0 = self.shape.initial(c.extents)
+            s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
             self.start_tracks = c.poses
             try:
                 out = self.solve_from_shape(s0, accept_budget=True)  # solve_from_starts judges budget fits
@@ -789,6 +797,31 @@ def order_starts(starts: list, sampled, cfg3) -> tuple:
     return moving + [c for c in starts if c.poses is None], len(moving)
 
 
+def previous_start(runs: list, shape: Shape3D, previous: Estimate, L: float) -> Start3D:
+    """A start from an earlier estimate ``previous`` of the same object from the first
+    samples of the same runs (a closed loop's last step, before its newest poke): its
+    shape (Shape3D.params_from_vertices, scaled by the length scale L m) and its
+    trajectories, each continued over the run's newer samples by the push tracker from
+    its last pose (initial3d.continued_track).  Raises TacestError where the estimate
+    does not fit the runs (dimension, shape, number of runs, a longer trajectory)."""
+    if previous.dim != 3 or previous.shape != shape.name:
+        raise TacestError(f"the earlier estimate is a {previous.dim}-D {previous.shape}, not a 3-D {shape.name}")
+    if len(previous.runs) != len(runs):
+        raise TacestError(f"the earlier estimate has {len(previous.runs)} runs, these are {len(runs)}")
+    V = np.asarray(previous.vertices, float)
+    s0 = shape.params_from_vertices(V, L)
+    extents = np.ptp(V, axis=0) / L
+    poses = []
+    for run, re in zip(runs, previous.runs):
+        P = np.asarray(re.pose, float)
+        if P.ndim != 2 or P.shape[1] != 7 or not 0 < len(P) <= run.n_samples or not np.all(np.isfinite(P)):
+            raise TacestError(f"the earlier estimate's trajectory ({P.shape}) does not fit a run of "
+                              f"{run.n_samples} samples")
+        poses.append(continued_track(run, extents * L, P))
+    cost = sum(float(touch_inconsistency_3d(run, extents[None] * L, P[None])[0]) for run, P in zip(runs, poses))
+    return Start3D(extents, poses, "previous estimate", cost, shape_params=s0)
+
+
 def held_shape_tracks(runs, shape: Shape3D, s0, L: float) -> list:
     """Starting poses (T, 7) per run for a fit whose shape is held at s0 (scaled, length
     scale L m): the observed poses where a run has them, else the push tracker's box of
@@ -802,12 +835,14 @@ def held_shape_tracks(runs, shape: Shape3D, s0, L: float) -> list:
     return out
 
 def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                effects=()) -> Estimate:
+                effects=(), previous: Estimate | None = None) -> Estimate:
     """Estimate one object's shape, inertia, friction and every run's trajectory from 3-D
     runs; ``effects``: effect names modelled as extra parameters (tacest.model.registry,
-    3-D).  See the module docstring."""
+    3-D); ``previous``: an earlier estimate of the first samples of the same runs, one
+    more start where the runs have no pose observations (:func:`previous_start`).  See
+    the module docstring."""
     t_start = time.perf_counter()
-    est = Estimator3D(runs, shape_spec, config, effects=effects)
+    est = Estimator3D(runs, shape_spec, config, effects=effects, previous=previous)
     pr = est.problem
     log.info(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
     out = est.solve()

@@ -112,6 +112,9 @@ class Start3D:
     poses: list | None
     label: str
     inconsistency: float
+    #: the shape parameters (scaled) to start from where they are not the box of
+    #: ``extents`` (an earlier estimate's shape), else None
+    shape_params: np.ndarray | None = None
     #: what the start's attempt record carries besides (the sampler's seed, likelihood, tilt)
     extra: dict = field(default_factory=dict)
 
@@ -227,16 +230,48 @@ def push_tracker_3d(run: Run, extents_m: np.ndarray) -> np.ndarray:
     whenever a touching fingertip would be inside it, just enough to clear it;
     vectorized over the boxes, sequential in time."""
     extents_m = np.atleast_2d(np.asarray(extents_m, float))
-    N, T = extents_m.shape[0], run.n_samples
     up = np.asarray(run.up, float)
     up = up / np.linalg.norm(up)
     R0 = initial_orientation(run)
     Rt = _axis_rotation(up, yaw_track(run)) @ R0  # (T, 3, 3), shared by all boxes
-    cur = initial_position(run, extents_m, R0)  # (N, 3)
-    half = 0.5 * extents_m
-    pos = np.zeros((N, T, 3))
+    pos = _slide_clear(run, 0.5 * extents_m, initial_position(run, extents_m, R0), Rt, 0)
+    q = np.repeat(_quat_from_matrix(Rt)[None], len(extents_m), 0)
+    return np.concatenate([pos, q], -1)
+
+
+def continued_track(run: Run, extents_m: np.ndarray, poses_before: np.ndarray) -> np.ndarray:
+    """(T, 7) poses of a box of extents (3,) m that follow ``poses_before`` (T0, 7)
+    [x, y, z m, qw, qx, qy, qz] (T0 <= T: e.g. an earlier estimate's trajectory of the
+    first T0 samples of ``run``) and, from there, the push tracker's motion
+    (:func:`push_tracker_3d`) from the last of those poses: turned by the change of
+    :func:`yaw_track` since sample T0 - 1, slid clear of touching fingertips."""
+    poses_before = np.asarray(poses_before, float)
+    T, T0 = run.n_samples, len(poses_before)
+    if not 0 < T0 <= T or poses_before.shape[1:] != (7,):
+        raise ValueError(f"poses_before must be (T0, 7) with 0 < T0 <= {T}, got {poses_before.shape}")
+    up = np.asarray(run.up, float)
+    up = up / np.linalg.norm(up)
+    q_last = poses_before[-1, 3:] / np.linalg.norm(poses_before[-1, 3:])
+    yaw = yaw_track(run)
+    Rt = _axis_rotation(up, yaw - yaw[T0 - 1]) @ quat_to_matrix(q_last)
+    half = 0.5 * np.asarray(extents_m, float).reshape(1, 3)
+    pos = _slide_clear(run, half, poses_before[-1:, :3], Rt, T0)[0]
+    out = np.concatenate([pos, _quat_from_matrix(Rt)], -1)
+    out[:T0] = poses_before
+    return out
+
+
+def _slide_clear(run: Run, half: np.ndarray, start: np.ndarray, Rt: np.ndarray, t0: int) -> np.ndarray:
+    """(N, T, 3) m: the positions of N boxes of half extents ``half`` (N, 3) m and
+    orientations Rt (T, 3, 3), at ``start`` (N, 3) until sample t0 and from there slid
+    along the ground whenever a touching fingertip would be inside one (push tracker)."""
+    T = run.n_samples
+    up = np.asarray(run.up, float)
+    up = up / np.linalg.norm(up)
+    cur = np.array(start, float)
+    pos = np.repeat(cur[:, None], T, 1)
     on = (touching(run) & np.all(np.isfinite(run.normal), axis=-1)) if run.n_fingers else np.zeros((T, 0), bool)
-    for t in range(T):
+    for t in range(t0, T):
         for f in np.nonzero(on[t])[0]:
             n = run.normal[t, f]
             push = -(n - (n @ up) * up)  # horizontal part of the push on the object
@@ -248,8 +283,7 @@ def push_tracker_3d(run: Run, extents_m: np.ndarray) -> np.ndarray:
             step = np.where(gap < 0, np.minimum(-gap / size, MAX_STEP), 0.0)
             cur = cur + step[:, None] * (push / size)[None]
         pos[:, t] = cur
-    q = np.repeat(_quat_from_matrix(Rt)[None], N, 0)
-    return np.concatenate([pos, q], -1)
+    return pos
 
 
 def resting_poses(run: Run, extents_m: np.ndarray) -> np.ndarray:

@@ -60,6 +60,12 @@ class Shape3D:
         """Scaled parameters of a starting shape of box extents (3,) (units of L)."""
         raise NotImplementedError
 
+    def params_from_vertices(self, V, L):
+        """Scaled parameters (n_params,) of the shape whose body-frame vertices
+        (:meth:`vertices`) are V (K, 3) m, e.g. an earlier estimate's (the inverse of
+        :meth:`vertices` on its image)."""
+        raise NotImplementedError
+
     def bounds(self, size_bound_scaled):
         """Lower and upper bounds on s (numpy arrays)."""
         return (np.full(self.n_params, MIN_SIZE_FRACTION * size_bound_scaled),
@@ -90,6 +96,9 @@ class Box3D(Shape3D):
 
     def initial(self, extents):
         return np.asarray(extents, float).reshape(3).copy()
+
+    def params_from_vertices(self, V, L):
+        return np.ptp(np.asarray(V, float).reshape(8, 3), axis=0) / L
 
     def signed_distance(self, p_body, s, L):
         return box_signed_distance(p_body, s * (L / 2))
@@ -130,6 +139,10 @@ class Polytope3D(Shape3D):
         half = 0.5 * np.asarray(extents, float).reshape(3)
         U = np.abs(self.directions)
         return np.min(half[None, :] / np.maximum(U, 1e-12), axis=1)
+
+    def params_from_vertices(self, V, L):
+        V = np.asarray(V, float).reshape(self.n_vertices, 3)
+        return np.einsum("kc,kc->k", V, self.directions) / L  # V_k = s_k L u_k, |u_k| = 1
 
     def signed_distance(self, p_body, s, L):
         """Largest signed distance to the planes of the faces of the fixed triangulation

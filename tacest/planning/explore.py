@@ -11,6 +11,8 @@ where it was placed; no estimate exists yet, so it is the same for every policy)
 for n = 1 .. N:
 
 1. estimate the run so far (tacest.estimation.estimator.estimate_runs) -> ``estimate_<n>.h5``;
+   in 3-D the last step's estimate is one more start, its trajectory continued over the
+   newest poke (estimator3d.previous_start), compared by objective with the others;
    score it against the truth (tacest.evaluation.metrics.evaluate);
 2. if n < N: plan the next poke with the policy (tacest.planning.planner.plan_next,
    aimed at the estimated centroid) -> ``plan_<n>.h5``, execute it in the simulator
@@ -177,6 +179,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     t0 = time.perf_counter()
     write_run(record_sim(sim), run_path)
     t_record = time.perf_counter() - t0
+    previous = None  # the last estimate: one more start for the next one (3-D)
     for n in range(1, N + 1):
         run = read_run(run_path)
         step = {"pokes": n, "samples": run.n_samples, "data_time": float(run.time[-1] - run.time[0]),
@@ -185,10 +188,11 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
         t0 = time.perf_counter()
         est = None
         try:
-            est_obj = estimate([run], shape, config=config)
+            warm = {"previous": previous} if int(opts.dim) == 3 and previous is not None else {}
+            est_obj = estimate([run], shape, config=config, **warm)
             est_path = out / f"estimate_{n}.h5"
             write_estimate(est_obj, est_path)
-            est = read_estimate(est_path)
+            est = previous = read_estimate(est_path)
             step["estimate_status"] = est.solver_status
         except SolveFailedError as exc:
             step["estimate_status"] = "failed"
