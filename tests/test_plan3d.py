@@ -198,6 +198,12 @@ def test_explore_3d_writes_the_2d_layout_and_views(loop_dir):
 
     run = read_run(out / "run.h5")
     assert run.dim == 3 and run.truth is not None and not run.has_force and run.n_fingers == 3
+    import h5py
+
+    # the second estimate had the first one as one more start (estimator3d.previous_start)
+    starts = [[a["start"] for a in json.loads(h5py.File(out / f"estimate_{n}.h5", "r").attrs["starts"])]
+              for n in (1, 2)]
+    assert "previous estimate" not in starts[0] and starts[1][0] == "previous estimate"
 
 
 @pytest.fixture(scope="module")
