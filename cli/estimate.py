@@ -21,9 +21,13 @@ from tacest.cli.parallel import executor, parallel_options
               help="implicit: one NLP over states, impulses and parameters; shooting: baseline.")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="TOML settings (`tacest config --defaults` prints every key with its default); unknown keys are an error.")
+@click.option("--start-from", "previous_path", type=click.Path(dir_okay=False), default=None, metavar="ESTIMATE",
+              help="An earlier estimate of the first samples of these runs (3-D, implicit): its shape and "
+                   "trajectories, continued over the newer samples, are one more start, compared by objective "
+                   "with the estimator's own. See docs/estimation3d.md.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
-def estimate(runs, output, manifest, shape, method, config_path, quiet, workers, scheduler):
+def estimate(runs, output, manifest, shape, method, config_path, previous_path, quiet, workers, scheduler):
     """Estimate one object from RUNS (run files of the same object; shared parameters,
     one trajectory each) and write the estimate file OUTPUT; or, with --batch, every
     object of a manifest (its estimates on a Dask cluster with --workers or --scheduler)."""
@@ -36,6 +40,8 @@ def estimate(runs, output, manifest, shape, method, config_path, quiet, workers,
     if manifest is not None:
         if runs:
             raise click.UsageError("give either RUNS or --batch MANIFEST, not both")
+        if previous_path is not None:
+            raise click.UsageError("--start-from goes with the RUNS of one object, not --batch")
         _batch(manifest, output, shape, method, config_path, quiet, executor(workers, scheduler))
         return
     if not runs:
@@ -43,15 +49,16 @@ def estimate(runs, output, manifest, shape, method, config_path, quiet, workers,
     if workers is not None or scheduler is not None:
         raise click.UsageError("--workers and --scheduler go with --batch (one object is one fit)")
     from tacest.dims import estimate_runs
-    from tacest.io.estimate import write_estimate
+    from tacest.io.estimate import read_estimate, write_estimate
     from tacest.io.outputs import check_output
     from tacest.io.run import read_runs
 
-    output = check_output(output, inputs=[*runs, config_path])  # before minutes of solving
+    output = check_output(output, inputs=[*runs, config_path, previous_path])  # before minutes of solving
     config = load_config(config_path)
     check_linear_solver(config.solver.linear_solver)
     loaded = read_runs(runs)
-    est = estimate_runs(loaded, shape, config=config, method=method)
+    previous = None if previous_path is None else read_estimate(previous_path)
+    est = estimate_runs(loaded, shape, config=config, method=method, previous=previous)
     write_estimate(est, output)
     warn_fit_quality(est)
     if not quiet:

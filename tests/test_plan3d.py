@@ -249,6 +249,29 @@ def test_plan_3d_cli(estimate_1, tmp_path):
     assert bad.returncode == 2 and "goes with method eig" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
+def test_estimate_starts_from_an_earlier_estimate(loop_dir, tmp_path):
+    """``tacest estimate --start-from``: the loop's first estimate (first poke) is one more
+    start of an estimate of both pokes, solved first; a mismatched or missing earlier
+    estimate is one line and exit 2, before any solve, and leaves no output."""
+    import h5py
+
+    out, _ = loop_dir
+    run, first = str(out / "run.h5"), str(out / "estimate_1.h5")
+    res = subprocess.run([TACEST, "estimate", run, "--start-from", first, "--quiet", "-o", str(tmp_path / "e.h5")],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    starts = [a["start"] for a in json.loads(h5py.File(tmp_path / "e.h5", "r").attrs["starts"])]
+    assert starts[0] == "previous estimate" and len(starts) > 1
+    for args, message in (([run, "--shape", "polytope:8", "--start-from", first], "not a 3-D polytope:8"),
+                          ([run, "--start-from", str(tmp_path / "missing.h5")], "missing.h5"),
+                          ([run, "--method", "shooting", "--start-from", first], "implicit 3-D estimator only")):
+        bad = subprocess.run([TACEST, "estimate", *args, "-o", str(tmp_path / "bad.h5")], capture_output=True,
+                             text=True)
+        assert bad.returncode == 2 and message in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1 and not (tmp_path / "bad.h5").exists()
+
+
 @pytest.mark.parametrize("args, message", [
     (["--dim", "3", "--object", "nonsense"], "nonsense"),
     (["--dim", "3", "--policy", "identity", "--information", "marginal"], "goes with method eig"),
