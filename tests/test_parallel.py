@@ -362,3 +362,73 @@ def test_one_blas_thread_per_process_unless_the_user_chose():
     out = subprocess.run([sys.executable, "-c", code], env={**env, "OPENBLAS_NUM_THREADS": "2"},
                          capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "2"
+
+
+# ---------------------------------------------------------------------------------------
+# compared starts solved in forked processes (solver.solve_from_starts, solver.start_workers)
+
+def _fake_start_solve(start):
+    """A stand-in for an estimator's per-start solve: start = (objective, physics), or
+    None for a failed solve; returns what solve_from_starts takes, with the solving
+    process's pid in ``found``."""
+    import numpy as np
+
+    from tacest.estimation.solver import SolveOutcome, StageInfo
+
+    if start is None:
+        raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1': Restoration_Failed")
+    obj, phys = start
+    time.sleep(0.2)
+    stage = StageInfo(name="homotopy 2/2", status="Solve_Succeeded", iterations=5, wall_time=0.2, objective=obj)
+    out = SolveOutcome(z=np.full(3, obj), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded", success=True,
+                       iterations=5, wall_time=0.2, objective=obj, stages=[stage])
+    return out, phys, ("saved", obj), None, {"pid": os.getpid()}
+
+
+def test_compared_starts_in_processes_give_the_same_fits_and_attempts():
+    """The compared starts solved by 2 forked processes: the kept fit, its saved state
+    and the attempts (failed start included) are those of the solves one after another,
+    the compared solves ran outside this process, and the restart after them in it."""
+    from tacest.estimation.solver import solve_from_starts
+
+    starts = [({"start": f"s{k}"}, s) for k, s in enumerate([(50.0, 0.5), None, (40.0, 0.5), (30.0, 0.01)])]
+    runs = {}
+    for workers in (1, 2):
+        attempts = []
+        out, saved = solve_from_starts(starts, _fake_start_solve, 0.1, attempts, min_solves=3, workers=workers)
+        runs[workers] = (out.objective, saved, [{k: v for k, v in a.items() if k != "pid"} for a in attempts],
+                         [a.get("pid") for a in attempts])
+    assert runs[1][:3] == runs[2][:3]
+    assert runs[1][0] == 30.0 and [a["status"] for a in runs[1][2]] == ["Solve_Succeeded", "failed"] + [
+        "Solve_Succeeded"] * 2
+    pids = runs[2][3]
+    assert pids[0] != os.getpid() and pids[2] != os.getpid() and pids[3] == os.getpid()
+
+
+def test_start_processes_follow_the_setting_and_never_fork_from_a_daemon(monkeypatch):
+    import multiprocessing as mp
+
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.estimation.solver import start_processes
+
+    monkeypatch.setattr("tacest.parallel.machine_workers", lambda: 2)
+    assert start_processes(0, 3) == 2 and start_processes(0, 1) == 1 and start_processes(1, 3) == 1
+    assert start_processes(4, 3) == 3
+    monkeypatch.setattr(mp.current_process(), "daemon", True, raising=False)
+    assert start_processes(0, 3) == 1
+    assert EstimatorConfig().solver.start_workers == 0
+    with pytest.raises(TacestError, match="start_workers"):
+        EstimatorConfig().updated({"solver": {"start_workers": -1}})
+
+
+def test_an_error_in_a_forked_start_solve_reaches_the_caller():
+    from tacest.estimation.solver import solve_in_processes
+
+    def job(k):
+        if k == 1:
+            raise ValueError("not a solve failure")
+        return k
+
+    with pytest.raises(ValueError, match="not a solve failure"):
+        solve_in_processes(job, 3, 2)
+    assert solve_in_processes(lambda k: k * k, 3, 2) == [0, 1, 4]

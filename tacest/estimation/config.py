@@ -140,8 +140,18 @@ class Solver:
     #: lineage can lead the NLP into a local minimum whose fit still looks consistent
     #: (docs/estimation.md, "Dynamic pokes")
     sampler_starts: int = 2
+    #: processes that solve the compared starts at once (the sampler's and, in 3-D
+    #: without pose observations, every push-tracked one): forked copies of the process
+    #: with its built NLP (solver.solve_from_starts).  0: one per core this process may
+    #: use, at most one per compared start; 1: one after another (also inside a daemonic
+    #: process, e.g. a Dask worker, and where fork is not available).  The fits are the
+    #: same either way; the restarts after them run one after another
+    start_workers: int = 0
 
     def __post_init__(self):
+        if isinstance(self.start_workers, bool) or not isinstance(self.start_workers, int) \
+                or self.start_workers < 0:
+            raise _InvalidSetting(f"solver.start_workers must be an integer >= 0, got {self.start_workers!r}")
         _check_stages(self, "solver", "")
         _check_sampler(self, "solver", "sampler_starts")
         _check_restarts(self, "solver")
@@ -380,3 +390,11 @@ def load_config(path=None, overrides: dict | None = None) -> EstimatorConfig:
     for section, values in (overrides or {}).items():
         data.setdefault(section, {}).update(values)
     return _build(data, str(path) if path else "config")
+
+
+def solver_structure_key(solver: Solver) -> str:
+    """The part of the [solver] settings that a built solver depends on (its cache key):
+    all but how many processes solve the starts."""
+    import dataclasses
+
+    return repr(dataclasses.replace(solver, start_workers=0))

@@ -22,7 +22,7 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
-from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.config import EstimatorConfig, solver_structure_key
 from tacest.estimation.data import Scales, choose_scales, parameter_vector, touching
 from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
@@ -64,7 +64,7 @@ def solver_for(shape, structures, config: EstimatorConfig, effects=()) -> BuiltS
     from tacest.model.registry import names_of, resolve
 
     effects = names_of(resolve(effects, 2))
-    key = (shape.name, tuple(structures), repr(config.solver), config.weights.occam > 0,
+    key = (shape.name, tuple(structures), solver_structure_key(config.solver), config.weights.occam > 0,
            config.noise.complementarity_reach > 0, effects)
     return _SOLVERS.get(key, lambda: BuiltSolver(Problem2D(shape, structures, config, effects=effects), config))
 
@@ -270,7 +270,7 @@ class ImplicitEstimator:
         pinned = self.pinned_theta is not None and self.pin in ("all", "shape")
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
             starts, solve_one, self.config.solver.restart_physics, self.attempts,
-            min_solves=0 if pinned else n_always)
+            min_solves=0 if pinned else n_always, workers=self.config.solver.start_workers)
         self.z = out.z
         return out
 

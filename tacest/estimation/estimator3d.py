@@ -29,7 +29,7 @@ from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inert
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
-from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.config import EstimatorConfig, solver_structure_key
 from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
 from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
@@ -113,7 +113,7 @@ def solver_for_3d(shape: Shape3D, layout: Layout3D, config: EstimatorConfig, eff
     # stages stop is the solve's: not structure
     s3 = dataclasses.replace(config.solver3d, ground_offset_sigma=0.0, edge_radius_sigma=0.0, compare_starts=True,
                              acceptable_tol_no_pose=1.0)
-    key = (shape.name, layout, repr(config.solver), repr(s3), tuple(effects))
+    key = (shape.name, layout, solver_structure_key(config.solver), repr(s3), tuple(effects))
     return _SOLVERS.get(key, lambda: BuiltSolver(Problem3D(shape, layout, config, effects), config))
 
 
@@ -518,7 +518,7 @@ class Estimator3D:
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
-                min_solves=compared, accept_budget=self.accept_budget)
+                min_solves=compared, accept_budget=self.accept_budget, workers=self.config.solver.start_workers)
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
