@@ -432,3 +432,23 @@ def test_an_error_in_a_forked_start_solve_reaches_the_caller():
     with pytest.raises(ValueError, match="not a solve failure"):
         solve_in_processes(job, 3, 2)
     assert solve_in_processes(lambda k: k * k, 3, 2) == [0, 1, 4]
+
+
+def test_map_in_processes_is_the_sequential_map_and_raises_a_jobs_failure():
+    from tacest.estimation.solver import map_in_processes
+
+    def job(k):
+        return os.getpid(), k ** 2
+
+    forked, in_process = map_in_processes(job, 3, 2), map_in_processes(job, 3, 1)
+    assert [v for _, v in forked] == [v for _, v in in_process] == [0, 1, 4]
+    assert all(pid != os.getpid() for pid, _ in forked) and all(pid == os.getpid() for pid, _ in in_process)
+
+    def failing(k):
+        if k == 2:
+            raise SolveFailedError("no fit")
+        return k
+
+    for workers in (1, 2):
+        with pytest.raises(SolveFailedError, match="no fit"):
+            map_in_processes(failing, 3, workers)

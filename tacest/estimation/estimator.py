@@ -29,8 +29,8 @@ from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
 from tacest.estimation.smc2d import SMCSettings, smc_start
-from tacest.estimation.solver import (BuiltSolver, SolverCache, plan_stages, pin, run_stages, solve_from_starts,
-                                      SolveOutcome)
+from tacest.estimation.solver import (BuiltSolver, SolverCache, map_in_processes, plan_stages, pin, run_stages,
+                                      solve_from_starts, SolveOutcome)
 from tacest.estimation.uncertainty import information_names_2d, observed_information_2d, vertex_jacobian
 from tacest.geometry.shapes import make_shape, numeric_vertices, polygon_area_centroid_j
 from tacest.io.estimate import Estimate, RunEstimate
@@ -283,10 +283,11 @@ class ImplicitEstimator:
         n = int(cfg.sampler_particles)
         if n < 2 or any(r.pose_obs is not None for r in self.runs) or not any(r.n_fingers for r in self.runs):
             return []
+        runs = map_in_processes(lambda k: smc_start(self.runs, self.scales.L, self.scales.m0,
+                                                    SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k)),
+                                int(cfg.sampler_starts), cfg.start_workers)  # independent runs, seeded
         out = []
-        for k in range(int(cfg.sampler_starts)):
-            s = smc_start(self.runs, self.scales.L, self.scales.m0,
-                          SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k))
+        for s in runs:
             if all(np.max(np.abs(s.extents / o.extents - 1.0)) > 0.02 for o in out):
                 out.append(s)
         return out

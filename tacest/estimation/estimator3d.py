@@ -37,8 +37,8 @@ from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
-from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, pin, plan_stages, run_stages,
-                                      solve_from_starts)
+from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, map_in_processes, pin,
+                                      plan_stages, run_stages, solve_from_starts)
 from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobian
 from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
@@ -536,9 +536,10 @@ class Estimator3D:
         if not cfg3.sampler_particles or self.shape.name != "box":
             return None
         best = None
-        for k in range(int(cfg3.sampler_runs)):
-            r = smc_start_3d(self.runs, sc.L, sc.m0, tracked.extents * sc.L,
-                             SMC3DSettings(particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k))
+        runs = map_in_processes(lambda k: smc_start_3d(self.runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
+            particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
+            self.config.solver.start_workers)  # independent runs, seeded
+        for r in runs:
             if best is None or r.log_likelihood > best.log_likelihood:
                 best = r
         cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0])

@@ -444,6 +444,20 @@ def solve_in_processes(job, n: int, processes: int) -> list:
     return out
 
 
+def map_in_processes(job, n: int, workers: int) -> list:
+    """[job(0), ..., job(n - 1)]: in forked processes where :func:`start_processes`
+    gives more than one for ``workers``, else one after another; any exception of a
+    job is raised (independent, seeded computations such as the samplers' runs)."""
+    processes = start_processes(workers, n)
+    if processes < 2:
+        return [job(k) for k in range(n)]
+    out = solve_in_processes(job, n, processes)
+    for r in out:
+        if isinstance(r, SolveFailedError):
+            raise r
+    return out
+
+
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0,
                       accept_budget: bool = False, workers: int = 1) -> tuple:
     """Solve from each start in turn until a fit is good enough; keep the fit of lowest
