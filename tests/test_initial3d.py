@@ -122,7 +122,9 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, comp
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
     # the sampled start is off here (its place among the starts: test_a_tipping_sampled_start_goes_first)
     cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts,
-                                                  "sampler_particles": 0, "compare_starts": compare}})
+                                                  "sampler_particles": 0, "compare_starts": compare},
+                                     # the fake solves note their calls here: one process
+                                     "solver": {"start_workers": 1}})
     est.config, est.problem = cfg, _FakeProblem()
     est.runs, est.has_pose, est.fixed_theta, est.F = [_push_run()], False, None, 1
     est.shape = estimator3d.make_shape_3d("box")

@@ -527,26 +527,11 @@ class Estimator3D:
         return out
 
     def sampled_start(self, tracked: Start3D) -> Start3D | None:
-        """The sampler's start (smc3d.py: the lineage of highest likelihood over
-        ``solver3d.sampler_runs`` runs of ``sampler_particles`` hypotheses, seeds
-        sampler_seed, +1, ...; half of each run's hypotheses around the box of the
-        ``tracked`` start), or None where it does not apply (off, or a polytope: the
-        sampler's hypotheses are boxes)."""
-        cfg3, sc = self.config.solver3d, self.scales
-        if not cfg3.sampler_particles or self.shape.name != "box":
+        """The sampler's start (:func:`sampled_start_3d`), or None where it does not apply
+        (off, or a polytope: the sampler's hypotheses are boxes)."""
+        if not self.config.solver3d.sampler_particles or self.shape.name != "box":
             return None
-        best = None
-        runs = map_in_processes(lambda k: smc_start_3d(self.runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
-            particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
-            self.config.solver.start_workers)  # independent runs, seeded
-        for r in runs:
-            if best is None or r.log_likelihood > best.log_likelihood:
-                best = r
-        cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0])
-                   for run, P in zip(self.runs, best.poses))
-        return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
-                       extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
-                              "max_tilt_deg": best.max_tilt_deg})
+        return sampled_start_3d(self.runs, self.scales, tracked, self.config)
 
     def fit_quality(self, z):
         """The goodness-of-fit test of the fit at z (fitquality.goodness_of_fit)."""
@@ -751,6 +736,22 @@ class Estimator3D:
 #: MIN_SIZE_FRACTION of the bound; a bound below half the scale leaves no room to start)
 MIN_BOUND_OVER_SCALE = 0.5
 
+
+
+def sampled_start_3d(runs: list, sc: Scales, tracked: Start3D, config: EstimatorConfig) -> Start3D:
+    """The sampler's start (smc3d.py): the lineage of highest likelihood over
+    ``solver3d.sampler_runs`` runs of ``sampler_particles`` hypotheses, seeds
+    sampler_seed, +1, ... (in forked processes: solver.map_in_processes); half of each
+    run's hypotheses around the box of the ``tracked`` start."""
+    cfg3 = config.solver3d
+    found = map_in_processes(lambda k: smc_start_3d(runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
+        particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
+        config.solver.start_workers)  # independent runs, seeded
+    best = max(found, key=lambda r: r.log_likelihood)  # the first of equals, as before
+    cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0]) for run, P in zip(runs, best.poses))
+    return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
+                   extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
+                          "max_tilt_deg": best.max_tilt_deg})
 
 
 def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
