@@ -22,9 +22,9 @@ from tacest.cli.parallel import executor, parallel_options
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="TOML settings (`tacest config --defaults` prints every key with its default); unknown keys are an error.")
 @click.option("--start-from", "previous_path", type=click.Path(dir_okay=False), default=None, metavar="ESTIMATE",
-              help="An earlier estimate of the first samples of these runs (3-D, implicit): its shape and "
-                   "trajectories, continued over the newer samples, are one more start, compared by objective "
-                   "with the estimator's own. See docs/estimation3d.md.")
+              help="An earlier estimate of the first samples of these runs (implicit method): its shape "
+                   "(in 2-D also its parameters) and trajectories, continued over the newer samples, are one more "
+                   "start, compared by objective with the estimator's own. See docs/estimation.md.")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def estimate(runs, output, manifest, shape, method, config_path, previous_path, quiet, workers, scheduler):

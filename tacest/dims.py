@@ -100,7 +100,8 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
     tacest.estimation.estimator.estimate_2d (fixed and refit_shape: the 2-D implicit
     estimator only; effects: the implicit estimators of both dimensions); previous : an
     earlier Estimate of the first samples of the same runs, one more start (the
-    implicit 3-D estimator only: tacest.estimation.estimator3d.previous_start)."""
+    implicit estimators: tacest.estimation.estimator.previous_start_2d,
+    tacest.estimation.estimator3d.previous_start)."""
     dim = dimension_of(runs)
     if method not in ("implicit", "shooting"):
         raise TacestError(f"unknown method {method!r}: use implicit or shooting")
@@ -108,8 +109,8 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
         raise TacestError("fixed= is offered by the implicit 2-D estimator only")
     if tuple(effects or ()) and method != "implicit":
         raise TacestError("effects= are offered by the implicit estimators only")
-    if previous is not None and not (dim.dim == 3 and method == "implicit"):
-        raise TacestError("starting from an earlier estimate is offered by the implicit 3-D estimator only")
+    if previous is not None and method != "implicit":
+        raise TacestError("starting from an earlier estimate is offered by the implicit estimators only")
     kwargs = {}
     if previous is not None:
         kwargs["previous"] = previous

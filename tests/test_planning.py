@@ -389,10 +389,11 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch, caplog):
     import tacest.estimation.estimator as estimator
     from tacest.planning.explore import ExploreOptions, explore
 
-    calls = []
+    calls, previous = [], []
 
     def fake(runs, shape, config=None, **kw):
         calls.append(runs[0].n_samples)
+        previous.append(kw.get("previous"))
         return estimate_from_truth(runs[0], fail=len(calls) == 2)
 
     monkeypatch.setattr(estimator, "estimate_2d", fake)
@@ -420,6 +421,10 @@ def test_explore_loop_files_and_summary(tmp_path, monkeypatch, caplog):
     assert steps[0]["plan_time"] > 0 and "friction_ground_rel" in steps[2]
     assert len(lines) == 3 and lines[1].startswith("[2/3]")
     assert read_estimate(out / "estimate_3.h5").success
+    # the last successful estimate is one more start of the next (step 2 failed: step 3
+    # starts from step 1's too)
+    assert previous[0] is None
+    assert [Path(p.filename).name for p in previous[1:]] == ["estimate_1.h5", "estimate_1.h5"]
 
 
 def test_explore_dynamic_style_pokes_fast_from_the_first_poke_on(tmp_path, monkeypatch):

@@ -24,7 +24,7 @@ from tacest.errors import TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key
 from tacest.estimation.data import Scales, choose_scales, parameter_vector, touching
-from tacest.estimation.initial import initial_extents, initial_guess, start_shape_candidates
+from tacest.estimation.initial import continued_trajectory, initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
@@ -77,8 +77,12 @@ class ImplicitEstimator:
         it: ``all``, ``shape`` or ``physics`` (everything but the shape).
     """
 
+    #: z0 (scaled) of a start from an earlier estimate of the first samples of these
+    #: runs (:func:`previous_start_2d`), or None
+    previous_z = None
+
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
-                 effects=(), pinned_theta=None, pin: str = "all"):
+                 effects=(), pinned_theta=None, pin: str = "all", previous: Estimate | None = None):
         check_runs(runs)
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
@@ -98,6 +102,7 @@ class ImplicitEstimator:
         self.problem: Problem2D = self.built.problem
         self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
         self.pin = pin
+        self.previous_z = None if previous is None else previous_start_2d(self, previous)
         #: one dict per solve of :meth:`solve` (start_shape, status, objective,
         #: physics_per_sample; or status "failed" and error)
         self.attempts = []
@@ -255,10 +260,20 @@ class ImplicitEstimator:
             n = n_always + 1 + int(self.config.solver.restarts)
             starts += [({"start_shape": np.asarray(s0, float)}, ("shape", s0))
                        for s0 in start_shape_candidates(pr, self.runs, self.scales, self.s0, n - len(starts))]
+            if self.previous_z is not None:  # an earlier estimate's start: first, and compared
+                starts.insert(0, ({"start": "previous estimate"}, ("previous", self.previous_z)))
+                n_always += 1
+        s_ref = np.array(self.s0, float)  # the shape prior's reference of the push-tracked starts
 
         def solve_one(start):
             kind, value = start
-            z0 = self.sampler_z(value) if kind == "sampler" else self.own_start(value)
+            if kind == "sampler":
+                z0 = self.sampler_z(value)
+            elif kind == "previous":  # the shape prior's reference is the start's own shape, as the sampler's
+                z0, self.s0 = value.copy(), value[: pr.n_shape].copy()
+            else:  # the same reference whichever start ran before (starts may run in other processes)
+                self.s0 = s_ref.copy()
+                z0 = self.own_start(value)
             out = self.solve_from(z0, accept_budget=True)  # solve_from_starts judges budget fits
             V, mass, _, mu_g, mu_f = self.physical(out.z)
             found = {"vertices": np.asarray(V, float),
@@ -529,6 +544,33 @@ def matching_runs(runs: list, estimate: Estimate) -> list:
     return out
 
 
+def previous_start_2d(est: ImplicitEstimator, previous: Estimate) -> np.ndarray:
+    """Scaled z0 of a start from an earlier estimate ``previous`` of the same object from
+    the first samples of ``est``'s runs (a closed loop's last step, before its newest
+    poke): its parameters (:func:`theta_of`; effects it lacks at "no effect") and its
+    trajectories, each continued over the run's newer samples by the push tracker from
+    its last pose (initial.continued_trajectory).  Raises TacestError where the estimate
+    does not fit the runs (dimension, shape, number of runs, a longer trajectory)."""
+    pr, sc = est.problem, est.scales
+    if previous.dim != 2 or previous.shape != est.shape.name:
+        raise TacestError(f"the earlier estimate is a {previous.dim}-D {previous.shape}, not a 2-D {est.shape.name}")
+    if len(previous.runs) != len(est.runs):
+        raise TacestError(f"the earlier estimate has {len(previous.runs)} runs, these are {len(est.runs)}")
+    theta = theta_of(est, previous, "the earlier estimate", missing_effects_at_zero=True)
+    V = numeric_vertices(pr.shape, theta[: pr.n_shape], sc.L)
+    trajectories = []
+    for run, re in zip(est.runs, previous.runs):
+        P = np.asarray(re.pose, float)
+        if P.ndim != 2 or P.shape[1] < 3 or not 0 < len(P) <= run.n_samples or not np.all(np.isfinite(P)):
+            raise TacestError(f"the earlier estimate's trajectory ({P.shape}) does not fit a run of "
+                              f"{run.n_samples} samples")
+        trajectories.append(continued_trajectory(run, V, P[:, :3]))
+    z = initial_guess(pr, est.runs, sc, theta[: pr.n_shape], trajectories=trajectories)
+    z[: pr.n_theta] = theta
+    z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(theta, sc.L, sc.m0)).reshape(-1)
+    return est.with_pins(z)
+
+
 def warm_start(est: ImplicitEstimator, warm: Estimate, warm_runs: list = None) -> np.ndarray:
     """Scaled z0 from an earlier estimate: its parameters (effects it lacks at "no
     effect") and, for every run with a warm RunEstimate of the same length (``warm_runs``
@@ -571,7 +613,7 @@ def warm_start(est: ImplicitEstimator, warm: Estimate, warm_runs: list = None) -
 
 
 def estimate_2d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None, effects=(),
-                fixed: Estimate | None = None, refit_shape: bool = False) -> Estimate:
+                fixed: Estimate | None = None, refit_shape: bool = False, previous: Estimate | None = None) -> Estimate:
     """Estimate one object's parameters and each 2-D run's trajectory.
 
     effects : effect names modelled as extra parameters (tacest.model.registry;
@@ -581,10 +623,13 @@ def estimate_2d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfi
         parameters of ``effects``) are held fixed: only trajectories and impulses are
         fitted (held-out evaluation); its trajectories start the runs it estimated;
     refit_shape : with ``fixed``, hold everything but the shape, which is refitted from
-        the fixed estimate's (a held-out piece may touch faces the fixed fit never saw).
+        the fixed estimate's (a held-out piece may touch faces the fixed fit never saw);
+    previous : an earlier estimate of the first samples of the same runs (a closed
+        loop's last step): one more start, solved first and compared by objective
+        (:func:`previous_start_2d`).
     """
     t_start = time.perf_counter()
-    est = ImplicitEstimator(runs, shape_spec, config, effects=effects)
+    est = ImplicitEstimator(runs, shape_spec, config, effects=effects, previous=previous)
     log.info(f"built NLP: {est.problem.n_z} variables, {est.problem.g.shape[0]} constraints "
              f"({est.build_time:.1f} s)" + (f", effects: {', '.join(est.problem.effects)}" if effects else ""))
     if fixed is None:

@@ -143,10 +143,11 @@ def _rotations(angles):
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
 
 
-def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np.ndarray:
+def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray, t0: int = 0) -> np.ndarray:
     """(N, T, 3) poses of N shapes V_bodies (N, K, 2) m, each at rest at its pose0 (N, 3)
-    and translated along the ground whenever a finger in contact would be inside it,
-    just enough to clear it (no rotation); vectorized over the shapes, sequential in time."""
+    and, from sample t0 on, translated along the ground whenever a finger in contact
+    would be inside it, just enough to clear it (no rotation); vectorized over the
+    shapes, sequential in time."""
     T = run.n_samples
     poses = np.repeat(poses0[:, None, :], T, 1)
     if run.contact is None:
@@ -156,7 +157,7 @@ def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np
     cur = poses0.astype(float).copy()
     R = _rotations(cur[:, 2])  # the tracker never rotates
     on = run.contact.astype(bool) & np.all(np.isfinite(run.normal), axis=-1)
-    for t in range(T):
+    for t in range(t0, T):
         for f in np.nonzero(on[t])[0]:
             c = run.finger_position[t, f]
             push = -(run.normal[t, f] @ horiz)
@@ -168,6 +169,20 @@ def push_tracker_batch(run: Run, V_bodies: np.ndarray, poses0: np.ndarray) -> np
             cur[:, :2] += step[:, None] * np.sign(push) * horiz[None]
         poses[:, t] = cur
     return poses
+
+
+def continued_trajectory(run: Run, V_body: np.ndarray, poses_before: np.ndarray) -> np.ndarray:
+    """(T, 3) poses [x, y m, angle rad] of the shape V_body (K, 2) m that follow
+    ``poses_before`` (T0, 3) (T0 <= T: e.g. an earlier estimate's trajectory of the
+    first T0 samples of ``run``) and, from there, the push tracker's motion
+    (:func:`push_tracker_batch`) from the last of those poses."""
+    poses_before = np.asarray(poses_before, float)
+    T0 = len(poses_before)
+    if not 0 < T0 <= run.n_samples or poses_before.shape[1:] != (3,):
+        raise ValueError(f"poses_before must be (T0, 3) with 0 < T0 <= {run.n_samples}, got {poses_before.shape}")
+    out = push_tracker_batch(run, np.asarray(V_body, float)[None], poses_before[-1][None], t0=T0)[0]
+    out[:T0] = poses_before
+    return out
 
 
 def finger_gaps(run: Run, V_body: np.ndarray, poses: np.ndarray) -> np.ndarray:

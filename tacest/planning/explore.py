@@ -11,8 +11,9 @@ where it was placed; no estimate exists yet, so it is the same for every policy)
 for n = 1 .. N:
 
 1. estimate the run so far (tacest.estimation.estimator.estimate_runs) -> ``estimate_<n>.h5``;
-   in 3-D the last step's estimate is one more start, its trajectory continued over the
-   newest poke (estimator3d.previous_start), compared by objective with the others;
+   the last step's estimate is one more start, its trajectory continued over the newest
+   poke (estimator.previous_start_2d, estimator3d.previous_start), compared by
+   objective with the others;
    score it against the truth (tacest.evaluation.metrics.evaluate);
 2. if n < N: plan the next poke with the policy (tacest.planning.planner.plan_next,
    aimed at the estimated centroid) -> ``plan_<n>.h5``, execute it in the simulator
@@ -179,7 +180,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     t0 = time.perf_counter()
     write_run(record_sim(sim), run_path)
     t_record = time.perf_counter() - t0
-    previous = None  # the last estimate: one more start for the next one (3-D)
+    previous = None  # the last estimate: one more start for the next one
     for n in range(1, N + 1):
         run = read_run(run_path)
         step = {"pokes": n, "samples": run.n_samples, "data_time": float(run.time[-1] - run.time[0]),
@@ -188,7 +189,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
         t0 = time.perf_counter()
         est = None
         try:
-            warm = {"previous": previous} if int(opts.dim) == 3 and previous is not None else {}
+            warm = {"previous": previous} if previous is not None else {}
             est_obj = estimate([run], shape, config=config, **warm)
             est_path = out / f"estimate_{n}.h5"
             write_estimate(est_obj, est_path)
