@@ -523,3 +523,88 @@ def open_executor(workers=None, scheduler=None) -> Executor:
     """An (unstarted) Executor for a command's ``--workers`` and ``--scheduler``
     (ParallelSettings.resolve); use it as a context manager."""
     return Executor(ParallelSettings.resolve(workers, scheduler))
+
+
+# ---------------------------------------------------------------------------------------
+# forked copies of this process (the starts of one estimate: estimation.solver)
+
+#: the forked workers' job (fork_map): set in the parent before they are forked, so that
+#: they inherit it (with the built NLP it closes over) instead of receiving it pickled
+_FORK_JOB = None
+#: exception types a job's failure is returned as (an entry of fork_map's list)
+_FORK_RETURNED: tuple = ()
+#: linear solvers that run OpenMP threads: a forked child of a process that used them can
+#: deadlock, so their fits are never forked
+OPENMP_LINEAR_SOLVERS = ("spral", "ma86", "ma97")
+
+
+def _fork_worker_init():
+    import signal
+
+    # Ctrl-C is the parent's to handle: it kills the workers (no traceback from each)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _fork_call(k):
+    try:
+        return _FORK_JOB(k)
+    except _FORK_RETURNED as exc:
+        return exc
+
+
+def fork_processes(workers: int, jobs: int) -> int:
+    """How many forked processes run ``jobs`` independent jobs: ``workers`` (0: one per
+    core this process may use, :func:`machine_workers`), at most one per job; 1 where
+    forking is not safe or not possible: not Linux, a daemonic process (a Dask worker),
+    or a process running other threads (a child forked beside them can inherit a held
+    lock)."""
+    import multiprocessing as mp
+    import sys
+
+    if (jobs < 2 or not sys.platform.startswith("linux") or mp.current_process().daemon
+            or threading.active_count() > 1):
+        return 1
+    return max(1, min(int(workers) or machine_workers(), int(jobs)))
+
+
+def fork_map(job, n: int, processes: int, returned: tuple = ()) -> list:
+    """[job(0), ..., job(n - 1)] computed by ``processes`` forked copies of this process
+    (each inherits everything ``job`` needs: nothing but k and the results is pickled);
+    an exception of a type in ``returned`` is returned as the job's entry, any other is
+    raised here as soon as it arrives.  A worker that dies (killed, out of memory) is a
+    TacestError.  On any exception here, Ctrl-C included (the workers ignore SIGINT: the
+    parent handles it), the workers are killed before it is raised: none goes on
+    computing or writing."""
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    global _FORK_JOB, _FORK_RETURNED
+    _FORK_JOB, _FORK_RETURNED = job, tuple(returned)
+    pool = ProcessPoolExecutor(processes, mp_context=mp.get_context("fork"), initializer=_fork_worker_init)
+    try:
+        futures = [pool.submit(_fork_call, k) for k in range(n)]  # the workers fork at the first
+        done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        for f in done:  # an error is raised as soon as it arrives, not after the jobs before it
+            if f.exception() is not None:
+                raise f.exception()
+        out = [f.result() for f in futures]
+    except BrokenProcessPool:
+        _kill_workers(pool)
+        raise TacestError("a worker process ended without a result (killed, or out of memory?); "
+                          "[solver] start_workers = 1 runs the starts in this process") from None
+    except BaseException:
+        _kill_workers(pool)
+        raise
+    finally:
+        _FORK_JOB, _FORK_RETURNED = None, ()
+    pool.shutdown()
+    return out
+
+
+def _kill_workers(pool) -> None:
+    """Kill a ProcessPoolExecutor's workers now (Python 3.11 has no public way) and let
+    it go without waiting for their jobs."""
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)

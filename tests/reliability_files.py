@@ -78,12 +78,13 @@ def poke_plan(path, run_paths=(), estimate_path=None) -> Path:
     return Path(path)
 
 
-def interrupt_when(args, marker=None, cwd=None, delay=0.3, timeout=300):
+def interrupt_when(args, marker=None, cwd=None, delay=0.3, timeout=300, group=False):
     """Start ``tacest args``, send SIGINT ``delay`` s after a stderr line contains
     ``marker`` (or after ``delay`` s when ``marker`` is None), and return (exit status,
-    the non-empty stderr lines from then on)."""
+    the non-empty stderr lines from then on).  ``group``: to its whole process group, as
+    Ctrl-C in a terminal does (its forked workers get it too)."""
     p = subprocess.Popen([TACEST, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         cwd=cwd)
+                         cwd=cwd, start_new_session=group)
     if marker is not None:
         t0 = time.monotonic()
         seen = []
@@ -99,6 +100,9 @@ def interrupt_when(args, marker=None, cwd=None, delay=0.3, timeout=300):
             raise AssertionError(f"the command ended (status {p.returncode}) before {marker!r}: {seen[-5:]}")
     time.sleep(delay)
     assert p.poll() is None, f"the command ended (status {p.returncode}) before the interrupt"
-    p.send_signal(signal.SIGINT)
+    if group:
+        os.killpg(p.pid, signal.SIGINT)
+    else:
+        p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=timeout)
     return p.returncode, [ln for ln in err.splitlines() if ln.strip()]

@@ -371,3 +371,4 @@ def test_the_previous_estimate_is_solved_first_and_compared(monkeypatch):
     assert [a["start"] for a in est.attempts][0] == "previous estimate"
     # the previous start and the three compared ones are all solved; the lowest kept
     assert len(calls) == 4 and out.objective == 5.0
+

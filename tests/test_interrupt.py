@@ -47,6 +47,18 @@ def test_estimate_interrupted_mid_solve_keeps_the_previous_estimate(files, tmp_p
     assert _snapshot(tmp_path) == before  # byte-identical, no temporary file left
 
 
+def test_ctrl_c_in_a_terminal_while_starts_solve_in_processes_is_one_line(files, tmp_path):
+    """Ctrl-C reaches the whole process group, the forked workers solving the compared
+    starts too (tacest.parallel.fork_map): one line, 130, no traceback from any worker,
+    and nothing written after it."""
+    out = tmp_path / "est.h5"
+    code, lines = interrupt_when(["estimate", files["a"], "-o", out], marker="compared starts in", delay=1.0,
+                                 group=True)
+    _assert_interrupted(code, lines)
+    assert not any("Process" in ln or "KeyboardInterrupt" in ln for ln in lines), lines
+    assert not out.exists()
+
+
 def test_diagnose_interrupted_mid_fit_writes_no_report(files, tmp_path):
     report = tmp_path / "report"
     report.mkdir()

@@ -385,7 +385,65 @@ def _fake_start_solve(start):
     return out, phys, ("saved", obj), None, {"pid": os.getpid()}
 
 
-def test_compared_starts_in_processes_give_the_same_fits_and_attempts():
+@pytest.fixture
+def single_threaded(monkeypatch):
+    """fork_processes as in a command's process (one thread): the clusters of earlier
+    tests leave threads in this one, where it would not fork at all."""
+    monkeypatch.setattr("tacest.parallel.threading.active_count", lambda: 1)
+
+
+def test_a_worker_that_dies_is_one_clear_error_not_a_hang():
+    from tacest.parallel import fork_map
+
+    def job(k):
+        if k == 1:
+            os._exit(3)  # as the out-of-memory killer or a crash in a native solver would end it
+        time.sleep(0.1)
+        return k
+
+    t0 = time.monotonic()
+    with pytest.raises(TacestError, match="ended without a result"):
+        fork_map(job, 3, 2)
+    assert time.monotonic() - t0 < 30
+    assert fork_map(lambda k: k + 1, 3, 2) == [1, 2, 3]  # and the next one works
+
+
+def test_no_fork_beside_other_threads_off_linux_or_with_an_openmp_solver(monkeypatch):
+    from tacest.estimation.config import EstimatorConfig, start_workers
+    from tacest.parallel import fork_processes
+
+    monkeypatch.setattr("tacest.parallel.machine_workers", lambda: 2)
+    n_threads = threading.active_count()
+    monkeypatch.setattr("tacest.parallel.threading.active_count", lambda: 1)
+    assert fork_processes(0, 3) == 2
+    monkeypatch.undo()
+    monkeypatch.setattr("tacest.parallel.machine_workers", lambda: 2)
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        assert threading.active_count() > n_threads >= 1 and fork_processes(0, 3) == 1
+    finally:
+        stop.set()
+        other.join()
+    monkeypatch.setattr("tacest.parallel.threading.active_count", lambda: 1)
+    monkeypatch.setattr(sys, "platform", "darwin")
+    assert fork_processes(0, 3) == 1
+    cfg = EstimatorConfig()
+    assert start_workers(cfg.solver) == 0
+    assert start_workers(cfg.updated({"solver": {"linear_solver": "spral"}}).solver) == 1
+
+
+def test_start_workers_does_not_change_the_solver_cache_key():
+    from tacest.estimation.config import EstimatorConfig, solver_structure_key
+
+    cfg = EstimatorConfig()
+    key = solver_structure_key(cfg.solver)
+    assert solver_structure_key(cfg.updated({"solver": {"start_workers": 1}}).solver) == key
+    assert solver_structure_key(cfg.updated({"solver": {"max_iter": 401}}).solver) != key
+
+
+def test_compared_starts_in_processes_give_the_same_fits_and_attempts(single_threaded):
     """The compared starts solved by 2 forked processes: the kept fit, its saved state
     and the attempts (failed start included) are those of the solves one after another,
     the compared solves ran outside this process, and the restart after them in it."""
@@ -405,36 +463,40 @@ def test_compared_starts_in_processes_give_the_same_fits_and_attempts():
     assert pids[0] != os.getpid() and pids[2] != os.getpid() and pids[3] == os.getpid()
 
 
-def test_start_processes_follow_the_setting_and_never_fork_from_a_daemon(monkeypatch):
+def test_fork_processes_follow_the_setting_and_never_fork_from_a_daemon(monkeypatch, single_threaded):
     import multiprocessing as mp
 
     from tacest.estimation.config import EstimatorConfig
-    from tacest.estimation.solver import start_processes
+    from tacest.parallel import fork_processes
 
     monkeypatch.setattr("tacest.parallel.machine_workers", lambda: 2)
-    assert start_processes(0, 3) == 2 and start_processes(0, 1) == 1 and start_processes(1, 3) == 1
-    assert start_processes(4, 3) == 3
+    assert fork_processes(0, 3) == 2 and fork_processes(0, 1) == 1 and fork_processes(1, 3) == 1
+    assert fork_processes(4, 3) == 3
     monkeypatch.setattr(mp.current_process(), "daemon", True, raising=False)
-    assert start_processes(0, 3) == 1
+    assert fork_processes(0, 3) == 1
     assert EstimatorConfig().solver.start_workers == 0
     with pytest.raises(TacestError, match="start_workers"):
         EstimatorConfig().updated({"solver": {"start_workers": -1}})
 
 
 def test_an_error_in_a_forked_start_solve_reaches_the_caller():
-    from tacest.estimation.solver import solve_in_processes
+    from tacest.parallel import fork_map
 
     def job(k):
         if k == 1:
             raise ValueError("not a solve failure")
+        if k == 0:
+            time.sleep(20)  # the error of job 1 arrives first and is raised at once
         return k
 
+    t0 = time.monotonic()
     with pytest.raises(ValueError, match="not a solve failure"):
-        solve_in_processes(job, 3, 2)
-    assert solve_in_processes(lambda k: k * k, 3, 2) == [0, 1, 4]
+        fork_map(job, 3, 2)
+    assert time.monotonic() - t0 < 10
+    assert fork_map(lambda k: k * k, 3, 2) == [0, 1, 4]
 
 
-def test_map_in_processes_is_the_sequential_map_and_raises_a_jobs_failure():
+def test_map_in_processes_is_the_sequential_map_and_raises_a_jobs_failure(single_threaded):
     from tacest.estimation.solver import map_in_processes
 
     def job(k):
@@ -452,3 +514,47 @@ def test_map_in_processes_is_the_sequential_map_and_raises_a_jobs_failure():
     for workers in (1, 2):
         with pytest.raises(SolveFailedError, match="no fit"):
             map_in_processes(failing, 3, workers)
+
+
+def test_a_2d_estimate_is_the_same_with_its_starts_in_processes(tmp_path, single_threaded, monkeypatch):
+    """A real estimate (2 pokes, the sampler's 2 starts compared): the same objective,
+    shape, parameters and attempts with start_workers 2 as with 1, bit for bit (the
+    forked solves are the same computations), and the forked path was taken."""
+    import numpy as np
+
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.estimation.estimator import estimate_2d
+    from tacest.io.run import read_run
+
+    monkeypatch.setattr("tacest.parallel.machine_workers", lambda: 2)
+    run = read_run(make_run(tmp_path / "r.h5", seed=3, pokes=2))
+    got = {}
+    for workers in (1, 2):
+        cfg = EstimatorConfig().updated({"solver": {"start_workers": workers}})
+        with _capture("tacest.estimation.solver") as log_text:
+            e = estimate_2d([run], "box", config=cfg)
+        forked = "compared starts in 2 processes" in log_text.getvalue()
+        assert forked == (workers == 2)
+        got[workers] = (e.objective, e.vertices, e.params["mass"], e.params["friction_ground"],
+                        json.loads(e.extra_attrs["starts"]))
+    assert got[1][0] == got[2][0] and got[1][4] == got[2][4]
+    np.testing.assert_array_equal(got[1][1], got[2][1])
+    assert got[1][2:4] == got[2][2:4]
+
+
+class _capture:
+    """Capture a logger's INFO records as text (context manager yielding a StringIO)."""
+
+    def __init__(self, name):
+        self.logger, self.text = logging.getLogger(name), io.StringIO()
+        self.handler = logging.StreamHandler(self.text)
+
+    def __enter__(self):
+        self.level = self.logger.level
+        self.logger.setLevel(logging.INFO)
+        self.logger.addHandler(self.handler)
+        return self.text
+
+    def __exit__(self, *exc):
+        self.logger.removeHandler(self.handler)
+        self.logger.setLevel(self.level)

@@ -201,8 +201,10 @@ def test_explore_3d_writes_the_2d_layout_and_views(loop_dir):
     import h5py
 
     # the second estimate had the first one as one more start (estimator3d.previous_start)
-    starts = [[a["start"] for a in json.loads(h5py.File(out / f"estimate_{n}.h5", "r").attrs["starts"])]
-              for n in (1, 2)]
+    starts = []
+    for n in (1, 2):
+        with h5py.File(out / f"estimate_{n}.h5", "r") as f:
+            starts.append([a["start"] for a in json.loads(f.attrs["starts"])])
     assert "previous estimate" not in starts[0] and starts[1][0] == "previous estimate"
 
 
@@ -261,11 +263,12 @@ def test_estimate_starts_from_an_earlier_estimate(loop_dir, tmp_path):
     res = subprocess.run([TACEST, "estimate", run, "--start-from", first, "--quiet", "-o", str(tmp_path / "e.h5")],
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
-    starts = [a["start"] for a in json.loads(h5py.File(tmp_path / "e.h5", "r").attrs["starts"])]
+    with h5py.File(tmp_path / "e.h5", "r") as f:
+        starts = [a["start"] for a in json.loads(f.attrs["starts"])]
     assert starts[0] == "previous estimate" and len(starts) > 1
     for args, message in (([run, "--shape", "polytope:8", "--start-from", first], "not a 3-D polytope:8"),
                           ([run, "--start-from", str(tmp_path / "missing.h5")], "missing.h5"),
-                          ([run, "--method", "shooting", "--start-from", first], "implicit 3-D estimator only")):
+                          ([run, "--method", "shooting", "--start-from", first], "implicit estimators only")):
         bad = subprocess.run([TACEST, "estimate", *args, "-o", str(tmp_path / "bad.h5")], capture_output=True,
                              text=True)
         assert bad.returncode == 2 and message in bad.stderr, bad.stderr

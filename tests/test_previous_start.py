@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tacest.diagnosis.slicing import slice_run
 from tacest.errors import TacestError
 from tacest.estimation.estimator import ImplicitEstimator, estimate_2d
 from tacest.estimation.initial import continued_trajectory, push_tracker_batch
@@ -67,20 +66,19 @@ def test_an_earlier_estimate_that_does_not_fit_is_one_clear_error(two_pokes, bad
 
 def test_two_pokes_start_first_from_the_estimate_of_the_first(two_pokes):
     """Known answer: the truth of the first poke as the earlier estimate.  Its start is
-    solved first and compared; the kept fit is within 3 mm of the true box (the gentle
-    2-D box benchmark's median is 0.5 mm; 3 mm allows a seed's worse basin while still
-    failing a fit that lost the box, 10-30 mm off) and at or below the objective of the
-    fit without it (it is one more start)."""
+    solved first and compared.  On this recording (seed 3) the estimator's own starts
+    end 4.3 mm off at objective 9.44; from the earlier estimate the kept fit is 0.42 mm
+    off at 8.79.  Asserted: within 2 mm of the true box (the gentle 2-D box benchmark's
+    median is 0.5 mm; 2 mm fails the 4.3 mm basin) and below the own starts' objective
+    (here the fits' search is the same but for the one more start)."""
+    import json
+
     from tacest.geometry.chamfer import chamfer_body
 
     run, T0 = two_pokes
-    first = slice_run(run, 0, T0)
-    assert first.n_samples == T0
     est = estimate_2d([run], "box", previous=_truth_estimate(run, T0))
-    import json
-
     starts = [a["start"] if "start" in a else "push-tracked" for a in json.loads(est.extra_attrs["starts"])]
     assert starts[0] == "previous estimate"
-    assert chamfer_body(est.vertices, np.asarray(run.truth.vertices, float)) < 3e-3
+    assert chamfer_body(est.vertices, np.asarray(run.truth.vertices, float)) < 2e-3
     plain = estimate_2d([run], "box")
     assert est.objective <= plain.objective + 1e-6 * abs(plain.objective)

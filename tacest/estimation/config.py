@@ -140,12 +140,14 @@ class Solver:
     #: lineage can lead the NLP into a local minimum whose fit still looks consistent
     #: (docs/estimation.md, "Dynamic pokes")
     sampler_starts: int = 2
-    #: processes that solve the compared starts at once (the sampler's and, in 3-D
-    #: without pose observations, every push-tracked one): forked copies of the process
-    #: with its built NLP (solver.solve_from_starts).  0: one per core this process may
-    #: use, at most one per compared start; 1: one after another (also inside a daemonic
-    #: process, e.g. a Dask worker, and where fork is not available).  The fits are the
-    #: same either way; the restarts after them run one after another
+    #: processes that solve the compared starts at once (the sampler's, an earlier
+    #: estimate's and, in 3-D without pose observations, every push-tracked one), and the
+    #: samplers' seeded runs: forked copies of the process with its built NLP
+    #: (solver.solve_from_starts, tacest.parallel.fork_map).  0: one per core this
+    #: process may use, at most one per job; 1: one after another (so also, whatever
+    #: this says, off Linux, inside a daemonic process such as a Dask worker, beside
+    #: other threads, and with an OpenMP linear solver).  The fits are the same either
+    #: way; the restarts after them run one after another
     start_workers: int = 0
 
     def __post_init__(self):
@@ -401,3 +403,12 @@ def solver_structure_key(solver: Solver) -> str:
     import dataclasses
 
     return repr(dataclasses.replace(solver, start_workers=0))
+
+
+def start_workers(solver: Solver) -> int:
+    """The ``workers`` of the starts' forked solves (tacest.parallel.fork_processes):
+    ``solver.start_workers``, or 1 with a linear solver that runs OpenMP threads (a
+    forked child of a process that used them can deadlock)."""
+    from tacest.parallel import OPENMP_LINEAR_SOLVERS
+
+    return 1 if solver.linear_solver in OPENMP_LINEAR_SOLVERS else int(solver.start_workers)

@@ -168,3 +168,25 @@ def parameter_vector(problem, runs: list[Run], scales: Scales, config: Estimator
     p = np.concatenate(parts)
     assert p.shape[0] == problem.n_p_total
     return p
+
+
+def previous_trajectories(previous, dim: int, shape_name: str, runs: list) -> list:
+    """Per run, the (T0, 3) [x, y m, angle rad] (2-D) or (T0, 7) [x, y, z m, qw, qx, qy,
+    qz] (3-D) trajectory of an earlier estimate ``previous`` of the first T0 <= T
+    samples of each run (a start from it: estimator.previous_start_2d,
+    estimator3d.previous_start).  Raises TacestError (one line) where it does not fit:
+    another dimension or shape parameterization, another number of runs, a trajectory
+    longer than its run, of another width, or not finite."""
+    if int(previous.dim) != int(dim) or previous.shape != shape_name:
+        raise TacestError(f"the earlier estimate is a {previous.dim}-D {previous.shape}, not a {dim}-D {shape_name}")
+    if len(previous.runs) != len(runs):
+        raise TacestError(f"the earlier estimate has {len(previous.runs)} runs, these are {len(runs)}")
+    width = 3 if int(dim) == 2 else 7
+    out = []
+    for run, re in zip(runs, previous.runs):
+        P = np.asarray(re.pose, float)
+        if P.ndim != 2 or P.shape[1] < width or not 0 < len(P) <= run.n_samples or not np.all(np.isfinite(P)):
+            raise TacestError(f"the earlier estimate's trajectory ({P.shape}) does not fit a run of "
+                              f"{run.n_samples} samples")
+        out.append(P[:, :width])
+    return out

@@ -22,8 +22,8 @@ import numpy as np
 
 from tacest.errors import TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
-from tacest.estimation.config import EstimatorConfig, solver_structure_key
-from tacest.estimation.data import Scales, choose_scales, parameter_vector, touching
+from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
+from tacest.estimation.data import Scales, choose_scales, parameter_vector, previous_trajectories, touching
 from tacest.estimation.initial import continued_trajectory, initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
@@ -84,6 +84,8 @@ class ImplicitEstimator:
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
                  effects=(), pinned_theta=None, pin: str = "all", previous: Estimate | None = None):
         check_runs(runs)
+        if previous is not None:  # a mismatched earlier estimate is an error before the NLP is built
+            previous_trajectories(previous, 2, make_shape(shape_spec, dim=2).name, runs)
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
         self.runs = runs
@@ -285,7 +287,7 @@ class ImplicitEstimator:
         pinned = self.pinned_theta is not None and self.pin in ("all", "shape")
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
             starts, solve_one, self.config.solver.restart_physics, self.attempts,
-            min_solves=0 if pinned else n_always, workers=self.config.solver.start_workers)
+            min_solves=0 if pinned else n_always, workers=start_workers(self.config.solver))
         self.z = out.z
         return out
 
@@ -300,7 +302,7 @@ class ImplicitEstimator:
             return []
         runs = map_in_processes(lambda k: smc_start(self.runs, self.scales.L, self.scales.m0,
                                                     SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k)),
-                                int(cfg.sampler_starts), cfg.start_workers)  # independent runs, seeded
+                                int(cfg.sampler_starts), start_workers(cfg))  # independent runs, seeded
         out = []
         for s in runs:
             if all(np.max(np.abs(s.extents / o.extents - 1.0)) > 0.02 for o in out):
@@ -552,19 +554,10 @@ def previous_start_2d(est: ImplicitEstimator, previous: Estimate) -> np.ndarray:
     its last pose (initial.continued_trajectory).  Raises TacestError where the estimate
     does not fit the runs (dimension, shape, number of runs, a longer trajectory)."""
     pr, sc = est.problem, est.scales
-    if previous.dim != 2 or previous.shape != est.shape.name:
-        raise TacestError(f"the earlier estimate is a {previous.dim}-D {previous.shape}, not a 2-D {est.shape.name}")
-    if len(previous.runs) != len(est.runs):
-        raise TacestError(f"the earlier estimate has {len(previous.runs)} runs, these are {len(est.runs)}")
+    before = previous_trajectories(previous, 2, est.shape.name, est.runs)
     theta = theta_of(est, previous, "the earlier estimate", missing_effects_at_zero=True)
     V = numeric_vertices(pr.shape, theta[: pr.n_shape], sc.L)
-    trajectories = []
-    for run, re in zip(est.runs, previous.runs):
-        P = np.asarray(re.pose, float)
-        if P.ndim != 2 or P.shape[1] < 3 or not 0 < len(P) <= run.n_samples or not np.all(np.isfinite(P)):
-            raise TacestError(f"the earlier estimate's trajectory ({P.shape}) does not fit a run of "
-                              f"{run.n_samples} samples")
-        trajectories.append(continued_trajectory(run, V, P[:, :3]))
+    trajectories = [continued_trajectory(run, V, P) for run, P in zip(est.runs, before)]
     z = initial_guess(pr, est.runs, sc, theta[: pr.n_shape], trajectories=trajectories)
     z[: pr.n_theta] = theta
     z[pr.phys_offset: pr.phys_offset + pr.n_phys] = np.asarray(pr.phys_sx(theta, sc.L, sc.m0)).reshape(-1)

@@ -29,8 +29,8 @@ from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inert
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
-from tacest.estimation.config import EstimatorConfig, solver_structure_key
-from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, touching
+from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
+from tacest.estimation.data import Scales, choose_scales, finger_velocity, gravity_of, previous_trajectories, touching
 from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
@@ -482,6 +482,9 @@ class Estimator3D:
         pr, cfg3 = self.problem, self.config.solver3d
         self.attempts = []
         if self.has_pose or self.fixed_theta is not None or not self.F:
+            if self.previous is not None:
+                log.warning("the earlier estimate is not used: runs with pose observations (or held parameters, "
+                            "or no fingertip) are solved once, from their own start")
             t0 = time.perf_counter()
             s0 = self.choose_start_shape() if self.fixed_theta is None else self.fixed_theta[: pr.n_shape].copy()
             log.info(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
@@ -494,9 +497,9 @@ class Estimator3D:
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
         starts, compared = order_starts(starts, self.sampled_start(starts[0]), cfg3)
-        if self.previous is not None:
+        if self.previous is not None:  # first, and compared (as in 2-D)
             starts.insert(0, self.previous)
-            compared += bool(compared)
+            compared += 1
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
@@ -518,7 +521,7 @@ class Estimator3D:
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
-                min_solves=compared, accept_budget=self.accept_budget, workers=self.config.solver.start_workers)
+                min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver))
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
@@ -746,7 +749,7 @@ def sampled_start_3d(runs: list, sc: Scales, tracked: Start3D, config: Estimator
     cfg3 = config.solver3d
     found = map_in_processes(lambda k: smc_start_3d(runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
         particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
-        config.solver.start_workers)  # independent runs, seeded
+        start_workers(config.solver))  # independent runs, seeded
     best = max(found, key=lambda r: r.log_likelihood)  # the first of equals, as before
     cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0]) for run, P in zip(runs, best.poses))
     return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
@@ -805,21 +808,14 @@ def previous_start(runs: list, shape: Shape3D, previous: Estimate, L: float) -> 
     shape (Shape3D.params_from_vertices, scaled by the length scale L m) and its
     trajectories, each continued over the run's newer samples by the push tracker from
     its last pose (initial3d.continued_track).  Raises TacestError where the estimate
-    does not fit the runs (dimension, shape, number of runs, a longer trajectory)."""
-    if previous.dim != 3 or previous.shape != shape.name:
-        raise TacestError(f"the earlier estimate is a {previous.dim}-D {previous.shape}, not a 3-D {shape.name}")
-    if len(previous.runs) != len(runs):
-        raise TacestError(f"the earlier estimate has {len(previous.runs)} runs, these are {len(runs)}")
-    V = np.asarray(previous.vertices, float)
+    does not fit the runs (data.previous_trajectories)."""
+    before = previous_trajectories(previous, 3, shape.name, runs)
+    # the vertices in the shape's own frame: an estimated centre of mass moved them by -d
+    d = np.array([float(previous.params.get(f"com_offset.d{a}", 0.0)) for a in "xyz"])
+    V = np.asarray(previous.vertices, float) + d
     s0 = shape.params_from_vertices(V, L)
     extents = np.ptp(V, axis=0) / L
-    poses = []
-    for run, re in zip(runs, previous.runs):
-        P = np.asarray(re.pose, float)
-        if P.ndim != 2 or P.shape[1] != 7 or not 0 < len(P) <= run.n_samples or not np.all(np.isfinite(P)):
-            raise TacestError(f"the earlier estimate's trajectory ({P.shape}) does not fit a run of "
-                              f"{run.n_samples} samples")
-        poses.append(continued_track(run, extents * L, P))
+    poses = [continued_track(run, extents * L, P) for run, P in zip(runs, before)]
     cost = sum(float(touch_inconsistency_3d(run, extents[None] * L, P[None])[0]) for run, P in zip(runs, poses))
     return Start3D(extents, poses, "previous estimate", cost, shape_params=s0)
 

@@ -35,6 +35,7 @@ import casadi as ca
 import numpy as np
 
 from tacest.errors import SolveFailedError
+from tacest.parallel import fork_map, fork_processes
 from tacest.interrupt import raise_if_interrupted, watch_interrupts
 
 log = logging.getLogger(__name__)
@@ -392,70 +393,17 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
                         objective=last.objective, stages=infos)
 
 
-#: the forked processes' job (solve_in_processes): set in the parent before its
-#: workers are forked, so that they inherit it instead of receiving it pickled
-_FORKED_JOB = None
-
-
-def _forked_call(k):
-    """In a forked worker: the k-th job's result, or the SolveFailedError it raised."""
-    try:
-        return _FORKED_JOB(k)
-    except SolveFailedError as exc:
-        return exc
-
-
-def start_processes(workers: int, jobs: int) -> int:
-    """How many processes solve ``jobs`` independent starts: ``workers`` (0: one per
-    core this process may use), at most one per job; 1 where forking is not possible
-    (a daemonic process such as a Dask worker, or no fork on this platform)."""
-    import multiprocessing as mp
-
-    from tacest.parallel import machine_workers
-
-    if jobs < 2 or mp.current_process().daemon or "fork" not in mp.get_all_start_methods():
-        return 1
-    return max(1, min(int(workers) or machine_workers(), int(jobs)))
-
-
-def solve_in_processes(job, n: int, processes: int) -> list:
-    """[job(0), ..., job(n - 1)] computed by ``processes`` forked copies of this process
-    (each inherits the built NLP and everything ``job`` needs: nothing but k and the
-    results is pickled); an entry is the SolveFailedError its job raised.  Any other
-    exception in a job is raised here.  On any exception here, Ctrl-C included, the
-    workers are killed before it is raised (none goes on solving or writing)."""
-    import multiprocessing as mp
-
-    global _FORKED_JOB
-    _FORKED_JOB = job
-    try:
-        pool = mp.get_context("fork").Pool(processes)  # forks now: the workers inherit the job
-    finally:
-        _FORKED_JOB = None
-    try:
-        pending = [pool.apply_async(_forked_call, (k,)) for k in range(n)]
-        out = [r.get() for r in pending]
-    except BaseException:
-        pool.terminate()
-        pool.join()
-        raise
-    pool.close()
-    pool.join()
-    return out
-
-
 def map_in_processes(job, n: int, workers: int) -> list:
-    """[job(0), ..., job(n - 1)]: in forked processes where :func:`start_processes`
-    gives more than one for ``workers``, else one after another; any exception of a
-    job is raised (independent, seeded computations such as the samplers' runs)."""
-    processes = start_processes(workers, n)
+    """[job(0), ..., job(n - 1)]: in forked processes where
+    tacest.parallel.fork_processes gives more than one for ``workers``, else one after
+    another; any exception of a job is raised (independent, seeded computations such as
+    the samplers' runs)."""
+    from tacest.parallel import fork_map, fork_processes
+
+    processes = fork_processes(workers, n)
     if processes < 2:
         return [job(k) for k in range(n)]
-    out = solve_in_processes(job, n, processes)
-    for r in out:
-        if isinstance(r, SolveFailedError):
-            raise r
-    return out
+    return fork_map(job, n, processes)
 
 
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0,
@@ -486,8 +434,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         inside a diagnosis: they may end the search, and are kept when no start
         converged); without it that is a failure, as a single solve's.
     workers : processes that solve the ``min_solves`` compared starts at once
-        (:func:`start_processes`: 0 one per core, 1 one after another); the fits and
-        the attempts are the same either way, the restarts after them one at a time.
+        (tacest.parallel.fork_processes: 0 one per core, 1 one after another); the fits
+        and the attempts are the same either way, the restarts after them one at a time.
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -504,11 +452,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     """
     best = failure = converged = None  # converged: (objective, good) of the best converged fit
     n_pre = min(int(min_solves), len(starts))
-    processes = start_processes(workers, n_pre)
+    processes = fork_processes(workers, n_pre)
     solved = {}
     if processes > 1:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
-        solved = dict(enumerate(solve_in_processes(lambda k: solve_one(starts[k][1]), n_pre, processes)))
+        solved = dict(enumerate(fork_map(lambda k: solve_one(starts[k][1]), n_pre, processes,
+                                         returned=(SolveFailedError,))))
     for k, (record, start) in enumerate(starts):
         if 0 < k < min_solves:
             log.info(f"start {k + 1} of the {min_solves} compared")
