@@ -398,8 +398,6 @@ def map_in_processes(job, n: int, workers: int) -> list:
     tacest.parallel.fork_processes gives more than one for ``workers``, else one after
     another; any exception of a job is raised (independent, seeded computations such as
     the samplers' runs)."""
-    from tacest.parallel import fork_map, fork_processes
-
     processes = fork_processes(workers, n)
     if processes < 2:
         return [job(k) for k in range(n)]
