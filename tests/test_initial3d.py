@@ -372,3 +372,20 @@ def test_the_previous_estimate_is_solved_first_and_compared(monkeypatch):
     # the previous start and the three compared ones are all solved; the lowest kept
     assert len(calls) == 4 and out.objective == 5.0
 
+
+
+def test_a_polytope_start_from_an_estimate_with_a_com_offset_has_the_shapes_own_radii():
+    """An earlier polytope estimate with an estimated centre of mass: its vertices are
+    the shape's less the offset d (Estimator3D.body_vertices); the start's radii are the
+    shape's own, not those of the shifted vertices."""
+    run = _push_run()
+    shape = make_shape_3d("polytope:12")
+    s = shape.initial(BOX / 0.1) * np.linspace(0.95, 1.05, shape.n_params)
+    d = np.array([0.004, -0.003, 0.002])  # m
+    est = _earlier_estimate(run, 150, shape="polytope:12")
+    est.vertices = numeric_vertices_3d(shape, s, 0.1) - d
+    est.params = {f"com_offset.d{a}": float(v) for a, v in zip("xyz", d)}
+    start = estimator3d.previous_start([run], shape, est, 0.1)
+    np.testing.assert_allclose(start.shape_params, s, rtol=1e-12)
+    est.params = {}  # read as if at the centroid, the radii would be off by d·u_k
+    assert not np.allclose(estimator3d.previous_start([run], shape, est, 0.1).shape_params, s, rtol=1e-3)
