@@ -84,13 +84,13 @@ class ImplicitEstimator:
     def __init__(self, runs: list[Run], shape_spec: str = "box", config: EstimatorConfig | None = None,
                  effects=(), pinned_theta=None, pin: str = "all", previous: Estimate | None = None):
         check_runs(runs)
-        if previous is not None:  # a mismatched earlier estimate is an error before the NLP is built
-            previous_trajectories(previous, 2, make_shape(shape_spec, dim=2).name, runs)
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
         self.runs = runs
         self.config = config or EstimatorConfig()
         self.shape = make_shape(shape_spec, dim=2)
+        # a mismatched earlier estimate is an error before the NLP is built
+        before = None if previous is None else previous_trajectories(previous, 2, self.shape.name, runs)
         self.scales: Scales = choose_scales(runs, self.config)
         self.structures = [RunStructure(T=r.n_samples, F=r.n_fingers, observed=r.pose_obs is not None) for r in runs]
         self.has_force = any(r.force is not None for r in runs)
@@ -104,7 +104,7 @@ class ImplicitEstimator:
         self.problem: Problem2D = self.built.problem
         self.pinned_theta = None if pinned_theta is None else np.asarray(pinned_theta, float)
         self.pin = pin
-        self.previous_z = None if previous is None else previous_start_2d(self, previous)
+        self.previous_z = None if previous is None else previous_start_2d(self, previous, before)
         #: one dict per solve of :meth:`solve` (start_shape, status, objective,
         #: physics_per_sample; or status "failed" and error)
         self.attempts = []
@@ -546,15 +546,14 @@ def matching_runs(runs: list, estimate: Estimate) -> list:
     return out
 
 
-def previous_start_2d(est: ImplicitEstimator, previous: Estimate) -> np.ndarray:
+def previous_start_2d(est: ImplicitEstimator, previous: Estimate, before: list) -> np.ndarray:
     """Scaled z0 of a start from an earlier estimate ``previous`` of the same object from
     the first samples of ``est``'s runs (a closed loop's last step, before its newest
     poke): its parameters (:func:`theta_of`; effects it lacks at "no effect") and its
-    trajectories, each continued over the run's newer samples by the push tracker from
-    its last pose (initial.continued_trajectory).  Raises TacestError where the estimate
-    does not fit the runs (dimension, shape, number of runs, a longer trajectory)."""
+    trajectories ``before`` (checked: data.previous_trajectories), each continued over
+    the run's newer samples by the push tracker from its last pose
+    (initial.continued_trajectory)."""
     pr, sc = est.problem, est.scales
-    before = previous_trajectories(previous, 2, est.shape.name, est.runs)
     theta = theta_of(est, previous, "the earlier estimate", missing_effects_at_zero=True)
     V = numeric_vertices(pr.shape, theta[: pr.n_shape], sc.L)
     trajectories = [continued_trajectory(run, V, P) for run, P in zip(est.runs, before)]

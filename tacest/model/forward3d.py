@@ -57,7 +57,6 @@ class Boxes:
         return self.mass[:, None] * (e2[:, [1, 0, 0]] + e2[:, [2, 2, 1]]) / 12.0
 
 
-
 # ---------------------------------------------------------------------------------
 # the compiled kernel: one hypothesis at a time, every substep of a sample in one call
 

@@ -189,8 +189,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
         t0 = time.perf_counter()
         est = None
         try:
-            warm = {"previous": previous} if previous is not None else {}
-            est_obj = estimate([run], shape, config=config, **warm)
+            est_obj = estimate([run], shape, config=config, previous=previous)
             est_path = out / f"estimate_{n}.h5"
             write_estimate(est_obj, est_path)
             est = previous = read_estimate(est_path)
