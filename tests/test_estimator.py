@@ -118,7 +118,7 @@ def test_gauss_newton_hessian_is_jtj(observed):
     w = pr.weight_sym
     r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * pr.residual_stack[t] for t in SQUARED_TERMS])
     J = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(r, pr.z_sym)])(z, p)))
-    prior = pr.p_sym[pr.n_p + len(TERMS): pr.n_p + len(TERMS) + 6 + pr.n_shape]
+    prior = pr.p_sym[pr.n_p + len(TERMS): pr.n_p + len(TERMS) + pr.n_prior()]
     hp = ca.Function("hp", [pr.z_sym, pr.p_sym],
                      [ca.triu(ca.hessian(pr.prior_fun(pr.z_sym[: pr.n_theta], prior), pr.z_sym)[0])])
     hpen = ca.Function("hpen", [pr.z_sym, pr.p_sym], [ca.triu(ca.hessian(pr.f_penalty_reference, pr.z_sym)[0])])

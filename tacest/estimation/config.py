@@ -72,15 +72,21 @@ class Prior:
 
     mass: float = 0.5  #: kg, median of a log-normal prior
     mass_log_sigma: float = 1.5  #: sigma of log(mass)
-    friction: float = 0.5  #: prior mean of both friction coefficients
-    friction_sigma: float = 1.0
+    friction: float = 0.5  #: prior median (log-normal) or mean (normal) of both friction coefficients
+    friction_sigma: float = 1.0  #: sigma of the normal friction prior (used where friction_log_sigma = 0)
+    #: sigma of log(mu) of the log-normal friction prior (0: the normal prior of
+    #: friction_sigma instead); tacest.model.priors
+    friction_log_sigma: float = 0.7
     inertia_log_sigma: float = 0.3  #: sigma of log(I / I_uniform_density)
     size: float = 0.1  #: m, starting extent when the run has no /prior size hint
     size_bound: float = 0.5  #: m, largest extent when the run has no /prior size_bound
     shape_sigma: float = 1.0  #: weak pull of the shape toward its start, in units of L
 
     def __post_init__(self):
-        _positive(self, "prior", nonnegative=("friction",))
+        _positive(self, "prior", nonnegative=("friction", "friction_log_sigma"))
+        if self.friction_log_sigma > 0 and not self.friction > 0:
+            raise _InvalidSetting(f"prior.friction: must be > 0 with a log-normal prior (friction_log_sigma > 0), "
+                                  f"got {self.friction!r}")
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.run import Run
 from tacest.model.effect import Scales
+from tacest.model.priors import prior_head
 from tacest.model.stage2d import G, G_NAMES, TERMS
 
 
@@ -159,9 +160,7 @@ def parameter_vector(problem, runs: list[Run], scales: Scales, config: Estimator
     wd.update(weights_override or {})
     # (a problem without pose-observed runs has no Occam term: its weight multiplies nothing)
     parts.append(np.array([wd[t] for t in TERMS], float))
-    pr = config.prior
-    parts.append(np.array([pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
-                           pr.shape_sigma, 1.0]))
+    parts.append(prior_head(config.prior))
     parts.append(problem.effect_priors(config, scales.L))
     parts.append(np.asarray(s_ref, float))
     parts.append([config.solver.hessian_ridge if ridge is None else ridge])

@@ -44,6 +44,7 @@ from tacest.geometry.shapes3d import Shape3D, make_shape_3d, numeric_vertices_3d
 from tacest.geometry.transforms import quat_to_matrix
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run, run_sha256
+from tacest.model.priors import prior_head
 from tacest.model.stage2d import PHYSICS_TERMS
 from tacest.model.registry import names_of, resolve
 from tacest.model.stage3d import D_NAMES, DF_NAMES, DI, G3_NAMES, NP, PHYS_NAMES_3D, TERMS3D, Layout3D, impulse_variable
@@ -290,9 +291,7 @@ class Estimator3D:
         D = np.concatenate([data_matrix_3d(r, self.F, sc) for r in self.runs], axis=1)
         g = global_vector_3d(cfg, sc, eps, comp_mult, dyn_mult)
         w = np.array([getattr(cfg.weights, t) for t in TERMS3D], float)
-        pr = cfg.prior
-        prior = np.concatenate([[pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma,
-                                 pr.shape_sigma, 1.0], pr3.effect_priors(cfg, sc.L), self.s0 if s_ref is None else s_ref])
+        prior = np.concatenate([prior_head(cfg.prior), pr3.effect_priors(cfg, sc.L), self.s0 if s_ref is None else s_ref])
         ridge = cfg.solver3d.hessian_ridge if ridge is None else ridge
         p = np.concatenate([D.T.reshape(-1), g, w, prior, [ridge]])
         assert p.shape[0] == self.problem.n_p

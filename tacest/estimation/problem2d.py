@@ -40,6 +40,7 @@ from tacest.estimation.kernels import compile_functions
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j
 from tacest.model.jacobians2d import (contact_state_function, stage_active_weights, stage_residual_jacobian,
                                       start_residual_jacobian)
+from tacest.model.priors import ON
 from tacest.model.stage2d import (G, G_NAMES, PENALTY_TERMS, PHYS_NAMES, SQUARED_TERMS, START_TERM_OUTPUTS, TERMS,
                                   StageModel2D, start_local_variables, stage_local_variables)
 
@@ -139,11 +140,11 @@ class Problem2D(StageModel2D):
         f = 0
         for k, t in enumerate(TERMS):
             f = f + w_sym[k] * acc.obj_terms[t]
-        f = f + prior_sym[5] * f_prior
+        f = f + prior_sym[ON] * f_prior
         #: the same objective through the SX per-sample functions (not compiled): CasADi
         #: differentiates it to any order, so tests check the Hessian models against it
         #: (compiled kernels carry first derivatives only)
-        self.f_reference = prior_sym[5] * f_prior
+        self.f_reference = prior_sym[ON] * f_prior
         for t in SQUARED_TERMS:
             self.f_reference = self.f_reference + w_sym[TERMS.index(t)] * 0.5 * ca.sumsqr(ca.vertcat(*acc.r_stack[t]))
         #: the weighted penalty terms alone, through the SX functions (tests)
@@ -239,7 +240,7 @@ class Problem2D(StageModel2D):
         lf_sx = ca.SX.sym("lam_f")
         lam_lift_sx = ca.SX.sym("lam_lift", self.n_phys)
         L_sx, m0_sx = ca.SX.sym("L"), ca.SX.sym("m0")
-        lag_theta = lf_sx * prior_sx[5] * f_prior_sx - ca.dot(lam_lift_sx, self.phys_sx(theta_sx, L_sx, m0_sx))
+        lag_theta = lf_sx * prior_sx[ON] * f_prior_sx - ca.dot(lam_lift_sx, self.phys_sx(theta_sx, L_sx, m0_sx))
         if n_sc:
             lag_theta = lag_theta + ca.dot(lam_sc_sx, g_sc_sx)
         h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
@@ -455,8 +456,8 @@ class Problem2D(StageModel2D):
     def _prior_hessian_function(self):
         th = ca.SX.sym("theta", self.n_theta)
         pv = ca.SX.sym("prior", self.n_prior())
-        H, _ = ca.hessian(self.prior_fun(th, pv), th)
-        return ca.Function("hprior", [th, pv], [ca.densify(H)])
+        Jr = ca.jacobian(self.prior_residual(th, pv), th)
+        return ca.Function("hprior", [th, pv], [ca.densify(ca.mtimes(Jr.T, Jr))])
 
     def prior_values(self, p) -> np.ndarray:
         """The prior vector (see StageModel2D.n_prior) of a parameter vector p."""
@@ -464,10 +465,12 @@ class Problem2D(StageModel2D):
         return np.asarray(p, float).reshape(-1)[a: a + self.n_prior()]
 
     def prior_hessian(self, theta, p) -> np.ndarray:
-        """(n_theta, n_theta) Hessian of the objective's parameter priors (scaled theta),
-        with their on/off flag, under the parameter vector p."""
+        """(n_theta, n_theta) Gauss–Newton Hessian (JᵀJ of their residuals) of the
+        objective's parameter priors (scaled theta), with their on/off flag, under the
+        parameter vector p: the priors' information (the log-normal friction prior's
+        exact Hessian turns negative above e times its median)."""
         pv = self.prior_values(p)
-        return pv[5] * np.asarray(self._prior_hessian_function(np.asarray(theta, float), pv), float)
+        return pv[ON] * np.asarray(self._prior_hessian_function(np.asarray(theta, float), pv), float)
 
 
 class ResidualJacobian2D:

@@ -85,6 +85,8 @@ from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, 
     polygon_sd_and_normal_function, rot2
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run
+from tacest.model.priors import (INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, SHAPE_SIGMA, friction_residual,
+                                 prior_head)
 from tacest.model.stage2d import PHYS_NAMES, consecutive_slices
 
 log = logging.getLogger(__name__)
@@ -434,7 +436,7 @@ class Structure:
 class ShootingProblem:
     """The shooting NLP for runs of the given structures (built once, data as parameters).
 
-    z = [theta (n_theta), per run (x0 / L, angle0)];  p = [L, m0, prior (5), s_ref (n_s),
+    z = [theta (n_theta), per run (x0 / L, angle0)];  p = [L, m0, prior (N_PRIOR_FIXED), s_ref (n_s),
     weights (4), per run: env (4+F), sig (5), data (data_rows(F) · T)].
 
     Attributes: ``loss`` Function (z, p) -> objective; ``nlp`` dict for nlpsol;
@@ -460,7 +462,7 @@ class ShootingProblem:
         z = ca.MX.sym("z", self.n_z)
         theta = z[: self.n_theta]
         L, m0 = ca.MX.sym("L"), ca.MX.sym("m0")
-        prior = ca.MX.sym("prior", 5)  # lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma
+        prior = ca.MX.sym("prior", N_PRIOR_FIXED)  # tacest.model.priors.PRIOR_HEAD
         s_ref = ca.MX.sym("s_ref", ns)
         w = ca.MX.sym("w", len(TERMS))
         p_parts = [L, m0, prior, s_ref, w]
@@ -470,7 +472,7 @@ class ShootingProblem:
         outs = []
         r_parts = []  # whitened residuals, sqrt(weight) applied: loss = 0.5 ||r||² + prior
         self.p_run_offsets = []
-        n_p = 2 + 5 + ns + len(TERMS)
+        n_p = 2 + N_PRIOR_FIXED + ns + len(TERMS)
         for i, st in enumerate(self.structures):
             T, F = st.T, st.F
             env = ca.MX.sym("env", 6 + F)
@@ -501,12 +503,12 @@ class ShootingProblem:
         r = ca.vertcat(*r_parts)
         # weak priors of the implicit estimator (theta only)
         th = ca.SX.sym("theta", self.n_theta)
-        pr_sx = ca.SX.sym("prior", 5)
+        pr_sx = ca.SX.sym("prior", N_PRIOR_FIXED)
         sref_sx = ca.SX.sym("s_ref", ns)
         lm, lI, mg, mf = (th[ns + i] for i in range(4))
-        f_prior_sx = 0.5 * (lm / pr_sx[0]) ** 2 + 0.5 * (lI / pr_sx[1]) ** 2 \
-            + 0.5 * ((mg - pr_sx[2]) / pr_sx[3]) ** 2 + 0.5 * ((mf - pr_sx[2]) / pr_sx[3]) ** 2 \
-            + 0.5 * ca.sumsqr((th[:ns] - sref_sx) / pr_sx[4])
+        r_prior_sx = ca.vertcat(lm / pr_sx[MASS_LOG_SIGMA], lI / pr_sx[INERTIA_LOG_SIGMA], friction_residual(mg, pr_sx),
+                                friction_residual(mf, pr_sx), (th[:ns] - sref_sx) / pr_sx[SHAPE_SIGMA])
+        f_prior_sx = 0.5 * ca.sumsqr(r_prior_sx)
         sc = self.shape.constraints(th[:ns])
         g_sx = ca.vertcat(*sc) if sc else ca.SX.zeros(0)
         lam_g_sx = ca.SX.sym("lam_g", g_sx.shape[0])
@@ -533,9 +535,11 @@ class ShootingProblem:
         H = H + ca.diagcat(H_theta, ca.MX.zeros(self.n_z - self.n_theta, self.n_z - self.n_theta))
         self.hess_lag = {"gauss-newton": ca.Function("nlp_hess_l", [z, p, lam_f, lam_g], [ca.triu(ca.densify(H))],
                                                      ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])}
-        #: the Hessian of the priors (scaled theta), for the posterior std
+        #: the priors' Gauss–Newton Hessian (JᵀJ of their residuals, scaled theta), for the
+        #: posterior std
+        J_prior = ca.jacobian(r_prior_sx, th)
         self.prior_hessian = ca.Function("shoot_prior_hess", [th, pr_sx, sref_sx],
-                                         [theta_fun(th, pr_sx, sref_sx, 1.0, ca.DM.zeros(g_sx.shape[0]))[2]])
+                                         [ca.densify(ca.mtimes(J_prior.T, J_prior))])
         self.g = g
         #: IPOPT options of the shooting solve on top of solver.ipopt_options: one stage from
         #: a start chosen by the loss itself, not a consistent point of the implicit problem,
@@ -566,7 +570,7 @@ class ShootingProblem:
     def parameters(self, runs, scales: Scales, config: EstimatorConfig, s_ref) -> np.ndarray:
         pr, nz, wt = config.prior, config.noise, config.weights
         parts = [np.array([scales.L, scales.m0]),
-                 np.array([pr.mass_log_sigma, pr.inertia_log_sigma, pr.friction, pr.friction_sigma, pr.shape_sigma]),
+                 prior_head(pr),
                  np.asarray(s_ref, float), np.array([getattr(wt, t) for t in TERMS], float)]
         for run, st in zip(runs, self.structures):
             if run.n_samples != st.T or run.n_fingers != st.F:
@@ -717,8 +721,7 @@ class ShootingEstimator:
         I_phys[held_rows, :] = 0.0
         I_phys[:, held_rows] = 0.0
         names = information_names_2d(SimpleNamespace(shape=self.shape, effect_params=()))[: pr.n_theta]
-        prior = np.array([self.config.prior.mass_log_sigma, self.config.prior.inertia_log_sigma,
-                          self.config.prior.friction, self.config.prior.friction_sigma, self.config.prior.shape_sigma])
+        prior = prior_head(self.config.prior)
         H = np.asarray(pr.prior_hessian(z[: pr.n_theta], prior, self.p_sref), float)
         std_data, _ = std_of(I_phys, free[: pr.n_theta], names)
         std, _ = std_of(I_phys + H * np.outer(scale, scale), free[: pr.n_theta], names)

@@ -59,6 +59,7 @@ from tacest.interrupt import deferred_interrupts
 from tacest.io.run import Run
 from tacest.model.jacobians2d import (KINEMATICS_SIGMA, contact_state_function, stage_active_weights,
                                       stage_residual_jacobian, start_residual_jacobian)
+from tacest.model.priors import friction_information
 from tacest.model.stage2d import START_TERM_OUTPUTS, SQUARED_TERMS, TERMS, StageModel2D, stage_local_variables
 from tacest.sim.pokes import CLEARANCE  # no pymunk: the one definition of the approach clearance
 
@@ -705,7 +706,8 @@ def prior_information(names: list, model: ModelState, config: EstimatorConfig, L
     """(n, n) diagonal information of the estimator's own prior (config.prior), in the
     physical units of :func:`information_names_for`: shape entries 1/(shape_sigma·L)²
     (m⁻²), mass 1/(m·mass_log_sigma)² (a log-normal prior seen at m), inertia log ratio
-    1/inertia_log_sigma², frictions 1/friction_sigma²; the pose has no prior in the
+    1/inertia_log_sigma², frictions as tacest.model.priors.friction_information at the
+    model's; the pose has no prior in the
     estimator: a weak one, position 1/size_bound² and angle 1/π², keeps the matrix
     invertible (a direction no data touch stays as uncertain as it can be)."""
     pr = config.prior
@@ -718,7 +720,7 @@ def prior_information(names: list, model: ModelState, config: EstimatorConfig, L
         elif n == "inertia_log_ratio":
             diag.append(1.0 / pr.inertia_log_sigma ** 2)
         elif n in ("friction_ground", "friction_finger"):
-            diag.append(1.0 / pr.friction_sigma ** 2)
+            diag.append(friction_information(getattr(model, n), pr))
         elif n in ("final_x", "final_y"):
             diag.append(1.0 / size_bound ** 2)
         elif n == "final_angle":

@@ -55,6 +55,7 @@ from tacest.geometry.transforms import quat_to_matrix
 from tacest.information.expected import HOLD_TIME, PREDICT_SUBSTEPS, PredictedPoke, _Buffered, planning_inputs
 from tacest.information.sensitivity import Linearized, impulse_prior, information
 from tacest.io.run import Run
+from tacest.model.priors import prior_head
 from tacest.model.stage3d import NP, START_TERMS, STAGE_TERMS, TERMS3D, Layout3D, impulse_variable
 
 #: rows of the pose at the reference sample: a body-frame twist (m, rad)
@@ -458,9 +459,8 @@ class ExpectedInformation3D:
 
     def prior_vector(self, theta) -> np.ndarray:
         pr, cfg = self.pr, self.config
-        p = cfg.prior
-        return np.concatenate([[p.mass_log_sigma, p.inertia_log_sigma, p.friction, p.friction_sigma, p.shape_sigma, 1.0],
-                               pr.effect_priors(cfg, self.scales.L), np.asarray(theta, float)[: pr.n_shape]])
+        return np.concatenate([prior_head(cfg.prior), pr.effect_priors(cfg, self.scales.L),
+                               np.asarray(theta, float)[: pr.n_shape]])
 
     def past_information(self, est, runs, model: ModelState3, method: str = "schur", seed: int = 0) -> np.ndarray:
         """I_past (n, n): the runs' information about θ and the pose now (the end of the

@@ -63,6 +63,7 @@ from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_m
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_and_normal_function, rot2
 from tacest.model.effect import parameter_table, physics_gain, sensor_reading
 from tacest.model.occam import OCCAM_TOUCH_SHARPNESS, occam_free_weights, pose_occam
+from tacest.model.priors import INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, SHAPE_SIGMA, friction_residual
 from tacest.model.registry import names_of, resolve
 
 #: squared-residual terms, in the order the stage function returns them
@@ -256,27 +257,31 @@ class StageModel2D:
         return ca.Function("phys_of_theta", [th, L, m0],
                            [ca.vertcat(ca.vec(V) / L, mass / m0, inertia / (m0 * L * L), mu_g, mu_f, u)])
 
-    #: length of the fixed part of the prior vector: lm_sigma, lI_sigma, mu0, mu_sigma,
-    #: shape_sigma, on/off; then the effect priors (centre, sigma per parameter), s_ref
-    N_PRIOR_FIXED = 6
+    #: length of the fixed part of the prior vector (tacest.model.priors.PRIOR_HEAD); then
+    #: the effect priors (centre, sigma per parameter), s_ref
+    N_PRIOR_FIXED = N_PRIOR_FIXED
 
     def n_prior(self):
         return self.N_PRIOR_FIXED + 2 * self.n_eff + self.n_shape
 
-    def prior_expression(self, theta, prior):
-        """Negative log prior (SX) of theta under the prior vector (see n_prior)."""
+    def prior_residual(self, theta, prior):
+        """Whitened residuals (SX) of theta's priors under the prior vector (see n_prior):
+        log mass, log inertia ratio, both frictions (tacest.model.priors), the shape's pull
+        toward s_ref, the effect parameters.  Their weight ("on", the head's entry 5) is
+        applied by the problem."""
         s = theta[: self.n_shape]
         lm, lI, mu_g, mu_f = (theta[self.n_shape + i] for i in range(4))
-        lm_sig, lI_sig, mu0, mu_sig, sh_sig = (prior[i] for i in range(5))
         a = self.N_PRIOR_FIXED
         s_ref = prior[a + 2 * self.n_eff:]
-        f = 0.5 * (lm / lm_sig) ** 2 + 0.5 * (lI / lI_sig) ** 2 \
-            + 0.5 * ((mu_g - mu0) / mu_sig) ** 2 + 0.5 * ((mu_f - mu0) / mu_sig) ** 2 \
-            + 0.5 * ca.sumsqr((s - s_ref) / sh_sig)
-        for j in range(self.n_eff):
-            centre, sigma = prior[a + 2 * j], prior[a + 2 * j + 1]
-            f = f + 0.5 * ((theta[self.n_shape + len(PHYS_NAMES) + j] - centre) / sigma) ** 2
-        return f
+        effects = [(theta[self.n_shape + len(PHYS_NAMES) + j] - prior[a + 2 * j]) / prior[a + 2 * j + 1]
+                   for j in range(self.n_eff)]
+        return ca.vertcat(lm / prior[MASS_LOG_SIGMA], lI / prior[INERTIA_LOG_SIGMA], friction_residual(mu_g, prior),
+                          friction_residual(mu_f, prior), (s - s_ref) / prior[SHAPE_SIGMA], *effects)
+
+    def prior_expression(self, theta, prior):
+        """Negative log prior (SX) of theta under the prior vector (see n_prior): half the
+        squared :meth:`prior_residual`."""
+        return 0.5 * ca.sumsqr(self.prior_residual(theta, prior))
 
     def effect_priors(self, config, L) -> np.ndarray:
         """(2 n_eff,) [centre, sigma] of every effect parameter's prior (scaled)."""

@@ -73,6 +73,8 @@ from tacest.errors import TacestError
 from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
 from tacest.geometry.shapes3d import Shape3D, shape_sd_and_normal_function
 from tacest.model.effect import parameter_table, physics_gain, sensor_reading
+from tacest.model.priors import (INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, ON, SHAPE_SIGMA,
+                                 friction_residual)
 from tacest.model.registry import names_of, resolve
 
 #: squared-residual terms (weights from config.weights under the same names)
@@ -112,9 +114,8 @@ DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", 
 G3_NAMES = ("L", "m0", "sig_proc", "sig_pen", "sig_gap", "sig_comp", "eps", "comp_mult", "dyn_mult",
             "sig_force", "sig_normal", "sig_diss", "sig_rest")
 G3 = {n: i for i, n in enumerate(G3_NAMES)}
-#: prior vector: lm_sigma, lI_sigma, mu0, mu_sigma, shape_sigma, on, then (centre, sigma)
-#: of every effect parameter (scaled), then s_ref (n_s)
-N_PRIOR_FIXED = 6
+#: prior vector: its fixed head (tacest.model.priors.PRIOR_HEAD), then (centre, sigma) of
+#: every effect parameter (scaled), then s_ref (n_s)
 
 
 def impulse_of(u):
@@ -331,13 +332,13 @@ class StageModel3D:
         """Whitened prior residual of theta under the prior vector pr (N_PRIOR_FIXED)."""
         ns = self.n_shape
         s = th[:ns]
-        lm_sig, lI_sig, mu0, mu_sig, sh_sig, on = (pr[i] for i in range(N_PRIOR_FIXED))
         c_ref = self.shape.uniform_cholesky_reference(s)
         a, b = ns + len(PHYS_NAMES_3D), N_PRIOR_FIXED
         effects = [(th[a + j] - pr[b + 2 * j]) / pr[b + 2 * j + 1] for j in range(self.n_eff)]
-        r = ca.vertcat(th[ns] / lm_sig, (th[ns + 1: ns + 7] - c_ref) / lI_sig, (th[ns + 7] - mu0) / mu_sig,
-                       (th[ns + 8] - mu0) / mu_sig, (s - pr[b + 2 * self.n_eff:]) / sh_sig, *effects)
-        return ca.sqrt(on) * r
+        r = ca.vertcat(th[ns] / pr[MASS_LOG_SIGMA], (th[ns + 1: ns + 7] - c_ref) / pr[INERTIA_LOG_SIGMA],
+                       friction_residual(th[ns + 7], pr), friction_residual(th[ns + 8], pr),
+                       (s - pr[b + 2 * self.n_eff:]) / pr[SHAPE_SIGMA], *effects)
+        return ca.sqrt(pr[ON]) * r
 
     @staticmethod
     def finger_geometry(p, R, s, L, c_f, radius, sd_fun, shift=None):
