@@ -111,16 +111,16 @@ def test_exact_hessian_blocks_match_casadi(shape, observed, reach):
 
 @pytest.mark.parametrize("observed", [False, True])
 def test_gauss_newton_hessian_is_jtj(observed):
-    """Gauss–Newton model: J_rᵀJ_r of the squared terms plus the exact Hessians of the
-    priors and of the penalty (Occam) term."""
+    """Gauss–Newton model: J_rᵀJ_r of the squared terms and of the priors' residuals, plus
+    the exact Hessian of the penalty (Occam) term."""
     est, pr, z, p = _problem_point("box", observed=observed)
     gn = np.asarray(ca.DM(pr.hess_lag["gauss-newton"](z, p, 1.0, np.zeros(pr.g.shape[0]))))
     w = pr.weight_sym
     r = ca.vertcat(*[ca.sqrt(w[TERMS.index(t)]) * pr.residual_stack[t] for t in SQUARED_TERMS])
     J = np.asarray(ca.DM(ca.Function("J", [pr.z_sym, pr.p_sym], [ca.jacobian(r, pr.z_sym)])(z, p)))
     prior = pr.p_sym[pr.n_p + len(TERMS): pr.n_p + len(TERMS) + pr.n_prior()]
-    hp = ca.Function("hp", [pr.z_sym, pr.p_sym],
-                     [ca.triu(ca.hessian(pr.prior_fun(pr.z_sym[: pr.n_theta], prior), pr.z_sym)[0])])
+    Jp = ca.jacobian(pr.prior_residual(pr.z_sym[: pr.n_theta], prior), pr.z_sym)
+    hp = ca.Function("hp", [pr.z_sym, pr.p_sym], [ca.triu(ca.mtimes(Jp.T, Jp))])
     hpen = ca.Function("hpen", [pr.z_sym, pr.p_sym], [ca.triu(ca.hessian(pr.f_penalty_reference, pr.z_sym)[0])])
     pen = np.asarray(ca.DM(hpen(z, p)))
     assert (np.abs(pen).max() > 0) == observed  # the Occam term acts on pose-observed runs only

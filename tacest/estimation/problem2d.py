@@ -135,8 +135,9 @@ class Problem2D(StageModel2D):
         f_prior, shared = self._build_theta_terms(theta, prior_sym, lam_f, lam_lift, L_sym, m0_sym, acc)
         # Levenberg–Marquardt damping of the Hessian model (not of the objective): a ridge
         # parameter times lam_f on every variable, so the Gauss–Newton steps stay local
-        shared.append((ca.repmat(ridge_sym * lam_f, 1, self.n_z), ca.Sparsity.dense(1, 1),
-                       np.arange(self.n_z)[:, None]))
+        for blocks in shared.values():
+            blocks.append((ca.repmat(ridge_sym * lam_f, 1, self.n_z), ca.Sparsity.dense(1, 1),
+                           np.arange(self.n_z)[:, None]))
         f = 0
         for k, t in enumerate(TERMS):
             f = f + w_sym[k] * acc.obj_terms[t]
@@ -164,7 +165,7 @@ class Problem2D(StageModel2D):
         #: of the Lagrangian Hessian model}, for nlpsol's hess_lag option
         self.hess_lag = {
             mode: ca.Function("nlp_hess_l", [z, p_all, lam_f, lam_g],
-                              [assemble_hessian(acc.hess_blocks[mode] + shared, self.n_z)],
+                              [assemble_hessian(acc.hess_blocks[mode] + shared[mode], self.n_z)],
                               ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
             for mode in HESSIAN_MODES}
         #: stacked whitened residuals per squared term (for Gauss-Newton information);
@@ -227,7 +228,8 @@ class Problem2D(StageModel2D):
 
     def _build_theta_terms(self, theta, prior_sym, lam_f, lam_lift, L_sym, m0_sym, acc):
         """The priors and the shape's validity constraints (theta only): returns the prior
-        (MX) and the theta block of the Hessian; the constraints go into ``acc``."""
+        (MX) and {Hessian mode: [the theta block of the Hessian]}; the constraints go into
+        ``acc``."""
         theta_sx = ca.SX.sym("theta", self.n_theta)
         sc = self.shape.constraints(theta_sx[: self.n_shape])
         n_sc = len(sc)
@@ -240,13 +242,23 @@ class Problem2D(StageModel2D):
         lf_sx = ca.SX.sym("lam_f")
         lam_lift_sx = ca.SX.sym("lam_lift", self.n_phys)
         L_sx, m0_sx = ca.SX.sym("L"), ca.SX.sym("m0")
-        lag_theta = lf_sx * prior_sx[ON] * f_prior_sx - ca.dot(lam_lift_sx, self.phys_sx(theta_sx, L_sx, m0_sx))
+        lag_rest = -ca.dot(lam_lift_sx, self.phys_sx(theta_sx, L_sx, m0_sx))
         if n_sc:
-            lag_theta = lag_theta + ca.dot(lam_sc_sx, g_sc_sx)
-        h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
-                              [ca.densify(ca.hessian(lag_theta, theta_sx)[0])])
-        shared = [(h_theta(theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym),
-                   ca.Sparsity.dense(self.n_theta, self.n_theta), np.arange(self.n_theta)[None, :])]
+            lag_rest = lag_rest + ca.dot(lam_sc_sx, g_sc_sx)
+        # the priors: exact second derivatives in the exact model, JᵀJ of their residuals in
+        # the Gauss-Newton one (as every squared term; the log-normal friction prior's exact
+        # second derivative is negative above e times its median, and IPOPT stalled there)
+        J_prior = ca.jacobian(self.prior_residual(theta_sx, prior_sx), theta_sx)
+        weight = lf_sx * prior_sx[ON]
+        h_prior = {"exact": ca.hessian(weight * f_prior_sx, theta_sx)[0],
+                   "gauss-newton": weight * ca.mtimes(J_prior.T, J_prior)}
+        args = [theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym]
+        shared = {}
+        for mode in HESSIAN_MODES:
+            h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
+                                  [ca.densify(ca.hessian(lag_rest, theta_sx)[0] + h_prior[mode])])
+            shared[mode] = [(h_theta(*args), ca.Sparsity.dense(self.n_theta, self.n_theta),
+                             np.arange(self.n_theta)[None, :])]
         if n_sc:
             acc.constrain(ca.Function("g_shape", [theta_sx], [g_sc_sx])(theta), np.zeros(n_sc),
                           np.full(n_sc, np.inf), lam_sc)
