@@ -248,15 +248,15 @@ class Problem2D(StageModel2D):
         # the priors: exact second derivatives in the exact model, JᵀJ of their residuals in
         # the Gauss-Newton one (as every squared term; the log-normal friction prior's exact
         # second derivative is negative above e times its median, and IPOPT stalled there)
-        J_prior = ca.jacobian(self.prior_residual(theta_sx, prior_sx), theta_sx)
         weight = lf_sx * prior_sx[ON]
         h_prior = {"exact": ca.hessian(weight * f_prior_sx, theta_sx)[0],
-                   "gauss-newton": weight * ca.mtimes(J_prior.T, J_prior)}
+                   "gauss-newton": weight * self.prior_gauss_newton(theta_sx, prior_sx)}
+        h_rest = ca.hessian(lag_rest, theta_sx)[0]
         args = [theta, prior_sym, lam_f, lam_sc, lam_lift, L_sym, m0_sym]
         shared = {}
         for mode in HESSIAN_MODES:
             h_theta = ca.Function("hess_theta", [theta_sx, prior_sx, lf_sx, lam_sc_sx, lam_lift_sx, L_sx, m0_sx],
-                                  [ca.densify(ca.hessian(lag_rest, theta_sx)[0] + h_prior[mode])])
+                                  [ca.densify(h_rest + h_prior[mode])])
             shared[mode] = [(h_theta(*args), ca.Sparsity.dense(self.n_theta, self.n_theta),
                              np.arange(self.n_theta)[None, :])]
         if n_sc:
@@ -468,8 +468,7 @@ class Problem2D(StageModel2D):
     def _prior_hessian_function(self):
         th = ca.SX.sym("theta", self.n_theta)
         pv = ca.SX.sym("prior", self.n_prior())
-        Jr = ca.jacobian(self.prior_residual(th, pv), th)
-        return ca.Function("hprior", [th, pv], [ca.densify(ca.mtimes(Jr.T, Jr))])
+        return ca.Function("hprior", [th, pv], [ca.densify(self.prior_gauss_newton(th, pv))])
 
     def prior_values(self, p) -> np.ndarray:
         """The prior vector (see StageModel2D.n_prior) of a parameter vector p."""

@@ -85,8 +85,7 @@ from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, 
     polygon_sd_and_normal_function, rot2
 from tacest.io.estimate import Estimate, RunEstimate
 from tacest.io.run import Run
-from tacest.model.priors import (INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, SHAPE_SIGMA, friction_residual,
-                                 prior_head)
+from tacest.model.priors import N_PRIOR_FIXED, parameter_prior_residual, prior_head
 from tacest.model.stage2d import PHYS_NAMES, consecutive_slices
 
 log = logging.getLogger(__name__)
@@ -506,8 +505,7 @@ class ShootingProblem:
         pr_sx = ca.SX.sym("prior", N_PRIOR_FIXED)
         sref_sx = ca.SX.sym("s_ref", ns)
         lm, lI, mg, mf = (th[ns + i] for i in range(4))
-        r_prior_sx = ca.vertcat(lm / pr_sx[MASS_LOG_SIGMA], lI / pr_sx[INERTIA_LOG_SIGMA], friction_residual(mg, pr_sx),
-                                friction_residual(mf, pr_sx), (th[:ns] - sref_sx) / pr_sx[SHAPE_SIGMA])
+        r_prior_sx = parameter_prior_residual(lm, lI, mg, mf, th[:ns] - sref_sx, pr_sx)
         f_prior_sx = 0.5 * ca.sumsqr(r_prior_sx)
         sc = self.shape.constraints(th[:ns])
         g_sx = ca.vertcat(*sc) if sc else ca.SX.zeros(0)

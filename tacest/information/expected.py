@@ -706,10 +706,10 @@ def prior_information(names: list, model: ModelState, config: EstimatorConfig, L
     """(n, n) diagonal information of the estimator's own prior (config.prior), in the
     physical units of :func:`information_names_for`: shape entries 1/(shape_sigma·L)²
     (m⁻²), mass 1/(m·mass_log_sigma)² (a log-normal prior seen at m), inertia log ratio
-    1/inertia_log_sigma², frictions as tacest.model.priors.friction_information at the
-    model's; the pose has no prior in the
-    estimator: a weak one, position 1/size_bound² and angle 1/π², keeps the matrix
-    invertible (a direction no data touch stays as uncertain as it can be)."""
+    1/inertia_log_sigma², frictions tacest.model.priors.friction_information at the
+    model's values; the pose has no prior in the estimator: a weak one, position
+    1/size_bound² and angle 1/π², keeps the matrix invertible (a direction no data touch
+    stays as uncertain as it can be)."""
     pr = config.prior
     diag = []
     for n in names:

@@ -53,6 +53,19 @@ def friction_residual(mu, head):
     return ca.if_else(log_sigma > 0, lognormal, normal)
 
 
+def parameter_prior_residual(log_mass, inertia_offset, mu_ground, mu_finger, shape_offset, head):
+    """Whitened residuals (CasADi) of the physical parameters' priors under the prior head,
+    in the order every problem stacks them: log(m/m0) / mass_log_sigma, the inertia's
+    offset from its uniform-density value (2-D: log ratio, 3-D: log-Cholesky factor) /
+    inertia_log_sigma, both frictions (:func:`friction_residual`), the shape's offset from
+    its reference / shape_sigma."""
+    import casadi as ca
+
+    return ca.vertcat(log_mass / head[MASS_LOG_SIGMA], inertia_offset / head[INERTIA_LOG_SIGMA],
+                      friction_residual(mu_ground, head), friction_residual(mu_finger, head),
+                      shape_offset / head[SHAPE_SIGMA])
+
+
 def friction_information(mu: float, prior) -> float:
     """The prior's Gauss–Newton information of one friction coefficient at μ (its
     residual's squared derivative): 1/friction_sigma² (normal) or

@@ -63,7 +63,7 @@ from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_m
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j, polygon_sd_and_normal_function, rot2
 from tacest.model.effect import parameter_table, physics_gain, sensor_reading
 from tacest.model.occam import OCCAM_TOUCH_SHARPNESS, occam_free_weights, pose_occam
-from tacest.model.priors import INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, SHAPE_SIGMA, friction_residual
+from tacest.model.priors import N_PRIOR_FIXED, parameter_prior_residual
 from tacest.model.registry import names_of, resolve
 
 #: squared-residual terms, in the order the stage function returns them
@@ -267,16 +267,21 @@ class StageModel2D:
     def prior_residual(self, theta, prior):
         """Whitened residuals (SX) of theta's priors under the prior vector (see n_prior):
         log mass, log inertia ratio, both frictions (tacest.model.priors), the shape's pull
-        toward s_ref, the effect parameters.  Their weight ("on", the head's entry 5) is
-        applied by the problem."""
+        toward s_ref (tacest.model.priors.parameter_prior_residual), the effect parameters.
+        Their weight (the head's "on") is applied by the problem."""
         s = theta[: self.n_shape]
         lm, lI, mu_g, mu_f = (theta[self.n_shape + i] for i in range(4))
         a = self.N_PRIOR_FIXED
         s_ref = prior[a + 2 * self.n_eff:]
         effects = [(theta[self.n_shape + len(PHYS_NAMES) + j] - prior[a + 2 * j]) / prior[a + 2 * j + 1]
                    for j in range(self.n_eff)]
-        return ca.vertcat(lm / prior[MASS_LOG_SIGMA], lI / prior[INERTIA_LOG_SIGMA], friction_residual(mu_g, prior),
-                          friction_residual(mu_f, prior), (s - s_ref) / prior[SHAPE_SIGMA], *effects)
+        return ca.vertcat(parameter_prior_residual(lm, lI, mu_g, mu_f, s - s_ref, prior), *effects)
+
+    def prior_gauss_newton(self, theta, prior):
+        """(n_theta, n_theta) SX: JᵀJ of :meth:`prior_residual` (the priors' Gauss–Newton
+        Hessian, without their weight "on")."""
+        J = ca.jacobian(self.prior_residual(theta, prior), theta)
+        return ca.mtimes(J.T, J)
 
     def prior_expression(self, theta, prior):
         """Negative log prior (SX) of theta under the prior vector (see n_prior): half the

@@ -73,8 +73,7 @@ from tacest.errors import TacestError
 from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
 from tacest.geometry.shapes3d import Shape3D, shape_sd_and_normal_function
 from tacest.model.effect import parameter_table, physics_gain, sensor_reading
-from tacest.model.priors import (INERTIA_LOG_SIGMA, MASS_LOG_SIGMA, N_PRIOR_FIXED, ON, SHAPE_SIGMA,
-                                 friction_residual)
+from tacest.model.priors import N_PRIOR_FIXED, ON, parameter_prior_residual
 from tacest.model.registry import names_of, resolve
 
 #: squared-residual terms (weights from config.weights under the same names)
@@ -335,9 +334,8 @@ class StageModel3D:
         c_ref = self.shape.uniform_cholesky_reference(s)
         a, b = ns + len(PHYS_NAMES_3D), N_PRIOR_FIXED
         effects = [(th[a + j] - pr[b + 2 * j]) / pr[b + 2 * j + 1] for j in range(self.n_eff)]
-        r = ca.vertcat(th[ns] / pr[MASS_LOG_SIGMA], (th[ns + 1: ns + 7] - c_ref) / pr[INERTIA_LOG_SIGMA],
-                       friction_residual(th[ns + 7], pr), friction_residual(th[ns + 8], pr),
-                       (s - pr[b + 2 * self.n_eff:]) / pr[SHAPE_SIGMA], *effects)
+        r = ca.vertcat(parameter_prior_residual(th[ns], th[ns + 1: ns + 7] - c_ref, th[ns + 7], th[ns + 8],
+                                                s - pr[b + 2 * self.n_eff:], pr), *effects)
         return ca.sqrt(pr[ON]) * r
 
     @staticmethod
