@@ -76,13 +76,35 @@ def reach_excess(phi, reach):
     return -smooth_neg(reach - phi, REACH_SMOOTHING) / reach
 
 
-def contact_residual(phi_f, contact, weight, sigma_gap):
-    """Whitened contact-flag residual of one fingertip: its gap phi_f (m) at the end of
-    the interval where the flag is 1, its (smoothed) penetration where the flag is 0.
-    (The flag covers the interval (t[k-1], t[k]], so at the last sample of a touch the
-    fingertip may have let go inside it; docs/estimation.md says why the end's gap is
-    kept there.)"""
-    return weight * (contact * phi_f / sigma_gap + (1 - contact) * one_sided(phi_f, sigma_gap))
+#: smoothing of the smaller of a fingertip's two gaps at an interval's ends, in units of
+#: sigma_gap (:func:`interval_gap`): equal gaps give their value exactly; gaps far apart
+#: give the smaller one plus this (0.1 sigma_gap = 50 um at the default 0.5 mm)
+INTERVAL_GAP_SMOOTHING = 0.1
+
+
+def interval_gap(phi_start, phi_end, eps):
+    """Smoothed smaller of a fingertip's gaps (m) at an interval's two ends: how close it
+    came to the object over the interval (the gap between two 10 ms samples is close to
+    monotone).  (a + b)/2 - sqrt(((a - b)/2)² + eps²) + eps: exactly a where a = b (no
+    bias along a sustained touch), min(a, b) + eps where |a - b| >> eps, smooth."""
+    half = 0.5 * (phi_start - phi_end)
+    return 0.5 * (phi_start + phi_end) - ca.sqrt(half * half + eps * eps) + eps
+
+
+def contact_residual(phi_f, contact, weight, sigma_gap, phi_start=None):
+    """Whitened contact-flag residual of one fingertip: where the flag is 1, its gap over
+    the interval (with ``phi_start``, the fingertip's gap at the interval's start, the
+    smaller of the two ends' gaps, :func:`interval_gap`; without it, the gap phi_f (m) at
+    the interval's end); where the flag is 0, its (smoothed) penetration at the end.
+
+    The flag covers the interval (t[k-1], t[k]] (SPEC): at the last sample of a touch the
+    fingertip may have let go inside it, and at the first it may have struck and bounced
+    within it.  A fingertip that withdraws at 0.5 m/s is 5 mm (10 sigma_gap) away at the
+    end of a 10 ms interval; the end's gap charged that 50 units, and a fit of a fast
+    poke bent the shape to avoid it (docs/estimation.md, "The interval of a tactile
+    sample")."""
+    touched = phi_f if phi_start is None else interval_gap(phi_start, phi_f, INTERVAL_GAP_SMOOTHING * sigma_gap)
+    return weight * (contact * touched / sigma_gap + (1 - contact) * one_sided(phi_f, sigma_gap))
 
 
 def smooth_abs(x, eps):

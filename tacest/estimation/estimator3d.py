@@ -224,6 +224,8 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
                 D[o + 13] = valid[:, f]
             D[o + 14] = valid[:, f]
             D[o + 15] = run.finger_radius[f]
+            D[o + 16: o + 19, 1:] = run.finger_position[:-1, f].T  # the interval's start
+            D[o + 16: o + 19, 0] = run.finger_position[0, f]
     for f in range(run.n_fingers, F):  # padding: a finger far away with no weight
         D[len(D_NAMES) + len(DF_NAMES) * f + 15] = 1.0
     return D

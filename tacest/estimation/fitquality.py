@@ -9,9 +9,6 @@ uses too: every loss term in every window of one contact state (at most WINDOW s
 and every term's total over the fit, each a chi-square test, flagged with Bonferroni's
 correction over all of them at the family-wise rate ALPHA.
 
-The contact term of the sample where a touch ends is left out (:func:`release_samples`):
-there the model's gap at the interval's end is a known simplification, not noise.
-
 A fit is *consistent* when nothing is flagged: the residuals could be the noise of the
 configured levels (which are generous: the fitted residuals of a right fit sit well below
 them).  The chance that a fit whose residuals are such noise is marked inconsistent is at
@@ -92,33 +89,6 @@ def quality_summary(quality: dict) -> str:
               "effect, or noise levels set too low); its error bars are not to be trusted")
 
 
-def release_samples(run) -> np.ndarray:
-    """(T,) bool: samples where some finger's touch ends (flag 1 there, 0 or missing at
-    the next sample).  The flag there says the fingertip touched somewhere in the
-    sample's interval; the estimator's contact term takes the gap at the interval's end
-    (docs/estimation.md, "The interval of a tactile sample"), so a fingertip that lets
-    go fast inside the interval leaves a gap there that is the model's simplification,
-    not noise: the test leaves these samples' contact term out."""
-    if run.contact is None or not run.n_fingers:
-        return np.zeros(run.n_samples, bool)
-    on = run.contact.astype(bool) & ~run.finger_missing_mask
-    ends = np.zeros_like(on)
-    ends[:-1] = on[:-1] & ~on[1:]
-    return np.any(ends, axis=1)
-
-
-def _without_releases(res: dict, dof: dict, run) -> dict:
-    """The residuals with the contact term at release samples set to 0, and its degrees
-    of freedom there too (``dof`` is changed in place)."""
-    rel = release_samples(run)
-    if "contact" not in res or not rel.any():
-        return res
-    res = dict(res)
-    res["contact"] = np.where(rel, 0.0, np.asarray(res["contact"], float))
-    dof["contact"] = np.where(rel, 0.0, dof["contact"])
-    return res
-
-
 def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict = None, alpha: float = ALPHA,
                     window: int = WINDOW) -> FitQuality:
     """The test of the module docstring.  residuals : per run {term: (T,) 0.5·‖r‖² per
@@ -126,7 +96,6 @@ def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict 
     states); n_vertices : K of the fitted shape; weights : {term: loss weight} (for the
     excess in objective units)."""
     dofs = [residual_dof(r, n_vertices) for r in runs]
-    residuals = [_without_releases(res, dof, run) for res, dof, run in zip(residuals, dofs, runs)]
     states = [contact_state(r) for r in runs]
     floor = fit_floor(residuals, dofs, states, weights=weights, window=window, mode="nominal")
     stats = window_tests(residuals, dofs, states, floor, alpha=alpha)

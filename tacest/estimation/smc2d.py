@@ -95,10 +95,11 @@ class _Particles(ParticleParameters):
         return pose, vel, hist[:, idx]
 
 
-def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None) -> np.ndarray:
+def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None, pose_start=None) -> np.ndarray:
     """(N,) log likelihood of sample t's contact flags, normals and (where measured)
     forces; force_model {finger: (N, 2) N} the fingers' mean forces on the object over
-    the interval in the forward model."""
+    the interval in the forward model; pose_start (N, 3) the hypotheses at the
+    interval's start (a touching fingertip's gap over the interval: smc.interval_touch_gap)."""
     ll = np.zeros(pose.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
@@ -109,7 +110,10 @@ def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=Non
             sig = SIGMA_FORCE + SIGMA_FORCE_FRACTION * float(np.linalg.norm(F_meas))
             ll -= 0.5 * np.sum((force_model[f] - F_meas) ** 2, axis=1) / sig ** 2
         sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
-        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
+        gap_start = None
+        if on[t, f] and pose_start is not None and np.all(np.isfinite(run.finger_position[t - 1, f])):
+            gap_start = finger_geometry(hyp.vertices, pose_start, run.finger_position[t - 1, f])[0] - world.radius[f]
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings, gap_start=gap_start)
     return ll
 
 
@@ -157,6 +161,7 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
         force_driven = run.force is not None
         pushing = [f for f in near if on[t, f]]
         force_sum = {f: np.zeros((parts.n, 2)) for f in near}
+        pose_start = pose
         for j in range(n_sub):
             a = (j + 1) / n_sub
             if force_driven:  # the measured force at the measured contact point
@@ -172,7 +177,8 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
         # weighed where the hypothesis' own dynamics put it, then (force-driven) moved
         # onto the touching fingertips for the samples to come
         ll = _log_likelihood(run, t, on, hyp, pose, world, settings,
-                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()})
+                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()},
+                             pose_start=pose_start)
         ll = np.where(np.isfinite(ll), ll, -1e12)
         if force_driven:
             pose = _snap(run, t, pushing, hyp, pose, world)

@@ -90,15 +90,20 @@ class _Particles(ParticleParameters):
         return (pos, quat, vel, om), hist[:, idx]
 
 
-def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings) -> np.ndarray:
-    """(N,) log likelihood of sample t's contact flags and normals."""
+def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings, start=None) -> np.ndarray:
+    """(N,) log likelihood of sample t's contact flags and normals; start (R, pos) the
+    hypotheses at the interval's start (a touching fingertip's gap over the interval:
+    smc.interval_touch_gap)."""
     ll = np.zeros(pos.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
         if not valid[f] or not np.all(np.isfinite(run.finger_position[t, f])):
             continue
         sd, n_w, _ = box_finger_geometry(hyp.half, R, pos, run.finger_position[t, f])
-        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
+        gap_start = None
+        if on[t, f] and start is not None and np.all(np.isfinite(run.finger_position[t - 1, f])):
+            gap_start = box_finger_geometry(hyp.half, *start, run.finger_position[t - 1, f])[0] - world.radius[f]
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings, gap_start=gap_start)
     return ll
 
 
@@ -134,6 +139,7 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     resting = True
     for t in range(1, T):
         pos, quat, vel, om = state
+        start = (quat_to_matrix(quat), pos)
         near = _near(run, t, hyp, pos, world)
         if not near and resting:
             hist[t] = hist[t - 1]
@@ -149,7 +155,7 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             pos, quat, vel, om, _ = world.advance(hyp, pos, quat, vel, om, h, n_sub, fingers=kin,
                                                   start_centres=[run.finger_position[t - 1, f] for f in near])
         R = quat_to_matrix(quat)
-        ll = _log_likelihood(run, t, on, hyp, R, pos, world, settings)
+        ll = _log_likelihood(run, t, on, hyp, R, pos, world, settings, start=start)
         ll = np.where(np.isfinite(ll), ll, -1e12)
         if force_driven:  # moved onto the touching fingertips for the samples to come
             for f in pushing:

@@ -419,10 +419,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         dict of what the fit found, copied into its attempt (the ``vertices`` and
         ``params`` that result.basin_spread compares); raises SolveFailedError when the
         solve fails;
-    restart_physics : a converged fit whose physics per sample is at most this, or whose
-        misfit of its data is at most local, ends the search (a fast, tipping object's
-        right fit holds more physics residual than a slow one's, and its data say it is
-        right);
+    restart_physics : a converged fit whose physics per sample is at most this and whose
+        misfit of its data is at most local (``local`` not False) ends the search; one
+        that violates its physics more, or misfits its data beyond a local stretch, is
+        a wrong basin worth another start (a fit of a toppling box whose sampled start
+        followed a wrong branch: physics 0.01 per sample, its normals 155 objective
+        units off over whole windows, at 2.6 mm where the right basin fits at 15 units);
     attempts : a list that receives one dict per solve (the record with status,
         objective, physics_per_sample, misfit_local and what it found, or status "failed"
         and error), also when every solve fails;
@@ -461,12 +463,17 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             log.info(f"start {k + 1} of the {min_solves} compared")
         elif k:
             last = attempts[-1]
-            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
-                     + ("failed" if last["status"] == "failed" else
-                        "used up its iteration budget" if last["status"] in BUDGET_STATUSES else
-                        f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"
-                        + (" and misfits its data beyond a local stretch" if last.get("misfit_local") is False
-                           else "")))
+            if last["status"] == "failed":
+                why = "failed"
+            elif last["status"] in BUDGET_STATUSES:
+                why = "used up its iteration budget"
+            else:
+                why = " and ".join(
+                    ([f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"]
+                     if last["physics_per_sample"] > restart_physics else [])
+                    + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False else [])
+                ) or "is not the best fit so far"
+            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit {why}")
         try:
             result = solved[k] if k in solved else solve_one(start)
             if isinstance(result, SolveFailedError):
@@ -483,7 +490,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         if not np.isfinite(out.objective):
             failure = failure or SolveFailedError(f"IPOPT ended at a non-finite objective ({out.status})")
             continue
-        good = bool(physics <= restart_physics or local)
+        good = bool(physics <= restart_physics and local is not False)
         if best is None or out.objective < best[0].objective:
             best = (out, saved, good)
         counts = out.status in SUCCESS_STATUSES or accept_budget

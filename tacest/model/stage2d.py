@@ -468,12 +468,13 @@ class StageModel2D:
         r_force, r_normal, r_contact, imp_finger = [], [], [], []
         finger_rows = []  # (normal, lever) of each finger's contact frame, for the Occam term
         for f in range(F):
-            # the gap at the interval's end (the contact flag, see contact_residual); the
+            # the gap over the interval (the contact flag, see contact_residual); the
             # contact frame n_w and lever of the impulse at its middle: the measured force
             # and normal are averages over the interval (SPEC), and a fingertip sliding
             # over a corner turns the normal within one interval (the end's frame put the
             # average force outside the friction cone there)
             phi_f, _, _ = self.finger_geometry(q, V, c_f[:, f], radius[f], sd_fun)
+            phi_f_start, _, _ = self.finger_geometry(q_start, V, c_f_start[:, f], radius[f], sd_fun)
             _, n_w, lever = self.finger_geometry((q_start + q) / 2, V, (c_f_start[:, f] + c_f[:, f]) / 2,
                                                  radius[f], sd_fun)
             t_w = perp(n_w)
@@ -495,7 +496,7 @@ class StageModel2D:
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (sensor_reading(self.effect_objects, ctx, imp / dt) - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
-            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]]))
+            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]], phi_start=phi_f_start))
         return {"gen": gen, "cone": cone, "diss": diss, "force": r_force, "normal": r_normal, "contact": r_contact,
                 "impulse": imp_finger, "rows": finger_rows}
 

@@ -70,7 +70,8 @@ import numpy as np
 
 from tacest.dynamics.laws import CONE_TOLERANCE, SLIP_EPS, contact_residual, one_sided, smooth_pos
 from tacest.errors import TacestError
-from tacest.dynamics.rigid3d import cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector
+from tacest.dynamics.rigid3d import (cross, ground_contacts, inertia_from_cholesky, qconj, qmul, quat_error_vector,
+                                     quat_rotation)
 from tacest.geometry.shapes3d import Shape3D, shape_sd_and_normal_function
 from tacest.model.effect import parameter_table, physics_gain, sensor_reading
 from tacest.model.priors import N_PRIOR_FIXED, ON, parameter_prior_residual
@@ -106,9 +107,10 @@ _ASIN_COEF = [float(np.prod(np.arange(1, 2 * k + 1)) / (4 ** k * np.prod(np.aran
 D_NAMES = ("dt", "Lam", "grav", "gx", "gy", "gz", "nx", "ny", "nz", "h", "sig_pos", "sig_ang", "w_pose",
            "px", "py", "pz", "qw", "qx", "qy", "qz", "w_rest")
 DI = {n: i for i, n in enumerate(D_NAMES)}
-#: per finger data rows
+#: per finger data rows: centre (m), velocity (m/s), flag, measured normal and force, weights, radius (m), and
+#: the centre at the interval's start (m; the flag covers the interval: laws.contact_residual)
 DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", "fx", "fy", "fz", "w_force",
-            "w_tact", "radius")
+            "w_tact", "radius", "sx", "sy", "sz")
 #: shared settings
 G3_NAMES = ("L", "m0", "sig_proc", "sig_pen", "sig_gap", "sig_comp", "eps", "comp_mult", "dyn_mult",
             "sig_force", "sig_normal", "sig_diss", "sig_rest")
@@ -412,6 +414,9 @@ class StageModel3D:
             contact, n_meas, F_meas = d[o + 6], d[o + 7: o + 10], d[o + 10: o + 13]
             w_force, w_tact, radius = d[o + 13], d[o + 14], d[o + 15]
             phi_f, n_w, r_b = self.finger_geometry(p, R, s, L, c_f, radius, sd_fun, shift)
+            # the gap at the interval's start too: the flag covers the interval (contact_residual)
+            phi_f_start, _, _ = self.finger_geometry(xb[0:3] * L, quat_rotation(xb[3:7]), s, L, d[o + 16: o + 19],
+                                                     radius, sd_fun, shift)
             imp_s = lf[3 * f: 3 * f + 3]
             lam_n = -ca.dot(imp_s, n_w)
             lam_t = imp_s + lam_n * n_w  # tangential part
@@ -428,7 +433,7 @@ class StageModel3D:
             imp_f_out.append(Lam * imp_s)
             r_force.append(w_force * (sensor_reading(self.effect_objects, ctx, Lam * imp_s / dt) - F_meas) / g[G3["sig_force"]])
             r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
-            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]]))
+            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]], phi_start=phi_f_start))
         for e in self.effect_objects:  # extra impulses on the body over the interval
             extra = e.body_impulse_3d(ctx)
             if extra is not None:
