@@ -37,8 +37,8 @@ def assemble(data):
 def data_columns(F):
     """Column slices of data_matrix, in the layout Problem2D.n_data documents."""
     names = ("c_f", "v_f", "contact", "n_meas", "F_meas", "w_force", "w_tact", "radius", "c_f_start",
-             "q_obs", "w_pose")
-    sizes = (2 * F, 2 * F, F, 2 * F, 2 * F, F, F, F, 2 * F, 3, 1)
+             "ends", "q_obs", "w_pose")
+    sizes = (2 * F, 2 * F, F, 2 * F, 2 * F, F, F, F, 2 * F, F, 3, 1)
     assert sum(sizes) == Problem2D.n_data(None, F)
     edges = np.cumsum((0,) + sizes)
     return {n: slice(int(a), int(b)) for n, a, b in zip(names, edges[:-1], edges[1:])}

@@ -91,19 +91,22 @@ def interval_gap(phi_start, phi_end, eps):
     return 0.5 * (phi_start + phi_end) - ca.sqrt(half * half + eps * eps) + eps
 
 
-def contact_residual(phi_f, contact, weight, sigma_gap, phi_start=None):
-    """Whitened contact-flag residual of one fingertip: where the flag is 1, its gap over
-    the interval (with ``phi_start``, the fingertip's gap at the interval's start, the
-    smaller of the two ends' gaps, :func:`interval_gap`; without it, the gap phi_f (m) at
-    the interval's end); where the flag is 0, its (smoothed) penetration at the end.
+def contact_residual(phi_f, contact, weight, sigma_gap, phi_start=None, ends=None):
+    """Whitened contact-flag residual of one fingertip: where the flag is 1, its gap phi_f
+    (m) at the interval's end, or, at the last sample of a touch (``ends`` 1, with
+    ``phi_start`` its gap at the interval's start), the smaller of the gaps at the two
+    ends (:func:`interval_gap`); where the flag is 0, its (smoothed) penetration at the end.
 
-    The flag covers the interval (t[k-1], t[k]] (SPEC): at the last sample of a touch the
-    fingertip may have let go inside it, and at the first it may have struck and bounced
-    within it.  A fingertip that withdraws at 0.5 m/s is 5 mm (10 sigma_gap) away at the
-    end of a 10 ms interval; the end's gap charged that 50 units, and a fit of a fast
-    poke bent the shape to avoid it (docs/estimation.md, "The interval of a tactile
+    The flag covers the interval (t[k-1], t[k]] (SPEC).  Within a touch the fingertip
+    is on the surface at the interval's end (the touch goes on past it); at its last
+    sample it let go inside the interval (or, for a touch of one sample, struck and
+    bounced).  A fingertip that withdraws at 0.5 m/s is 5 mm (10 sigma_gap) away at the
+    end of a 10 ms interval: the end's gap charged that 50 units, and fits of fast pokes
+    bent the shape to avoid it (docs/estimation.md, "The interval of a tactile
     sample")."""
-    touched = phi_f if phi_start is None else interval_gap(phi_start, phi_f, INTERVAL_GAP_SMOOTHING * sigma_gap)
+    touched = phi_f
+    if phi_start is not None:
+        touched = ends * interval_gap(phi_start, phi_f, INTERVAL_GAP_SMOOTHING * sigma_gap) + (1 - ends) * phi_f
     return weight * (contact * touched / sigma_gap + (1 - contact) * one_sided(phi_f, sigma_gap))
 
 

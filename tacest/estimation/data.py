@@ -69,6 +69,18 @@ def touch_inconsistency(run: Run, gaps: np.ndarray) -> np.ndarray:
         + np.sum(np.where(off[None], np.minimum(gaps, 0), 0) ** 2, axis=(1, 2))
 
 
+def touch_ends(run: Run) -> np.ndarray:
+    """(T, F) bool: the last sample of each touch: the flag is 1 there (and the finger's
+    data arrived, :func:`touching`) and not at the next sample (0, missing, or the run's
+    end).  Its interval is the one in which the fingertip let go (or struck and bounced,
+    for a touch of one sample): the model checks the flag there by the smaller of the
+    gaps at the interval's two ends (tacest.dynamics.laws.contact_residual)."""
+    on = touching(run)
+    ends = on.copy()
+    ends[:-1] &= ~on[1:]
+    return ends
+
+
 def finger_start_positions(run: Run) -> np.ndarray:
     """(T, F, D) m: each fingertip's position at the start of the sample's interval, the
     previous sample's (the first sample's own)."""
@@ -117,7 +129,7 @@ def data_matrix(run: Run, F: int) -> np.ndarray:
         contact = contact * w_tact
         cols += [fp.reshape(T, -1), finger_velocity(run).reshape(T, -1), contact, n_meas.reshape(T, -1),
                  force.reshape(T, -1), w_force, w_tact, np.repeat(run.finger_radius[None, :], T, 0),
-                 finger_start_positions(run).reshape(T, -1)]
+                 finger_start_positions(run).reshape(T, -1), touch_ends(run).astype(float)]
     cols += list(pose_observation_columns(run))
     D = np.concatenate(cols, axis=1)
     return D

@@ -54,6 +54,8 @@ called in the registry's order at the points named in :meth:`StageModel2D.stage_
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import casadi as ca
 import numpy as np
 
@@ -88,6 +90,10 @@ PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_fing
 #: Lam = m0·g·dt, ground normal and height, noise sigmas, homotopy multipliers, the
 #: reference body, the rest weight, the complementarity's reach, and the run's gravity:
 #: its magnitude (m/s², the unit of the process noise) and its vector (gx, gy) m/s²
+#: the per-sample data of one interval, unpacked (StageModel2D.unpack_data; the layout
+#: of StageModel2D.n_data)
+StageData = namedtuple("StageData", ("c_f", "v_f", "contact", "n_meas", "F_meas", "w_force", "w_tact", "radius",
+                                     "c_f_start", "ends", "q_obs", "w_pose"))
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
            "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss",
            "m_ref", "I_ref", "sig_diss_g", "w_rest", "reach", "grav", "gx", "gy")
@@ -189,8 +195,9 @@ class StageModel2D:
     def n_data(self, F):
         """Per-sample data length: c_f (2F), v_f (2F), contact (F), n_meas (2F),
         F_meas (2F), w_force (F), w_tact (F), radius (F), c_f_start (2F) (the fingertip
-        at the interval's start), q_obs (3), w_pose (1)."""
-        return 14 * F + 4
+        at the interval's start), ends (F) (1 at the last sample of a touch,
+        data.touch_ends), q_obs (3), w_pose (1)."""
+        return 15 * F + 4
 
     def unpack_data(self, d, F):
         take = consecutive_slices(d)
@@ -203,9 +210,10 @@ class StageModel2D:
         w_tact = take(F)
         radius = take(F)
         c_f_start = ca.reshape(take(2 * F), 2, F)
+        ends = take(F)
         q_obs = take(3)
         w_pose = take(1)
-        return c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose
+        return StageData(c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, ends, q_obs, w_pose)
 
     def unpack_phys(self, phys, L, m0):
         """(V (K, 2) m, mass kg, inertia kg·m², mu_ground, mu_finger) from a scaled phys vector."""
@@ -337,7 +345,7 @@ class StageModel2D:
         dt, L, grav = g[G["dt"]], g[G["L"]], g[G["grav"]]
         V, mass, inertia, mu_g, mu_f = self.unpack_phys(phys, L, g[G["m0"]])
         data = self.unpack_data(d, F)
-        q_obs, w_pose = data[9], data[10]
+        q_obs, w_pose = data.q_obs, data.w_pose
         # unscale: q = [x/L, y/L, angle], v = [vx/L, vy/L, omega] per second
         unscale = ca.vertcat(L, L, 1)
         q, q_start = qs * unscale, qp * unscale
@@ -460,7 +468,7 @@ class StageModel2D:
         lists, "rows": (normal, lever) of each contact frame, for the Occam term}."""
         K, g, L, gain, dt = self.K, ctx.g, ctx.L, ctx.gain, ctx.dt
         Lam, q, q_start, v, V = g[G["Lam"]], ctx.q, ctx.q_start, ctx.v, ctx.V
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start = data[:9]
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, ends = data[:10]  # StageData
         eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
         gen = ca.SX.zeros(3)
         cone, diss = [], []
@@ -496,7 +504,8 @@ class StageModel2D:
             gen += generalized_impulse(lever, imp)
             r_force.append(w_force[f] * (sensor_reading(self.effect_objects, ctx, imp / dt) - F_meas[:, f]) / g[G["sig_force"]])
             r_normal.append(w_tact[f] * contact[f] * (n_meas[:, f] - n_w) / g[G["sig_normal"]])
-            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]], phi_start=phi_f_start))
+            r_contact.append(contact_residual(phi_f, contact[f], w_tact[f], g[G["sig_gap"]],
+                                              phi_start=phi_f_start, ends=ends[f]))
         return {"gen": gen, "cone": cone, "diss": diss, "force": r_force, "normal": r_normal, "contact": r_contact,
                 "impulse": imp_finger, "rows": finger_rows}
 
@@ -506,7 +515,7 @@ class StageModel2D:
         K, g, L, gain, dt, eps = self.K, ctx.g, ctx.L, ctx.gain, ctx.dt, ctx.g[G["eps"]]
         v, v_prev, V, n_g, levers, sig_v = ctx.v, ctx.v_prev, ctx.V, ctx.n_g, ctx.levers, ctx.sig_v
         mass, inertia = ctx.mass, ctx.inertia
-        contact, q_obs, w_pose = data[2], data[9], data[10]
+        contact, q_obs, w_pose = data.contact, data.q_obs, data.w_pose
         # eq. D1 divided by the mass matrix, whitened as process noise on the velocity
         # change: (v - v_prev) - dt g_vec - M⁻¹ J^T lambda, g_vec the run's gravity.
         # (Whitening the impulse form by a fixed scale would let a light object move for free.)
@@ -561,7 +570,7 @@ class StageModel2D:
         s0 = ca.SX.sym("s", self.n_state)
         L = g[G["L"]]
         V, *_ = self.unpack_phys(phys, L, g[G["m0"]])
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, q_obs, w_pose = \
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, _, q_obs, w_pose = \
             self.unpack_data(d, F)
         q = qs * ca.vertcat(L, L, 1)
         v = vs * ca.vertcat(L, L, 1)

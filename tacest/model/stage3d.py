@@ -108,9 +108,10 @@ D_NAMES = ("dt", "Lam", "grav", "gx", "gy", "gz", "nx", "ny", "nz", "h", "sig_po
            "px", "py", "pz", "qw", "qx", "qy", "qz", "w_rest")
 DI = {n: i for i, n in enumerate(D_NAMES)}
 #: per finger data rows: centre (m), velocity (m/s), flag, measured normal and force, weights, radius (m), and
-#: the centre at the interval's start (m; the flag covers the interval: laws.contact_residual)
+#: the centre at the interval's start (m) and 1 at the last sample of a touch (the flag covers the interval:
+#: laws.contact_residual, estimation.data.touch_ends)
 DF_NAMES = ("cx", "cy", "cz", "vx", "vy", "vz", "contact", "nmx", "nmy", "nmz", "fx", "fy", "fz", "w_force",
-            "w_tact", "radius", "sx", "sy", "sz")
+            "w_tact", "radius", "sx", "sy", "sz", "ends")
 #: shared settings
 G3_NAMES = ("L", "m0", "sig_proc", "sig_pen", "sig_gap", "sig_comp", "eps", "comp_mult", "dyn_mult",
             "sig_force", "sig_normal", "sig_diss", "sig_rest")
@@ -433,7 +434,8 @@ class StageModel3D:
             imp_f_out.append(Lam * imp_s)
             r_force.append(w_force * (sensor_reading(self.effect_objects, ctx, Lam * imp_s / dt) - F_meas) / g[G3["sig_force"]])
             r_normal.append(w_tact * contact * (n_meas - n_w) / g[G3["sig_normal"]])
-            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]], phi_start=phi_f_start))
+            r_contact.append(contact_residual(phi_f, contact, w_tact, g[G3["sig_gap"]], phi_start=phi_f_start,
+                                              ends=d[o + 19]))
         for e in self.effect_objects:  # extra impulses on the body over the interval
             extra = e.body_impulse_3d(ctx)
             if extra is not None:
