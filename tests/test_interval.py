@@ -1,9 +1,9 @@
 """The tactile stream's interval semantics (SPEC: a sample's flag, force and normal
 describe the interval (t-1, t]): in the 2-D model a fingertip's contact frame and lever
-are those of the interval's middle; in the 2-D and 3-D models and the samplers a flag 1
-is checked by the smaller of the fingertip's gaps at the interval's two ends (a fingertip
-that lets go, or strikes and bounces, inside the interval touched), a flag 0 by the
-end's overlap."""
+are those of the interval's middle; in the 2-D and 3-D models a flag 1 at the last
+sample of a touch is checked by the smaller of the fingertip's gaps at the interval's two
+ends (a fingertip that lets go, or strikes and bounces, inside the interval touched),
+within a touch by the end's gap, and a flag 0 by the end's overlap."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from tacest.dynamics.laws import INTERVAL_GAP_SMOOTHING, interval_gap, one_sided
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import finger_start_positions
 from tacest.estimation.problem2d import Problem2D, RunStructure
-from tacest.estimation.smc import interval_touch_gap
 from tacest.model.stage2d import G, G_NAMES
 from tacest.geometry.shapes import make_shape
 from tacest.geometry.transforms import rot2
@@ -130,11 +129,6 @@ def test_interval_gap_is_exact_for_equal_gaps_and_near_the_minimum_otherwise(a):
     for b in (a - 3e-3, a + 4e-3, a + 1e-5):
         v = float(interval_gap(a, b, eps))
         assert min(a, b) - 1e-15 <= v <= min(a, b) + eps + 1e-15
-
-
-def test_the_samplers_take_the_nearer_end_or_zero_where_the_fingertip_crossed():
-    got = interval_touch_gap(np.array([0.001, -0.002, 0.004, -0.001]), np.array([0.005, 0.003, -0.001, -0.004]))
-    np.testing.assert_allclose(got, [0.001, 0.0, 0.0, -0.001])
 
 
 def test_3d_stage_flag_over_the_interval():

@@ -93,29 +93,13 @@ class ParticleParameters:
         return 1.0 / float(np.sum(w * w))
 
 
-def interval_touch_gap(gap_start, gap_end) -> np.ndarray:
-    """(N,) m: how far a fingertip flagged as touching over an interval was from each
-    hypothesis' surface at its nearest: the end's gap (start or end) nearer the surface,
-    0 where the fingertip crossed the surface within the interval.  The flag covers the
-    whole interval (SPEC): a fingertip that let go, or struck and bounced, inside it is
-    away from the surface at one end (tacest.dynamics.laws.contact_residual, the NLP's
-    smooth counterpart)."""
-    a, b = np.asarray(gap_start, float), np.asarray(gap_end, float)
-    nearest = np.where(np.abs(a) < np.abs(b), a, b)
-    return np.where(a * b < 0, 0.0, nearest)
-
-
-def subtract_touch_terms(ll, touching: bool, gap, normal__world, measured_normal, settings,
-                         gap_start=None) -> None:
+def subtract_touch_terms(ll, touching: bool, gap, normal__world, measured_normal, settings) -> None:
     """Subtract from ll (N,) the negative log likelihood of one fingertip's contact flag
-    and normal: touching, its gap (N,) m to each hypothesis' surface over the interval
-    (with ``gap_start``, the gap at the interval's start: :func:`interval_touch_gap`;
-    sigma_gap) and the surface normal (N, D) at its end against the measured one
-    (sigma_normal, where measured); not touching, only a gap below zero at its end (the
-    fingertip inside the hypothesis)."""
+    and normal: touching, its gap (N,) m to each hypothesis' surface (sigma_gap) and the
+    surface normal (N, D) against the measured one (sigma_normal, where measured); not
+    touching, only a gap below zero (the fingertip inside the hypothesis)."""
     if touching:
-        touch_gap = gap if gap_start is None else interval_touch_gap(gap_start, gap)
-        ll -= 0.5 * (touch_gap / settings.sigma_gap) ** 2
+        ll -= 0.5 * (gap / settings.sigma_gap) ** 2
         if np.all(np.isfinite(measured_normal)):
             ll -= 0.5 * np.sum((normal__world - measured_normal) ** 2, axis=1) / settings.sigma_normal ** 2
     else:

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tacest.estimation.data import finger_velocity, touch_ends, touching
+from tacest.estimation.data import finger_velocity, touching
 from tacest.estimation.initial import initial_extents, initial_pose, smooth_quadratic
 from tacest.io.run import Run
 from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
@@ -95,13 +95,10 @@ class _Particles(ParticleParameters):
         return pose, vel, hist[:, idx]
 
 
-def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None, pose_start=None,
-                    ends=None) -> np.ndarray:
+def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None) -> np.ndarray:
     """(N,) log likelihood of sample t's contact flags, normals and (where measured)
     forces; force_model {finger: (N, 2) N} the fingers' mean forces on the object over
-    the interval in the forward model; pose_start (N, 3) the hypotheses at the
-    interval's start and ends (T, F) the last samples of the touches (data.touch_ends):
-    there a fingertip's gap over the interval (smc.interval_touch_gap)."""
+    the interval in the forward model."""
     ll = np.zeros(pose.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
@@ -112,11 +109,7 @@ def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=Non
             sig = SIGMA_FORCE + SIGMA_FORCE_FRACTION * float(np.linalg.norm(F_meas))
             ll -= 0.5 * np.sum((force_model[f] - F_meas) ** 2, axis=1) / sig ** 2
         sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
-        gap_start = None
-        if ends is not None and ends[t, f] and pose_start is not None \
-                and np.all(np.isfinite(run.finger_position[t - 1, f])):
-            gap_start = finger_geometry(hyp.vertices, pose_start, run.finger_position[t - 1, f])[0] - world.radius[f]
-        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings, gap_start=gap_start)
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
     return ll
 
 
@@ -151,7 +144,6 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     hist = np.zeros((T, parts.n, 3))
     hist[0] = pose
     on = touching(run)
-    ends = touch_ends(run)
     v_f = finger_velocity(run) if run.n_fingers else None
     n_sub = max(1, int(math.ceil(run.dt / MAX_STEP - 1e-9)))
     h = run.dt / n_sub
@@ -165,7 +157,6 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
         force_driven = run.force is not None
         pushing = [f for f in near if on[t, f]]
         force_sum = {f: np.zeros((parts.n, 2)) for f in near}
-        pose_start = pose
         for j in range(n_sub):
             a = (j + 1) / n_sub
             if force_driven:  # the measured force at the measured contact point
@@ -181,8 +172,7 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
         # weighed where the hypothesis' own dynamics put it, then (force-driven) moved
         # onto the touching fingertips for the samples to come
         ll = _log_likelihood(run, t, on, hyp, pose, world, settings,
-                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()},
-                             pose_start=pose_start, ends=ends)
+                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()})
         ll = np.where(np.isfinite(ll), ll, -1e12)
         if force_driven:
             pose = _snap(run, t, pushing, hyp, pose, world)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tacest.estimation.data import finger_velocity, touch_ends, touching
+from tacest.estimation.data import finger_velocity, touching
 from tacest.estimation.initial3d import initial_orientation, initial_position, smoothed_start_track
 from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
                                    ParticleParameters, fingers_near, subtract_touch_terms)
@@ -90,21 +90,15 @@ class _Particles(ParticleParameters):
         return (pos, quat, vel, om), hist[:, idx]
 
 
-def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings, start=None, ends=None) -> np.ndarray:
-    """(N,) log likelihood of sample t's contact flags and normals; start (R, pos) the
-    hypotheses at the interval's start and ends (T, F) the last samples of the touches
-    (data.touch_ends): there a fingertip's gap over the interval (smc.interval_touch_gap)."""
+def _log_likelihood(run: Run, t, on, hyp: Boxes, R, pos, world, settings) -> np.ndarray:
+    """(N,) log likelihood of sample t's contact flags and normals."""
     ll = np.zeros(pos.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
         if not valid[f] or not np.all(np.isfinite(run.finger_position[t, f])):
             continue
         sd, n_w, _ = box_finger_geometry(hyp.half, R, pos, run.finger_position[t, f])
-        gap_start = None
-        if ends is not None and ends[t, f] and start is not None \
-                and np.all(np.isfinite(run.finger_position[t - 1, f])):
-            gap_start = box_finger_geometry(hyp.half, *start, run.finger_position[t - 1, f])[0] - world.radius[f]
-        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings, gap_start=gap_start)
+        subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
     return ll
 
 
@@ -133,7 +127,6 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     hist = np.zeros((T, parts.n, 7))
     hist[0] = np.concatenate(state[:2], 1)
     on = touching(run)
-    ends = touch_ends(run)
     v_f = finger_velocity(run)
     force_driven = run.force is not None
     n_sub = max(1, int(math.ceil(run.dt / MAX_STEP - 1e-9)))
@@ -141,7 +134,6 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     resting = True
     for t in range(1, T):
         pos, quat, vel, om = state
-        start = (quat_to_matrix(quat), pos)
         near = _near(run, t, hyp, pos, world)
         if not near and resting:
             hist[t] = hist[t - 1]
@@ -157,7 +149,7 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             pos, quat, vel, om, _ = world.advance(hyp, pos, quat, vel, om, h, n_sub, fingers=kin,
                                                   start_centres=[run.finger_position[t - 1, f] for f in near])
         R = quat_to_matrix(quat)
-        ll = _log_likelihood(run, t, on, hyp, R, pos, world, settings, start=start, ends=ends)
+        ll = _log_likelihood(run, t, on, hyp, R, pos, world, settings)
         ll = np.where(np.isfinite(ll), ll, -1e12)
         if force_driven:  # moved onto the touching fingertips for the samples to come
             for f in pushing:
