@@ -153,9 +153,9 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, comp
 
     monkeypatch.setattr(est, "solve_from_shape", solve_from)
     monkeypatch.setattr(est, "physics_per_sample", lambda z: float(z[1]))
-    # the fits' own data do not end the search here (only their physics does), and what
-    # they found is a stand-in
-    monkeypatch.setattr(est, "fit_quality", lambda z: SimpleNamespace(local=False))
+    # the fits' own data are not tested here (local None: only their physics decides;
+    # tests/test_restarts.py has the two together), and what they found is a stand-in
+    monkeypatch.setattr(est, "fit_quality", lambda z: SimpleNamespace(local=None))
     monkeypatch.setattr(est, "physical", lambda z: (np.zeros((8, 3)), 1.0, np.eye(3), 0.5, 0.5))
     return est, calls
 
