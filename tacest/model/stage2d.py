@@ -85,15 +85,15 @@ PHYSICS_TERMS = ("dynamics", "penetration", "complementarity", "dissipation", "c
 #: names of the physical parameters in theta after the shape block
 PHYS_NAMES = ("log_mass", "log_inertia_ratio", "friction_ground", "friction_finger")
 
+#: the per-sample data of one interval, unpacked (StageModel2D.unpack_data; the layout
+#: of StageModel2D.n_data)
+StageData = namedtuple("StageData", ("c_f", "v_f", "contact", "n_meas", "F_meas", "w_force", "w_tact", "radius",
+                                     "c_f_start", "ends", "q_obs", "w_pose"))
 #: entries of a run's global vector g (settings and run constants; see
 #: tacest.estimation.data.global_vector): sample period, scales, the reference impulse
 #: Lam = m0·g·dt, ground normal and height, noise sigmas, homotopy multipliers, the
 #: reference body, the rest weight, the complementarity's reach, and the run's gravity:
 #: its magnitude (m/s², the unit of the process noise) and its vector (gx, gy) m/s²
-#: the per-sample data of one interval, unpacked (StageModel2D.unpack_data; the layout
-#: of StageModel2D.n_data)
-StageData = namedtuple("StageData", ("c_f", "v_f", "contact", "n_meas", "F_meas", "w_force", "w_tact", "radius",
-                                     "c_f_start", "ends", "q_obs", "w_pose"))
 G_NAMES = ("dt", "L", "Lam", "m0", "nx", "ny", "h", "sig_force", "sig_normal", "sig_gap", "sig_proc",
            "sig_pen", "sig_rest", "sig_pos", "sig_ang", "eps", "comp_mult", "dyn_mult", "sig_comp", "sig_diss",
            "m_ref", "I_ref", "sig_diss_g", "w_rest", "reach", "grav", "gx", "gy")
@@ -468,7 +468,7 @@ class StageModel2D:
         lists, "rows": (normal, lever) of each contact frame, for the Occam term}."""
         K, g, L, gain, dt = self.K, ctx.g, ctx.L, ctx.gain, ctx.dt
         Lam, q, q_start, v, V = g[G["Lam"]], ctx.q, ctx.q_start, ctx.v, ctx.V
-        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, ends = data[:10]  # StageData
+        c_f, v_f, contact, n_meas, F_meas, w_force, w_tact, radius, c_f_start, ends = data[:10]
         eps_slip = SLIP_EPS  # m/s, smoothing of |slip|
         gen = ca.SX.zeros(3)
         cone, diss = [], []
