@@ -104,3 +104,20 @@ def test_3d_fit_residuals_live_where_dof_says(tosses):
     est = estimate_3d(tosses, "box")
     assert est.consistent is True, est.fit_quality
     _assert_residuals_live_where_dof_says(est, tosses)
+
+
+def test_the_chi_square_functions_are_scipy_stats_own():
+    """floor.chi2_pvalue and chi2_median (scipy.special's chdtrc / chdtri, which spare
+    every estimate scipy.stats' import) give scipy.stats.chi2's sf and median, to 1e-12
+    relative (both evaluate the same incomplete gamma function), with phi widening the
+    degrees of freedom as documented."""
+    from scipy.stats import chi2
+
+    from tacest.estimation.floor import chi2_median, chi2_pvalue
+
+    n = np.array([1.0, 2.0, 7.0, 40.0, 400.0])
+    S = np.array([0.3, 4.0, 12.0, 61.0, 380.0])
+    np.testing.assert_allclose(chi2_median(n), chi2.ppf(0.5, n), rtol=1e-12)
+    np.testing.assert_allclose(chi2_pvalue(S, n), chi2.sf(S, n), rtol=1e-12)
+    np.testing.assert_allclose(chi2_pvalue(S, n, mu=2.0, phi=1.5), chi2.sf(S / (2.0 * 2.25), n / 2.25), rtol=1e-12)
+    assert chi2_pvalue(np.array([0.0, 1.0]), np.array([0.0, 0.0])).tolist() == [1.0, 0.0]

@@ -159,22 +159,24 @@ class WindowStat:
 
 
 def chi2_median(n):
-    """Median of a chi-square variable with n (> 0) degrees of freedom."""
-    from scipy.stats import chi2
+    """Median of a chi-square variable with n (> 0) degrees of freedom.  (scipy.special's
+    chi-square functions: the same numbers as scipy.stats.chi2, whose import costs every
+    estimate 0.4-0.8 s.)"""
+    from scipy.special import chdtri
 
-    return chi2.ppf(0.5, np.asarray(n, float))
+    return chdtri(np.asarray(n, float), 0.5)
 
 
 def chi2_pvalue(S, n, mu=1.0, phi=1.0):
     """P(χ²(n/phi²) >= S/(mu·phi²)), elementwise; for n = 0: 1 if S is 0, else 0 (a
     residual that has no degrees of freedom should be exactly zero)."""
-    from scipy.stats import chi2
+    from scipy.special import chdtrc
 
     S, n, mu, phi = np.broadcast_arrays(*(np.asarray(x, float) for x in (S, n, mu, phi)))
     out = np.ones(S.shape)
     pos = n > 0
     f2 = phi[pos] ** 2
-    out[pos] = chi2.sf(S[pos] / (mu[pos] * f2), n[pos] / f2)
+    out[pos] = chdtrc(n[pos] / f2, S[pos] / (mu[pos] * f2))
     out[~pos & (S > 1e-12)] = 0.0
     return out
 

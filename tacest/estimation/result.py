@@ -161,12 +161,12 @@ def basin_spread(attempts: list, objective: float, vertices, params: dict) -> di
     likelihood-ratio test cannot tell from the kept one.  A local Laplace std says
     nothing about another basin; the reported std is widened by this spread in
     quadrature.  {} when there is none."""
-    from scipy.stats import chi2
+    from scipy.special import chdtri  # chi2.ppf(q, k) = chdtri(k, 1 - q), without scipy.stats' import
 
     from tacest.geometry.chamfer import chamfer_body
 
     V = np.asarray(vertices, float)
-    limit = 0.5 * float(chi2.ppf(BASIN_CONFIDENCE, V.size + 3))
+    limit = 0.5 * float(chdtri(V.size + 3, 1.0 - BASIN_CONFIDENCE))
     out = {}
     for a in attempts:
         if "vertices" not in a or not np.isfinite(a.get("objective", np.inf)):
