@@ -30,8 +30,8 @@ from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inert
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
-from tacest.estimation.data import (Scales, choose_scales, finger_velocity, gravity_of, previous_trajectories, touch_ends,
-                                   touching)
+from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, gravity_of,
+                                   previous_trajectories, touch_ends, touching)
 from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
@@ -213,7 +213,7 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
     if run.n_fingers:
         valid = ~run.finger_missing_mask  # (T, F)
         on = touching(run) & valid
-        ends = touch_ends(run)
+        ends, start = touch_ends(run), finger_start_positions(run)
         vel = finger_velocity(run)
         for f in range(run.n_fingers):
             o = len(D_NAMES) + len(DF_NAMES) * f
@@ -226,8 +226,7 @@ def data_matrix_3d(run: Run, F: int, scales: Scales) -> np.ndarray:
                 D[o + 13] = valid[:, f]
             D[o + 14] = valid[:, f]
             D[o + 15] = run.finger_radius[f]
-            D[o + 16: o + 19, 1:] = run.finger_position[:-1, f].T  # the interval's start
-            D[o + 16: o + 19, 0] = run.finger_position[0, f]
+            D[o + 16: o + 19] = start[:, f].T  # the interval's start
             D[o + 19] = ends[:, f]
     for f in range(run.n_fingers, F):  # padding: a finger far away with no weight
         D[len(D_NAMES) + len(DF_NAMES) * f + 15] = 1.0
