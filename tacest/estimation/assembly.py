@@ -2,7 +2,8 @@
 (:func:`scatter_matrix`) and the upper triangle of the Lagrangian Hessian
 (:func:`assemble_hessian`), each one constant sparse map applied to the stacked
 nonzeros of the mapped per-sample functions, so that building them is O(samples).
-Used by the 2-D and 3-D problems (tacest.estimation.problem2d, problem3d)."""
+Used by the 2-D and 3-D problems (tacest.estimation.problem2d, problem3d), with
+:class:`LazyHessians`, which builds each Hessian model only when a solve asks for it."""
 
 from __future__ import annotations
 
@@ -76,3 +77,19 @@ def assemble_hessian(blocks, n):
     A_dm = ca.DM(ca.Sparsity(A.shape[0], A.shape[1], A.indptr.tolist(), A.indices.tolist()), A.data)
     h_nz = ca.mtimes(A_dm, ca.vertcat(*vecs))
     return ca.MX(ca.Sparsity(n, n, pattern.indptr.tolist(), pattern.indices.tolist()), h_nz)
+
+
+class LazyHessians(dict):
+    """{mode: Function}, each built on first access from {mode: () -> MX expression}."""
+
+    def __init__(self, builders, name, ins):
+        super().__init__()
+        self._builders, self._name, self._ins = builders, name, ins
+
+    def __missing__(self, mode):
+        if mode not in self._builders:
+            raise KeyError(mode)
+        fun = ca.Function(self._name, self._ins, [self._builders[mode]()], ["x", "p", "lam_f", "lam_g"],
+                          ["triu_hess_gamma_x_x"])
+        self[mode] = fun
+        return fun

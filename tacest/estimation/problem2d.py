@@ -34,7 +34,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from tacest.estimation.assembly import assemble_hessian
+from tacest.estimation.assembly import LazyHessians, assemble_hessian
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.kernels import compile_functions
 from tacest.geometry.shapes import Shape, polygon_area_centroid_j
@@ -162,12 +162,11 @@ class Problem2D(StageModel2D):
         self.nlp = {"x": z, "p": p_all, "f": f, "g": self.g}
         lam_g = ca.vertcat(*acc.lam_g_parts)
         #: {"gauss-newton" | "exact": CasADi Function (x, p, lam_f, lam_g) -> upper triangle
-        #: of the Lagrangian Hessian model}, for nlpsol's hess_lag option
-        self.hess_lag = {
-            mode: ca.Function("nlp_hess_l", [z, p_all, lam_f, lam_g],
-                              [assemble_hessian(acc.hess_blocks[mode] + shared[mode], self.n_z)],
-                              ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
-            for mode in HESSIAN_MODES}
+        #: of the Lagrangian Hessian model}, for nlpsol's hess_lag option, each built when
+        #: first asked for (the exact one serves only solves configured to use it)
+        self.hess_lag = LazyHessians(
+            {mode: (lambda mode=mode: assemble_hessian(acc.hess_blocks[mode] + shared[mode], self.n_z))
+             for mode in HESSIAN_MODES}, name="nlp_hess_l", ins=[z, p_all, lam_f, lam_g])
         #: stacked whitened residuals per squared term (for Gauss-Newton information);
         #: "kinematics" holds the eq. D2 constraint values
         self.residual_stack = {t: ca.vertcat(*v) if v else ca.MX.zeros(0) for t, v in acc.r_stack.items()}

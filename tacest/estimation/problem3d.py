@@ -27,29 +27,13 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from tacest.estimation.assembly import assemble_hessian, scatter_matrix
+from tacest.estimation.assembly import LazyHessians, assemble_hessian, scatter_matrix
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.kernels import compile_functions
 from tacest.geometry.shapes3d import Shape3D
 from tacest.model.stage3d import G3_NAMES, NP, STAGE_TERMS, START_TERMS, TERMS3D, Layout3D, StageModel3D
 
 HESSIAN_MODES = ("gauss-newton", "exact")
-
-
-class LazyHessians(dict):
-    """{mode: Function}, each built on first access from {mode: () -> MX expression}."""
-
-    def __init__(self, builders, name, ins):
-        super().__init__()
-        self._builders, self._name, self._ins = builders, name, ins
-
-    def __missing__(self, mode):
-        if mode not in self._builders:
-            raise KeyError(mode)
-        fun = ca.Function(self._name, self._ins, [self._builders[mode]()], ["x", "p", "lam_f", "lam_g"],
-                          ["triu_hess_gamma_x_x"])
-        self[mode] = fun
-        return fun
 
 
 class Problem3D(StageModel3D):

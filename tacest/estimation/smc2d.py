@@ -41,12 +41,6 @@ from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypothese
 
 log = logging.getLogger(__name__)
 
-#: N, and fraction of the measured force: sigma of a fingertip's force in the sampler's
-#: likelihood (the forward model's penalty forces ring over a substep or two)
-SIGMA_FORCE = 1.0
-SIGMA_FORCE_FRACTION = 0.2
-
-
 @dataclass(frozen=True)
 class SMCSettings:
     """particles : hypotheses; seed : of every random draw; sigma_gap (m), sigma_normal
@@ -95,20 +89,15 @@ class _Particles(ParticleParameters):
         return pose, vel, hist[:, idx]
 
 
-def _log_likelihood(run: Run, t, on, hyp, pose, world, settings, force_model=None) -> np.ndarray:
-    """(N,) log likelihood of sample t's contact flags, normals and (where measured)
-    forces; force_model {finger: (N, 2) N} the fingers' mean forces on the object over
-    the interval in the forward model."""
+def _log_likelihood(run: Run, t, on, hyp, pose, world, settings) -> np.ndarray:
+    """(N,) log likelihood of sample t's contact flags and normals.  (Where the run
+    measures forces they drive the hypotheses, so they do not weigh them.)"""
     ll = np.zeros(pose.shape[0])
     valid = ~run.finger_missing_mask[t]
     for f in range(run.n_fingers):
         if not valid[f]:
             continue
-        if run.force is not None and force_model is not None and f in force_model:
-            F_meas = run.force[t, f]
-            sig = SIGMA_FORCE + SIGMA_FORCE_FRACTION * float(np.linalg.norm(F_meas))
-            ll -= 0.5 * np.sum((force_model[f] - F_meas) ** 2, axis=1) / sig ** 2
-        sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
+        sd, n_w, _ = finger_geometry(hyp, pose, run.finger_position[t, f])
         subtract_touch_terms(ll, on[t, f], sd - world.radius[f], n_w, run.normal[t, f], settings)
     return ll
 
@@ -119,7 +108,7 @@ def _snap(run: Run, t, pushing, hyp, pose, world) -> np.ndarray:
     slightly wrong friction or mass would let it drift away from a long push (the
     proposal follows the contact; the weights judge the rest)."""
     for f in pushing:
-        sd, n_w, _ = finger_geometry(hyp.vertices, pose, run.finger_position[t, f])
+        sd, n_w, _ = finger_geometry(hyp, pose, run.finger_position[t, f])
         gap = sd - world.radius[f]
         pose = pose.copy()
         pose[:, :2] += gap[:, None] * n_w
@@ -156,23 +145,17 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
             continue
         force_driven = run.force is not None
         pushing = [f for f in near if on[t, f]]
-        force_sum = {f: np.zeros((parts.n, 2)) for f in near}
-        for j in range(n_sub):
-            a = (j + 1) / n_sub
-            if force_driven:  # the measured force at the measured contact point
-                forces = [(run.finger_position[t, f] - world.radius[f] * np.nan_to_num(run.normal[t, f]),
-                           run.force[t, f]) for f in pushing]
-                pose, vel, _ = world.step(hyp, pose, vel, h, forces=forces)
-            else:  # kinematic fingertips push by penetration
-                kin = [(f, (1 - a) * run.finger_position[t - 1, f] + a * run.finger_position[t, f], v_f[t, f])
-                       for f in near]
-                pose, vel, F = world.step(hyp, pose, vel, h, fingers=kin)
-                for f, Ff in zip(near, F):
-                    force_sum[f] += Ff
+        if force_driven:  # the measured force at the measured contact point
+            forces = [(run.finger_position[t, f] - world.radius[f] * np.nan_to_num(run.normal[t, f]),
+                       run.force[t, f]) for f in pushing]
+            pose, vel, _ = world.advance(hyp, pose, vel, h, n_sub, forces=forces)
+        else:  # kinematic fingertips push by penetration, moving from sample t-1 to t
+            kin = [(f, run.finger_position[t, f], v_f[t, f]) for f in near]
+            pose, vel, _ = world.advance(hyp, pose, vel, h, n_sub, fingers=kin,
+                                         start_centres=[run.finger_position[t - 1, f] for f in near])
         # weighed where the hypothesis' own dynamics put it, then (force-driven) moved
         # onto the touching fingertips for the samples to come
-        ll = _log_likelihood(run, t, on, hyp, pose, world, settings,
-                             force_model=None if force_driven else {f: v / n_sub for f, v in force_sum.items()})
+        ll = _log_likelihood(run, t, on, hyp, pose, world, settings)
         ll = np.where(np.isfinite(ll), ll, -1e12)
         if force_driven:
             pose = _snap(run, t, pushing, hyp, pose, world)
