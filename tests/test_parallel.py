@@ -463,6 +463,27 @@ def test_compared_starts_in_processes_give_the_same_fits_and_attempts(single_thr
     assert pids[0] != os.getpid() and pids[2] != os.getpid() and pids[3] == os.getpid()
 
 
+def test_restarts_in_processes_give_the_fits_and_attempts_of_one_after_another(single_threaded):
+    """The restarts solved two at a time: a batch's fits are taken in order, those after
+    the one that ends the search are discarded (the kept fit is the one-after-another
+    search's, 40 not the discarded 30), and the attempts are the same; the batches ran
+    outside this process."""
+    from tacest.estimation.solver import solve_from_starts
+
+    for fits, kept, n_attempts in (([(50.0, 0.5), (40.0, 0.01), (30.0, 0.01)], 40.0, 2),
+                                   ([(50.0, 0.5), None, (45.0, 0.5), (40.0, 0.01), (30.0, 0.01)], 40.0, 4)):
+        starts = [({"start": f"s{k}"}, s) for k, s in enumerate(fits)]
+        runs = {}
+        for workers in (1, 2):
+            attempts = []
+            out, saved = solve_from_starts(starts, _fake_start_solve, 0.1, attempts, min_solves=1, workers=workers)
+            runs[workers] = (out.objective, saved, [{k: v for k, v in a.items() if k != "pid"} for a in attempts],
+                             [a.get("pid") for a in attempts])
+        assert runs[1][:3] == runs[2][:3]
+        assert runs[1][0] == kept and len(runs[1][2]) == n_attempts
+        assert all(pid != os.getpid() for pid in runs[2][3][1:] if pid is not None)
+
+
 def test_fork_processes_follow_the_setting_and_never_fork_from_a_daemon(monkeypatch, single_threaded):
     import multiprocessing as mp
 

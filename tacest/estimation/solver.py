@@ -433,9 +433,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     accept_budget : fits that used up their budget count as converged ones (the fits
         inside a diagnosis: they may end the search, and are kept when no start
         converged); without it that is a failure, as a single solve's.
-    workers : processes that solve the ``min_solves`` compared starts at once
-        (tacest.parallel.fork_processes: 0 one per core, 1 one after another); the fits
-        and the attempts are the same either way, the restarts after them one at a time.
+    workers : processes that solve the ``min_solves`` compared starts at once, and
+        then the restarts in batches of as many (tacest.parallel.fork_processes: 0 one
+        per core, 1 one after another).  The batch's fits are taken in order as if
+        solved one after another: those after the one that ends the search are
+        discarded unseen, so that the kept fit and the attempts are the same either
+        way (a restart costs the wall time of one solve where it would have cost two).
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -474,6 +477,13 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
                     + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False else [])
                 ) or "is not the best fit so far"
             log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit {why}")
+        if k and k not in solved:  # a restart: with the next ones in as many processes as may run
+            batch = list(range(k, len(starts)))
+            processes = fork_processes(workers, len(batch))
+            if processes > 1:
+                batch = batch[:processes]
+                solved.update(zip(batch, fork_map(lambda j: solve_one(starts[batch[j]][1]), len(batch), processes,
+                                                  returned=(SolveFailedError,))))
         try:
             result = solved[k] if k in solved else solve_one(start)
             if isinstance(result, SolveFailedError):
