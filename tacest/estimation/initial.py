@@ -53,28 +53,41 @@ def initial_extents(runs: list[Run], default_size: float):
 
 def initial_pose(run: Run, width: float, height: float) -> np.ndarray:
     """Pose [x, y, angle] at t = 0: the run's prior if it has one, else resting on the
-    ground with its side at the first side touch (or centred under the first top touch)."""
+    ground with its side at the first side touch (or centred under the first top touch:
+    the middle of :func:`initial_pose_range`)."""
+    return initial_pose_range(run, width, height)[0]
+
+
+def initial_pose_range(run: Run, width: float, height: float) -> tuple:
+    """(pose (3,) [x, y, angle] at t = 0, half range m): where the object rests before it
+    is first touched and how far along the ground its centre may lie either side of that
+    pose.  The run's prior or its first observed pose: range 0.  Else it rests on the
+    ground: a first touch on a side face puts that face at the touch (range 0); one on
+    the top face only says that the top face is under it, anywhere along its width
+    (the centre within ``width`` / 2 either side of the touch: a fingertip that lands
+    on the top face near a corner is as likely as one at the middle); no touch, at the
+    origin along the ground."""
     if "initial_pose" in run.prior:
-        return np.asarray(run.prior["initial_pose"], float)[:3].copy()
+        return np.asarray(run.prior["initial_pose"], float)[:3].copy(), 0.0
     if run.pose_obs is not None:
         ok = np.all(np.isfinite(run.pose_obs), axis=1)
         if ok.any():
-            return run.pose_obs[np.argmax(ok)].copy()
+            return run.pose_obs[np.argmax(ok)].copy(), 0.0
     up = run.up
     horiz = np.array([up[1], -up[0]])
     base = run.ground_height * up
     it, jf, p, n = contact_points(run)
     if len(it) == 0:
-        return np.array([*(base + 0.5 * height * up), 0.0])
+        return np.array([*(base + 0.5 * height * up), 0.0]), 0.0
     p0, n0 = p[0], n[0]
     along = p0 @ horiz
     if n0 @ up > TOP_TOUCH_COS:
-        x = along
+        x, half_range = along, 0.5 * width
     else:
         side = np.sign(n0 @ horiz) or 1.0
-        x = along - side * width / 2
+        x, half_range = along - side * width / 2, 0.0
     centre = base + 0.5 * height * up + x * horiz
-    return np.array([centre[0], centre[1], 0.0])
+    return np.array([centre[0], centre[1], 0.0]), half_range
 
 
 #: fewest observed pose rows for a run to start on its observed trajectory

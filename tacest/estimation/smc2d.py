@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.estimation.data import finger_velocity, touching
-from tacest.estimation.initial import initial_extents, initial_pose, smooth_quadratic
+from tacest.estimation.initial import initial_extents, initial_pose_range, smooth_quadratic
 from tacest.io.run import Run
 from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
                                    ParticleParameters, fingers_near, subtract_touch_terms)
@@ -127,7 +127,13 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     T = run.n_samples
     hyp = parts.hypotheses()
     ext = parts.extents
-    x0 = np.array([initial_pose(run, w, h)[:2] @ world.t_g for w, h in ext])
+    # where each hypothesis rests before the first touch: a first touch on the top face
+    # leaves the centre anywhere under it (uniform over its half range)
+    start = [initial_pose_range(run, w, h) for w, h in ext]
+    x0 = np.array([pose[:2] @ world.t_g for pose, _ in start])
+    half_range = np.array([r for _, r in start])
+    if np.any(half_range > 0):
+        x0 = x0 + parts.rng.uniform(-1.0, 1.0, size=len(x0)) * half_range
     pose = world.rest_pose(hyp.vertices, x0)
     vel = np.zeros_like(pose)
     hist = np.zeros((T, parts.n, 3))
