@@ -72,7 +72,7 @@ def test_a_first_touch_on_the_top_face_leaves_the_start_anywhere_under_it():
     w / 2).  The sampler spreads its hypotheses over that range, so that its best one
     starts where the truth did (within 10 mm; a start centred under the touch was 31 mm
     off, and every hypothesis then failed to follow: log likelihood -2554, now above
-    -100)."""
+    -100), in every run of several."""
     from tacest.estimation.config import EstimatorConfig
     from tacest.estimation.data import choose_scales
     from tacest.estimation.initial import TOP_TOUCH_COS, contact_points, initial_pose_range
@@ -87,6 +87,11 @@ def test_a_first_touch_on_the_top_face_leaves_the_start_anywhere_under_it():
     s = smc_start([run], sc.L, sc.m0, SMCSettings(particles=256, seed=0))
     assert abs(s.poses[0][0, 0] - run.truth.pose[0, 0]) < 0.010
     assert s.log_likelihood > -100.0
+    # an earlier run of several is re-filtered with the best hypothesis alone: its copies
+    # spread over the range find where that run started too (the recording twice)
+    s2 = smc_start([run, run], sc.L, sc.m0, SMCSettings(particles=256, seed=0))
+    for poses in s2.poses:
+        assert abs(poses[0, 0] - run.truth.pose[0, 0]) < 0.010
 
 
 @pytest.mark.slow

@@ -41,6 +41,12 @@ from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypothese
 
 log = logging.getLogger(__name__)
 
+#: copies of the best hypothesis that re-filter an earlier run whose first touch leaves
+#: the resting position a range (smc_start): evenly spread over it, 4 mm apart for a
+#: 60 mm range
+REFILTER_COPIES = 16
+
+
 @dataclass(frozen=True)
 class SMCSettings:
     """particles : hypotheses; seed : of every random draw; sigma_gap (m), sigma_normal
@@ -121,8 +127,11 @@ def _near(run: Run, t, hyp, pose, world) -> list:
     return fingers_near(run, t, pose[:, :2], reach)
 
 
-def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
-    """Filter one run (its object starts at rest); returns the lineage history (T, N, 3)."""
+def _run_filter(run: Run, parts: _Particles, settings, stats, even_spread: bool = False) -> np.ndarray:
+    """Filter one run (its object starts at rest); returns the lineage history (T, N, 3).
+    Where the run's first touch leaves the resting position a range
+    (initial.initial_pose_range), the hypotheses start spread over it: drawn uniformly,
+    or with ``even_spread`` evenly from one end to the other."""
     world = World2D(run.up, run.ground_height, run.gravity, run.finger_radius)
     T = run.n_samples
     hyp = parts.hypotheses()
@@ -133,7 +142,8 @@ def _run_filter(run: Run, parts: _Particles, settings, stats) -> np.ndarray:
     x0 = np.array([pose[:2] @ world.t_g for pose, _ in start])
     half_range = np.array([r for _, r in start])
     if np.any(half_range > 0):
-        x0 = x0 + parts.rng.uniform(-1.0, 1.0, size=len(x0)) * half_range
+        u = np.linspace(-1.0, 1.0, len(x0)) if even_spread else parts.rng.uniform(-1.0, 1.0, size=len(x0))
+        x0 = x0 + u * half_range
     pose = world.rest_pose(hyp.vertices, x0)
     vel = np.zeros_like(pose)
     hist = np.zeros((T, parts.n, 3))
@@ -219,9 +229,14 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
         if i == len(runs) - 1:
             poses.append(histories[i][:, best].copy())
         else:
-            single = parts.take([best])
+            # where the run's first touch leaves the resting position a range, copies of
+            # the best hypothesis start evenly over it and the most likely is followed
+            spread = initial_pose_range(run, *parts.extents[best])[1] > 0
+            single = parts.take([best] * (REFILTER_COPIES if spread else 1))
             single.rng = np.random.default_rng(settings.seed + 1 + i)
-            poses.append(_run_filter(run, single, settings, {"resamples": 0, "skipped": 0})[:, 0].copy())
+            single.log_w, single.log_lik = np.zeros(single.n), np.zeros(single.n)
+            hist = _run_filter(run, single, settings, {"resamples": 0, "skipped": 0}, even_spread=True)
+            poses.append(hist[:, int(np.argmax(single.log_lik))].copy())
     poses = [_as_start(run, P) for run, P in zip(runs, poses)]
     ext = parts.extents[best]
     mass = float(parts.mass[best])
