@@ -438,7 +438,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         per core, 1 one after another).  The batch's fits are taken in order as if
         solved one after another: those after the one that ends the search are
         discarded unseen, so that the kept fit and the attempts are the same either
-        way (a restart costs the wall time of one solve where it would have cost two).
+        way (two restarts that are both needed cost the wall time of one solve).
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
