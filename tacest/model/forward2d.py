@@ -219,6 +219,27 @@ def finger_geometry(hyp: Hypotheses, pose, centre__world):
     return _geometry(V, pose, float(c[0]), float(c[1]))
 
 
+def kernel_drive(fingers, start_centres, forces, dim: int, who: str) -> tuple:
+    """The fingertips and measured forces of one sample as the compiled kernels take them
+    (2-D and 3-D, tacest.model.forward3d): ``fingers`` [(finger index, centre at the end
+    (D,) m, velocity (D,) m/s)], ``start_centres`` [(D,) m] (empty: the end centres),
+    ``forces`` [(point (D,) m, force (D,) N)] -> (finger indices (F,) int, start centres
+    (F, D), end centres (F, D), velocities (F, D), force points (M, D), forces (M, D)).
+    A ValueError names ``who`` when the start centres do not match the fingers."""
+    F = len(fingers)
+    if not len(start_centres):
+        start_centres = [c for _, c, _ in fingers]
+    if len(start_centres) != F:
+        raise ValueError(f"{who}: {len(start_centres)} start centres for {F} fingers")
+    idx = np.array([int(f) for f, _, _ in fingers], np.int64)
+    c1 = np.array([np.asarray(c, float) for _, c, _ in fingers], float).reshape(F, dim)
+    c0 = np.array([np.asarray(c, float) for c in start_centres], float).reshape(F, dim)
+    v_f = np.array([np.asarray(v, float) for _, _, v in fingers], float).reshape(F, dim)
+    f_points = np.array([np.asarray(p, float) for p, _ in forces], float).reshape(len(forces), dim)
+    f_values = np.array([np.asarray(v, float) for _, v in forces], float).reshape(len(forces), dim)
+    return idx, c0, c1, v_f, f_points, f_values
+
+
 class World2D:
     """The forward model of one run's ground and gravity for N hypotheses.
 
@@ -255,22 +276,12 @@ class World2D:
         m, force (2,) N)] applied to every hypothesis as measured, throughout.  Returns
         copies of the new (pose, vel) (N, 3) and the fingers' forces on the object
         (N, F, 2) N, averaged over the substeps, in the order of ``fingers``."""
-        F = len(fingers)
-        if not len(start_centres):
-            start_centres = [c for _, c, _ in fingers]
-        if len(start_centres) != F:
-            raise ValueError(f"World2D.advance: {len(start_centres)} start centres for {F} fingers")
-        idx = np.array([int(f) for f, _, _ in fingers], np.int64)
-        c1 = np.array([np.asarray(c, float) for _, c, _ in fingers], float).reshape(F, 2)
-        c0 = np.array([np.asarray(c, float) for c in start_centres], float).reshape(F, 2)
-        v_f = np.array([np.asarray(v, float) for _, _, v in fingers], float).reshape(F, 2)
-        f_points = np.array([np.asarray(p, float) for p, _ in forces], float).reshape(len(forces), 2)
-        f_values = np.array([np.asarray(v, float) for _, v in forces], float).reshape(len(forces), 2)
+        drive = kernel_drive(fingers, start_centres, forces, 2, "World2D.advance")
         arrays = hyp.arrays()
         n = arrays[0].shape[0]
         pose, vel = (np.array(a, float, order="C", copy=True) for a in (pose, vel))
         if pose.shape != (n, 3) or vel.shape != (n, 3):
             raise ValueError(f"World2D.advance: pose {pose.shape}, velocity {vel.shape} for {n} hypotheses")
-        out = _advance(*arrays, pose, vel, self.n_g, self.h, self.g, self.g_mag, self.radius, idx, c0, c1, v_f,
-                       f_points, f_values, int(n_sub), float(h))
+        out = _advance(*arrays, pose, vel, self.n_g, self.h, self.g, self.g_mag, self.radius, *drive, int(n_sub),
+                       float(h))
         return pose, vel, out

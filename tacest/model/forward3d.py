@@ -33,7 +33,7 @@ from numba import njit
 # hold a box in 3-D as a polygon in 2-D (GROUND_SINK per corner under a quarter of the
 # weight instead of half)
 from tacest.model.forward2d import (DAMPING_RATIO, FINGER_FORCE_LIMIT, FINGER_STIFFNESS, GROUND_SINK, MAX_STEP,
-                                    SLIP_REGULARIZATION)
+                                    SLIP_REGULARIZATION, kernel_drive)
 
 __all__ = ["Boxes", "World3D", "box_finger_geometry", "GROUND_SINK", "MAX_STEP"]
 
@@ -284,23 +284,13 @@ class World3D:
         the substeps (the k-th of n_sub at fraction k / n_sub); ``forces`` [(point (3,)
         m, force (3,) N)] act throughout.  Returns copies of the new state (pos, quat,
         vel, omega_b) and the fingers' forces (N, K, 3) N of the last substep."""
-        K = len(fingers)
-        if not len(start_centres):
-            start_centres = [c for _, c, _ in fingers]
-        idx = np.array([int(f) for f, _, _ in fingers], np.int64)
-        c1 = np.array([np.asarray(c, float) for _, c, _ in fingers], float).reshape(K, 3)
-        c0 = np.array([np.asarray(c, float) for c in start_centres], float).reshape(K, 3)
-        v_f = np.array([np.asarray(v, float) for _, _, v in fingers], float).reshape(K, 3)
-        f_points = np.array([np.asarray(p, float) for p, _ in forces], float).reshape(len(forces), 3)
-        f_values = np.array([np.asarray(F, float) for _, F in forces], float).reshape(len(forces), 3)
+        drive = kernel_drive(fingers, start_centres, forces, 3, "World3D.advance")
         state = [np.array(a, float, order="C", copy=True) for a in (pos, quat, vel, omega_b)]
         n = hyp.half.shape[0]
         shapes = [a.shape for a in state] + [np.shape(a) for a in (hyp.half, hyp.mass, hyp.mu_ground, hyp.mu_finger)]
-        if shapes != [(n, 3), (n, 4), (n, 3), (n, 3), (n, 3), (n,), (n,), (n,)] or len(start_centres) != K:
-            raise ValueError(f"World3D.advance: hypotheses and state of other sizes {shapes}, or "
-                             f"{len(start_centres)} start centres for {K} fingers")  # the kernel does not check
+        if shapes != [(n, 3), (n, 4), (n, 3), (n, 3), (n, 3), (n,), (n,), (n,)]:
+            raise ValueError(f"World3D.advance: hypotheses and state of other sizes {shapes}")  # the kernel does not check
         F = _advance(*(np.ascontiguousarray(a, float) for a in (hyp.half, hyp.mass, hyp.inertia, hyp.mu_ground,
                                                                  hyp.mu_finger)),
-                     *state, self.n_g, self.h, self.g, self.g_mag, self.radius, idx, c0, c1, v_f, f_points, f_values,
-                     int(n_sub), float(h))
+                     *state, self.n_g, self.h, self.g, self.g_mag, self.radius, *drive, int(n_sub), float(h))
         return (*state, F)
