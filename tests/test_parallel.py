@@ -367,7 +367,7 @@ def test_one_blas_thread_per_process_unless_the_user_chose():
 # ---------------------------------------------------------------------------------------
 # compared starts solved in forked processes (solver.solve_from_starts, solver.start_workers)
 
-def _fake_start_solve(start):
+def _fake_start_solve(start, abandon_above=float("inf")):
     """A stand-in for an estimator's per-start solve: start = (objective, physics), or
     None for a failed solve; returns what solve_from_starts takes, with the solving
     process's pid in ``found``."""

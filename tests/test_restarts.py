@@ -16,8 +16,9 @@ from tacest.estimation.solver import SolveOutcome, StageInfo, solve_from_starts
 RESTART_PHYSICS = 0.1
 
 
-def _solve(start):
-    """start = (objective, physics per sample, local) -> what solve_from_starts takes."""
+def _solve(start, abandon_above=float("inf")):
+    """start = (objective, physics per sample, local) -> what solve_from_starts takes
+    (abandon_above: not used here, see _solve_abandoning)."""
     obj, phys, local = start
     stage = StageInfo(name="homotopy 1/1", status="Solve_Succeeded", iterations=3, wall_time=0.0, objective=obj)
     out = SolveOutcome(z=np.full(2, obj), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded", success=True,
@@ -44,3 +45,101 @@ def test_the_search_goes_on_from_a_fit_that_fails_either_check(first, solved):
     assert n == solved
     # the kept fit is the lowest objective among those solved
     assert obj == (50.0 if solved == 1 else 40.0)
+
+
+# ---------------------------------------------------------------------------------------
+# hopeless restarts stopped early (solver.ABANDON_RULE, solver.hopeless)
+
+def test_the_rule_stops_only_after_its_iterations_and_only_far_above_the_best():
+    from tacest.estimation.solver import hopeless
+
+    assert not hopeless(19, 1e9, 1.0)  # never before 20 iterations
+    assert hopeless(20, 10.1, 1.0) and not hopeless(20, 9.9, 1.0)
+    assert hopeless(30, 5.1, 1.0) and not hopeless(29, 5.1, 1.0)
+    assert hopeless(100, 3.1, 1.0) and not hopeless(400, 2.9, 1.0)
+    for best in (float("inf"), float("nan"), 0.0, -1.0):  # no best fit yet, or one it cannot scale
+        assert not hopeless(1000, 1e12, best)
+
+
+def _solve_abandoning(start, abandon_above=float("inf")):
+    """As _solve, but a start whose objective is above 10x abandon_above is abandoned
+    (what run_stages does when its final stage is hopeless); the thresholds it saw are
+    recorded."""
+    from tacest.estimation.solver import StartAbandoned
+
+    SEEN.append(abandon_above)
+    if start[0] > 10 * abandon_above:
+        raise StartAbandoned(f"abandoned: {start[0]} above {abandon_above}")
+    return _solve(start)
+
+
+SEEN: list = []
+
+
+@pytest.mark.parametrize("abandon", [True, False])
+def test_a_hopeless_restart_is_recorded_as_abandoned_and_the_best_fit_kept(abandon):
+    SEEN.clear()
+    # two compared starts (the second bad but compared: never abandoned), then restarts:
+    # 900 is far above the best 50 (abandoned when allowed), 45 is kept
+    fits = [(50.0, 0.5, True), (800.0, 0.5, True), (900.0, 0.5, True), (45.0, 0.01, True)]
+    attempts = []
+    out, saved = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate(fits)], _solve_abandoning,
+                                   RESTART_PHYSICS, attempts, min_solves=2, abandon=abandon)
+    assert out.objective == 45.0 and saved == ("saved", 45.0)
+    assert [a["status"] for a in attempts] == (["Solve_Succeeded", "Solve_Succeeded", "abandoned", "Solve_Succeeded"]
+                                               if abandon else ["Solve_Succeeded"] * 4)
+    # the compared starts see no threshold; each restart the best objective before it
+    assert SEEN == ([float("inf"), float("inf"), 50.0, 50.0] if abandon else [float("inf")] * 4)
+
+
+def _rosenbrock_solver():
+    """A BuiltSolver on 100 + Rosenbrock(x) (exact Hessian): from (-5, 10) IPOPT takes
+    31 iterations to its minimum 100; from (-1.2, 1) 18."""
+    import types
+
+    import casadi as ca
+
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.estimation.solver import BuiltSolver
+
+    x, p, lam_f = ca.SX.sym("x", 2), ca.SX.sym("p", 0), ca.SX.sym("lam_f")
+    f = 100 + (1 - x[0]) ** 2 + 100 * (x[1] - x[0] ** 2) ** 2
+    hess = ca.Function("h", [x, p, lam_f, ca.SX.sym("lam_g", 0)], [ca.triu(lam_f * ca.hessian(f, x)[0])])
+    problem = types.SimpleNamespace(nlp={"x": x, "p": p, "f": f, "g": ca.SX(0, 1)}, lbg=np.zeros(0),
+                                    ubg=np.zeros(0), n_z=2, g=ca.SX(0, 1), hess_lag={"exact": hess})
+    return BuiltSolver(problem, EstimatorConfig())
+
+
+def test_ipopt_is_stopped_at_the_rules_iteration_and_not_taken_for_a_ctrl_c():
+    from tacest.estimation.solver import ABANDONED_STATUS, SUCCESS_STATUSES
+
+    built = _rosenbrock_solver()
+    free = -np.inf * np.ones(2), np.inf * np.ones(2)
+    _, whole = built.solve(np.array([-5.0, 10.0]), np.zeros(0), *free, hessian="exact")
+    assert whole.status in SUCCESS_STATUSES and whole.iterations > 20
+    # its objective never falls below 100: beside a best fit of 1 it is hopeless at 20
+    _, info = built.solve(np.array([-5.0, 10.0]), np.zeros(0), *free, hessian="exact", abandon_above=1.0)
+    assert info.status == ABANDONED_STATUS and info.iterations == 20
+    # beside a best fit of 50 (the rule needs 500 at 20, 250 at 30, 150 at 100) it runs on
+    _, info = built.solve(np.array([-5.0, 10.0]), np.zeros(0), *free, hessian="exact", abandon_above=50.0)
+    assert info.status in SUCCESS_STATUSES and info.iterations == whole.iterations
+    # the next solve without a threshold is not stopped (the threshold does not stick)
+    _, info = built.solve(np.array([-5.0, 10.0]), np.zeros(0), *free, hessian="exact")
+    assert info.status in SUCCESS_STATUSES
+
+
+def test_run_stages_raises_start_abandoned_only_from_the_final_stage():
+    from tacest.estimation.solver import Stage, StartAbandoned, run_stages
+
+    built = _rosenbrock_solver()
+    free = -np.inf * np.ones(2), np.inf * np.ones(2)
+    stages = [Stage(label, 1.0, 1.0, 1.0, impulses_only=False, hessian="exact", max_iter=400, final=final)
+              for label, final in (("first", False), ("last", True))]
+    bounds = lambda stage, z: (free[0].copy(), free[1].copy())  # noqa: E731
+    params = lambda stage, retry=False: np.zeros(0)  # noqa: E731
+    # the first stage (not final) runs to its end beside any threshold; the final stage
+    # starts at its minimum and ends at once, below 10x 11
+    out = run_stages(built, np.array([-5.0, 10.0]), stages, params, bounds, abandon_above=11.0)
+    assert out.success and out.stages[0].iterations > 20
+    with pytest.raises(StartAbandoned, match="abandoned in stage 'last' after 20 iterations"):
+        run_stages(built, np.array([-5.0, 10.0]), stages[1:], params, bounds, abandon_above=1.0)

@@ -227,14 +227,15 @@ class ImplicitEstimator:
             pr.phys_sx(z[: pr.n_theta], self.scales.L, self.scales.m0)).reshape(-1)
         return z
 
-    def solve_from(self, z0, last_only=False, accept_budget=False) -> SolveOutcome:
+    def solve_from(self, z0, last_only=False, accept_budget=False, abandon_above=float("inf")) -> SolveOutcome:
         """One staged solve (solver.run_stages) from z0 (scaled): impulses alone, then
         every homotopy stage, or only the last one (``last_only``: z0 is already a
         solution of a nearby problem).  ``accept_budget``: a final stage that uses up its
-        budget keeps its last iterate (success False)."""
+        budget keeps its last iterate (success False); ``abandon_above``: the best fit's
+        objective so far, far above which the final stage stops (StartAbandoned)."""
         stages = self.stages(last_only)
         out = run_stages(self.built, z0, stages, self.stage_params, self.stage_bounds, prepare=self._prepare,
-                         accept_budget=accept_budget)
+                         accept_budget=accept_budget, abandon_above=abandon_above)
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(out.z)
@@ -267,7 +268,7 @@ class ImplicitEstimator:
                 n_always += 1
         s_ref = np.array(self.s0, float)  # the shape prior's reference of the push-tracked starts
 
-        def solve_one(start):
+        def solve_one(start, abandon_above):
             kind, value = start
             if kind == "sampler":
                 z0 = self.sampler_z(value)
@@ -276,7 +277,8 @@ class ImplicitEstimator:
             else:  # the same reference whichever start ran before (starts may run in other processes)
                 self.s0 = s_ref.copy()
                 z0 = self.own_start(value)
-            out = self.solve_from(z0, accept_budget=True)  # solve_from_starts judges budget fits
+            out = self.solve_from(z0, accept_budget=True,  # solve_from_starts judges budget fits
+                                  abandon_above=abandon_above)
             V, mass, _, mu_g, mu_f = self.physical(out.z)
             found = {"vertices": np.asarray(V, float),
                      "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
@@ -287,7 +289,8 @@ class ImplicitEstimator:
         pinned = self.pinned_theta is not None and self.pin in ("all", "shape")
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
             starts, solve_one, self.config.solver.restart_physics, self.attempts,
-            min_solves=0 if pinned else n_always, workers=start_workers(self.config.solver))
+            min_solves=0 if pinned else n_always, workers=start_workers(self.config.solver),
+            abandon=self.config.solver.abandon_hopeless)
         self.z = out.z
         return out
 

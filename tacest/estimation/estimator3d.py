@@ -506,11 +506,11 @@ class Estimator3D:
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
             f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
 
-        def solve_one(c):
+        def solve_one(c, abandon_above):
             s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
             self.start_tracks = c.poses
-            try:
-                out = self.solve_from_shape(s0, accept_budget=True)  # solve_from_starts judges budget fits
+            try:  # solve_from_starts judges budget fits
+                out = self.solve_from_shape(s0, accept_budget=True, abandon_above=abandon_above)
             finally:
                 self.start_tracks = None
             V, mass, _, mu_g, mu_f = self.physical(out.z)
@@ -524,7 +524,8 @@ class Estimator3D:
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
-                min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver))
+                min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver),
+                abandon=self.config.solver.abandon_hopeless)
         except SolveFailedError as first:
             if len(starts) == 1:
                 raise
@@ -581,12 +582,13 @@ class Estimator3D:
         ridge = max(self.config.solver3d.hessian_ridge, 1.0) if retry else None
         return self.params(stage.eps, stage.comp_mult, stage.dyn_mult, ridge=ridge)
 
-    def solve_from_shape(self, s0, accept_budget=None) -> SolveOutcome:
+    def solve_from_shape(self, s0, accept_budget=None, abandon_above=float("inf")) -> SolveOutcome:
         """One staged solve from the starting shape s0 (scaled): the ground impulses by
         non-negative least squares for the observed (or starting) trajectory, then the
         stages of :meth:`stages` (solver.run_stages; ``accept_budget``, by default the
         estimator's: a final stage that uses up its budget keeps its last iterate and
-        status, success False)."""
+        status, success False; ``abandon_above``: the best fit's objective so far, far
+        above which the final stage stops, StartAbandoned)."""
         pr = self.problem
         self.s0 = np.asarray(s0, float)
         z = self.initial_guess()
@@ -598,7 +600,8 @@ class Estimator3D:
         nnls_time = time.perf_counter() - t0
         log.info(f"ground impulses by non-negative least squares: {nnls_time:.2f} s")
         out = run_stages(self.built, z, stages, self.stage_params, self.stage_bounds,
-                         accept_budget=self.accept_budget if accept_budget is None else accept_budget)
+                         accept_budget=self.accept_budget if accept_budget is None else accept_budget,
+                         abandon_above=abandon_above)
         out.stages.insert(0, StageInfo(name="ground impulses (nnls)", status="Solve_Succeeded", iterations=0,
                                        wall_time=nnls_time, objective=float("nan")))
         out.wall_time += nnls_time
