@@ -53,8 +53,8 @@ def record(seed: int, pokes: int, directory: Path) -> Path:
 def _starts(j) -> str:
     parts = []
     for a in j.get("starts", []):
-        if a.get("status") == "failed":
-            parts.append(f"{a['start']}: failed")
+        if a.get("status") in ("failed", "abandoned"):
+            parts.append(f"{a['start']}: {a['status']}")
         else:
             parts.append(f"{a['start']}: obj {a['objective']:.0f}, phys {a['physics_per_sample']:.3f}")
     return "; ".join(parts)

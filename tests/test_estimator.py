@@ -304,13 +304,39 @@ def test_restarts_keep_the_lowest_objective_and_skip_consistent_fits(monkeypatch
     monkeypatch.setattr(est, "fit_quality", lambda z: SimpleNamespace(local=False))
     out = est.solve()
     assert len(est.attempts) == 3
-    ok = [a["objective"] for a in est.attempts if a["status"] != "failed"]
+    ok = [a["objective"] for a in est.attempts if a["status"] not in ("failed", "abandoned")]
     assert ok and out.objective == min(ok)
     # the returned z is that fit's: its physics measure is the one recorded for it
     kept = next(a for a in est.attempts if a.get("objective") == out.objective)
     assert est.physics_per_sample(out.z) == pytest.approx(kept["physics_per_sample"], rel=1e-9)
     with pytest.raises(TacestError, match="restart"):
         load_config(None, overrides={"solver": {"restarts": -1}})
+
+
+@pytest.mark.parametrize("T", [1, 2, 5, 7, 8, 57])
+def test_fingertip_velocity_is_the_least_squares_slope_of_its_window(T):
+    """data.finger_velocity (full windows at once, shorter ones at the ends) equals
+    np.polyfit's slope of degree 1 over each sample's window of 2·h+1 samples (fewer at
+    the ends, 0 for a single sample) to 1e-9 of the values' scale (polyfit's own
+    rounding); a NaN position spoils only the windows that hold it."""
+    from types import SimpleNamespace
+
+    from tacest.estimation.data import FINGER_VELOCITY_HALF_WIDTH as h, finger_velocity
+
+    rng = np.random.default_rng(T)
+    fp = rng.normal(size=(T, 2, 3)).cumsum(axis=0)
+    if T > 5:
+        fp[5, 1, 0] = np.nan
+    dt = 0.01
+    got = finger_velocity(SimpleNamespace(finger_position=fp, dt=dt))
+    for t in range(T):
+        a, b = max(0, t - h), min(T, t + h + 1)
+        for f in range(2):
+            for d in range(3):
+                y = fp[a:b, f, d]
+                want = 0.0 if b - a < 2 else (np.nan if np.isnan(y).any() else
+                                              np.polyfit(np.arange(a, b) * dt, y, 1)[0])
+                np.testing.assert_allclose(got[t, f, d], want, atol=1e-9 * np.nanmax(np.abs(fp)) / dt)
 
 
 @pytest.mark.parametrize("T", [4, 9, 10, 57])

@@ -42,7 +42,10 @@ def finger_velocity(run: Run) -> np.ndarray:
     T = fp.shape[0]
     h = FINGER_VELOCITY_HALF_WIDTH
     v = np.zeros_like(fp)
-    for t in range(T):
+    k = np.arange(-h, h + 1, dtype=float)
+    if T > 2 * h:  # the full windows at once: the slope sum_k k x[t+k] / (dt sum_k k^2)
+        v[h: T - h] = sum(kk * fp[j: T - 2 * h + j] for j, kk in enumerate(k)) / (run.dt * np.sum(k * k))
+    for t in (*range(min(h, T)), *range(max(h, T - h), T)):  # the shorter windows at the ends
         a, b = max(0, t - h), min(T, t + h + 1)
         if b - a < 2:
             continue
