@@ -484,6 +484,41 @@ def test_restarts_in_processes_give_the_fits_and_attempts_of_one_after_another(s
         assert all(pid != os.getpid() for pid in runs[2][3][1:] if pid is not None)
 
 
+def _slow_start_solve(start, abandon_above=float("inf")):
+    """A stand-in whose start (objective, physics, seconds) "iterates" 100 times over
+    its seconds at that objective and stops, as IPOPT's callback does, as soon as
+    solver.hopeless says so beside the best fit so far (read at every iteration)."""
+    from tacest.estimation.solver import StartAbandoned, best_value, hopeless
+
+    obj, phys, seconds = start
+    for it in range(100):
+        if hopeless(it, obj, best_value(abandon_above)):
+            raise StartAbandoned(f"abandoned after {it} iterations")
+        time.sleep(seconds / 100)
+    return _fake_start_solve((obj, phys))
+
+
+def test_a_start_solved_beside_another_is_stopped_as_soon_as_that_ones_fit_ends(single_threaded):
+    """Two compared starts in two processes: the fast good one (50, 0.3 s) ends first and
+    its objective reaches the slow hopeless one (800, 4 s) through shared memory, which
+    stops after 20 iterations instead of running its 4 s; the kept fit is the same as
+    with solver.abandon_hopeless off, one after another."""
+    from tacest.estimation.solver import solve_from_starts
+
+    starts = [({"start": "fast"}, (50.0, 0.01, 0.3)), ({"start": "slow"}, (800.0, 0.01, 4.0))]
+    t0 = time.perf_counter()
+    attempts = []
+    out, saved = solve_from_starts(starts, _slow_start_solve, 0.1, attempts, min_solves=2, workers=2, abandon=True)
+    wall = time.perf_counter() - t0
+    assert out.objective == 50.0 and saved == ("saved", 50.0)
+    assert [a["status"] for a in attempts] == ["Solve_Succeeded", "abandoned"]
+    assert wall < 3.0  # 20 iterations of 40 ms after the fast one's 0.3 s, with fork overhead, far below 4 s
+    off = []
+    out_off, _ = solve_from_starts(starts[:1] + [({"start": "slow"}, (800.0, 0.01, 0.2))], _slow_start_solve, 0.1,
+                                   off, min_solves=2, workers=1, abandon=False)
+    assert out_off.objective == out.objective and [a["status"] for a in off] == ["Solve_Succeeded"] * 2
+
+
 def test_fork_processes_follow_the_setting_and_never_fork_from_a_daemon(monkeypatch, single_threaded):
     import multiprocessing as mp
 

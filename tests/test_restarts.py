@@ -67,9 +67,11 @@ def _solve_abandoning(start, abandon_above=float("inf")):
     recorded."""
     from tacest.estimation.solver import StartAbandoned
 
-    SEEN.append(abandon_above)
-    if start[0] > 10 * abandon_above:
-        raise StartAbandoned(f"abandoned: {start[0]} above {abandon_above}")
+    from tacest.estimation.solver import best_value
+
+    SEEN.append(best_value(abandon_above))
+    if start[0] > 10 * best_value(abandon_above):
+        raise StartAbandoned(f"abandoned: {start[0]} above {best_value(abandon_above)}")
     return _solve(start)
 
 
@@ -77,19 +79,41 @@ SEEN: list = []
 
 
 @pytest.mark.parametrize("abandon", [True, False])
-def test_a_hopeless_restart_is_recorded_as_abandoned_and_the_best_fit_kept(abandon):
+def test_a_hopeless_start_is_recorded_as_abandoned_and_the_best_fit_kept(abandon):
     SEEN.clear()
-    # two compared starts (the second bad but compared: never abandoned), then restarts:
-    # 900 is far above the best 50 (abandoned when allowed), 45 is kept
+    # two compared starts, then restarts: 800 and 900 are far above the first fit's 50
+    # (abandoned when allowed, the compared one too), 45 is kept
     fits = [(50.0, 0.5, True), (800.0, 0.5, True), (900.0, 0.5, True), (45.0, 0.01, True)]
     attempts = []
     out, saved = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate(fits)], _solve_abandoning,
                                    RESTART_PHYSICS, attempts, min_solves=2, abandon=abandon)
     assert out.objective == 45.0 and saved == ("saved", 45.0)
-    assert [a["status"] for a in attempts] == (["Solve_Succeeded", "Solve_Succeeded", "abandoned", "Solve_Succeeded"]
+    assert [a["status"] for a in attempts] == (["Solve_Succeeded", "abandoned", "abandoned", "Solve_Succeeded"]
                                                if abandon else ["Solve_Succeeded"] * 4)
-    # the compared starts see no threshold; each restart the best objective before it
-    assert SEEN == ([float("inf"), float("inf"), 50.0, 50.0] if abandon else [float("inf")] * 4)
+    # the first start sees no threshold; each later one the lowest objective before it
+    assert SEEN == ([float("inf"), 50.0, 50.0, 50.0] if abandon else [float("inf")] * 4)
+
+
+def test_a_fit_that_used_up_its_budget_stops_no_start_unless_budget_fits_count():
+    """Without accept_budget a fit that used up its budget cannot end the search alone
+    (no converged fit: a failure); so it must not stop the converged start after it."""
+    from tacest.estimation.solver import StartAbandoned, best_value
+
+    def solve(start, abandon_above=float("inf")):
+        obj, status = start
+        if obj > 10 * best_value(abandon_above):
+            raise StartAbandoned("abandoned")
+        out, *rest = _solve((obj, 0.01, True))
+        out.status = status
+        return (out, *rest)
+
+    fits = [(50.0, "Maximum_Iterations_Exceeded"), (900.0, "Solve_Succeeded")]
+    for accept_budget, statuses in ((False, ["Maximum_Iterations_Exceeded", "Solve_Succeeded"]),
+                                    (True, ["Maximum_Iterations_Exceeded", "abandoned"])):
+        attempts = []
+        out, _ = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate(fits)], solve, RESTART_PHYSICS,
+                                   attempts, min_solves=2, abandon=True, accept_budget=accept_budget)
+        assert [a["status"] for a in attempts] == statuses and out.objective == 50.0
 
 
 def _rosenbrock_solver():

@@ -155,9 +155,10 @@ class Solver:
     #: other threads, and with an OpenMP linear solver).  The fits are the same either
     #: way; the restarts after them run one after another
     start_workers: int = 0
-    #: stop a restart (2-D and 3-D) whose final stage stays far above the best fit so far
-    #: (after 20 iterations 10x its objective, after 30 5x, after 100 3x:
-    #: solver.ABANDON_RULE); its fit could not be kept.  false: every start runs to its end
+    #: stop a start (2-D and 3-D) whose final stage stays far above the best fit
+    #: finished so far, in this process or one beside it (after 20 iterations 10x its
+    #: objective, after 30 5x, after 100 3x: solver.ABANDON_RULE); its fit could not be
+    #: kept.  false: every start runs to its end
     abandon_hopeless: bool = True
 
     def __post_init__(self):

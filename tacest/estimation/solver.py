@@ -183,6 +183,32 @@ class StartAbandoned(SolveFailedError):
     kept (solve_from_starts records it as an abandoned attempt)."""
 
 
+class BestSoFar:
+    """The lowest objective of the fits finished so far that could be kept, shared with
+    the forked processes that solve starts at once (a double in shared memory, created
+    before they fork): a fit finished in one is seen at the next IPOPT iteration of the
+    others.  Two fits offered at the same instant may leave the higher of the two (the
+    minimum is not atomic): a higher threshold only stops less."""
+
+    def __init__(self):
+        import multiprocessing as mp
+
+        self._shared = mp.RawValue("d", float("inf"))
+
+    @property
+    def value(self) -> float:
+        return float(self._shared.value)
+
+    def offer(self, objective: float):
+        if np.isfinite(objective) and objective < self._shared.value:
+            self._shared.value = float(objective)
+
+
+def best_value(best) -> float:
+    """The objective of ``best`` (a number, or a BestSoFar's current value)."""
+    return best.value if isinstance(best, BestSoFar) else float(best)
+
+
 def hopeless(iteration: int, lowest: float, best: float) -> bool:
     """Whether a final stage whose lowest objective after ``iteration`` iterations is
     ``lowest`` is stopped beside a best fit of objective ``best`` (:data:`ABANDON_RULE`;
@@ -242,7 +268,7 @@ class _Progress(ca.Callback):
                 log.info(f"  {self.label} iter {self.it:4d}  objective {f:12.5e}  infeasibility {inf:9.2e}")
             if np.isfinite(f):
                 self.lowest = min(self.lowest, f)
-            if hopeless(self.it, self.lowest, self.abandon_above):
+            if hopeless(self.it, self.lowest, best_value(self.abandon_above)):
                 self.abandoned = True
                 return [1]  # IPOPT stops: User_Requested_Stop, which solve() reads as abandoned
             self.it += 1
@@ -326,8 +352,8 @@ class BuiltSolver:
               acceptable_tol=None, abandon_above=float("inf")):
         """One IPOPT solve; returns (solution dict, StageInfo).  acceptable_tol : IPOPT's
         acceptable tolerance (None: the problem's); abandon_above : the best fit's
-        objective so far, beside which a hopeless solve is stopped (:func:`hopeless`;
-        status ABANDONED_STATUS).  An interrupt during the solve raises
+        objective so far (a number or a BestSoFar, read at every iteration), beside
+        which a hopeless solve is stopped (:func:`hopeless`; status ABANDONED_STATUS).  An interrupt during the solve raises
         KeyboardInterrupt (:func:`tacest.interrupt.raise_if_interrupted`)."""
         max_iter = self.config.solver.max_iter if max_iter is None else int(max_iter)
         key = (hessian, max_iter, acceptable_tol)
@@ -339,7 +365,7 @@ class BuiltSolver:
         self.progress.lbg, self.progress.ubg = pr.lbg, pr.ubg
         self.progress.it = 0
         self.progress.lowest = float("inf")
-        self.progress.abandon_above = float(abandon_above)
+        self.progress.abandon_above = abandon_above
         self.progress.abandoned = False
         args = dict(x0=z0, p=p, lbx=lbx, ubx=ubx, lbg=pr.lbg, ubg=pr.ubg)
         if lam_x0 is not None:
@@ -390,7 +416,7 @@ def check_success(info: StageInfo):
 
 def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds_of: Callable,
                prepare: Callable = None, accept_budget: bool = False, lam_x0=None, lam_g0=None,
-               abandon_above: float = float("inf")) -> SolveOutcome:
+               abandon_above=float("inf")) -> SolveOutcome:
     """Run a plan of stages (:func:`plan_stages`) from z0 (scaled) under the status
     policy of the module docstring.
 
@@ -401,8 +427,9 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
     prepare(stage, z, p) -> z : called before each stage (e.g. settle the effects'
         states before the impulses stage), or None;
     lam_x0, lam_g0 : multipliers that warm-start the first stage that frees everything;
-    abandon_above : the best fit's objective so far (solve_from_starts): a final stage
-        that stays far above it is stopped (:func:`hopeless`) and StartAbandoned raised.
+    abandon_above : the best fit's objective so far (a number, or solve_from_starts'
+        BestSoFar): a final stage that stays far above it is stopped (:func:`hopeless`)
+        and StartAbandoned raised.
     """
     z = np.asarray(z0, float).copy()
     lam_x, lam_g = lam_x0, lam_g0
@@ -436,7 +463,7 @@ def run_stages(built: BuiltSolver, z0, stages: list, params_of: Callable, bounds
         if info.status == ABANDONED_STATUS:
             raise StartAbandoned(f"abandoned in stage {info.name!r} after {info.iterations} iterations: its "
                                  f"lowest objective {built.progress.lowest:.6g} stayed above the best fit's "
-                                 f"{abandon_above:.6g} (solver.ABANDON_RULE)")
+                                 f"{best_value(abandon_above):.6g} (solver.ABANDON_RULE)")
         infos.append(info)
         budget_hit = stage.final and accept_budget and info.status in BUDGET_STATUSES
         if (stage.final and not budget_hit) or info.status in FATAL_STATUSES:
@@ -472,8 +499,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     solve_one(start, abandon_above) -> (SolveOutcome, physics per sample (objective
         units), saved, local, found): one staged solve whose final stage keeps its last
         iterate when it uses up its budget (run_stages' ``accept_budget``) and stops
-        where it stays far above ``abandon_above`` (run_stages' ``abandon_above``,
-        raising StartAbandoned; inf: never); ``saved`` is whatever the
+        where it stays far above ``abandon_above`` (a BestSoFar, or inf: never;
+        run_stages' ``abandon_above``, raising StartAbandoned); ``saved`` is whatever the
         caller must restore for that fit; ``local`` whether its data say it is right but
         for a local misfit (fitquality's FitQuality.local; None: not tested); ``found`` a
         dict of what the fit found, copied into its attempt (the ``vertices`` and
@@ -499,12 +526,14 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         solved one after another: those after the one that ends the search are
         discarded unseen, so that the kept fit and the attempts are the same either
         way (two restarts that are both needed cost the wall time of one solve).
-    abandon : a restart is stopped where its final stage stays far above the lowest
-        objective of the fits before it (solver.ABANDON_RULE; recorded as an attempt of
-        status "abandoned"); the compared starts are always solved to their end.  In a
-        batch of restarts each sees only the fits before the batch: one that one
-        after another would be stopped may run to its end, which changes its attempt
-        but not the kept fit (it is far above the best).
+    abandon : a start is stopped where its final stage stays far above the lowest
+        objective of the fits finished so far that count (converged ones, or any with
+        ``accept_budget``: a BestSoFar, so a start solved at once beside another sees
+        that one's fit as soon as it ends; solver.ABANDON_RULE); it is recorded as an
+        attempt of status "abandoned" and cannot be the kept fit, which is the same
+        whichever starts were stopped (they end far above it).  Which starts are
+        stopped depends on which fits ended first: with starts solved at once, on
+        their timing.
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -523,15 +552,17 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     n_pre = min(int(min_solves), len(starts))
     processes = fork_processes(workers, n_pre)
     solved = {}
-    never = float("inf")
+    shared = BestSoFar() if abandon else float("inf")
 
-    def above(k):  # the objective beside which restart k may be abandoned
-        return best[0].objective if abandon and best is not None and k >= n_pre else never
+    def solve(k):  # solve start k; its fit, where it counts, is offered to the others
+        result = solve_one(starts[k][1], shared)
+        if abandon and (result[0].status in SUCCESS_STATUSES or accept_budget):
+            shared.offer(result[0].objective)
+        return result
 
     if processes > 1:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
-        solved = dict(enumerate(fork_map(lambda k: solve_one(starts[k][1], never), n_pre, processes,
-                                         returned=(SolveFailedError,))))
+        solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
     for k, (record, start) in enumerate(starts):
         if 0 < k < min_solves:
             log.info(f"start {k + 1} of the {min_solves} compared")
@@ -555,11 +586,10 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             processes = fork_processes(workers, len(batch))
             if processes > 1:
                 batch = batch[:processes]
-                threshold = above(k)
-                solved.update(zip(batch, fork_map(lambda j: solve_one(starts[batch[j]][1], threshold), len(batch),
-                                                  processes, returned=(SolveFailedError,))))
+                solved.update(zip(batch, fork_map(lambda j: solve(batch[j]), len(batch), processes,
+                                                  returned=(SolveFailedError,))))
         try:
-            result = solved[k] if k in solved else solve_one(start, above(k))
+            result = solved[k] if k in solved else solve(k)
             if isinstance(result, SolveFailedError):
                 raise result
             out, physics, saved, local, found = result
