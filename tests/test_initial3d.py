@@ -135,7 +135,7 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, comp
     calls = []
     offered = est.offered_starts = []
 
-    def solve_from(s0, accept_budget=None):
+    def solve_from(s0, accept_budget=None, abandon_above=float("inf")):
         k = len(calls)
         calls.append(np.asarray(s0, float))
         # the start's trajectory is used (a sampled start, when one is offered, is another)

@@ -489,6 +489,21 @@ def map_in_processes(job, n: int, workers: int) -> list:
     return fork_map(job, n, processes)
 
 
+def _restart_reason(last: dict, restart_physics: float) -> str:
+    """Why the search goes on after the attempt ``last`` (solve_from_starts' log line)."""
+    if last["status"] == "failed":
+        return "failed"
+    if last["status"] == "abandoned":
+        return "was abandoned far above the best"
+    if last["status"] in BUDGET_STATUSES:
+        return "used up its iteration budget"
+    return " and ".join(
+        ([f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"]
+         if last["physics_per_sample"] > restart_physics else [])
+        + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False else [])
+    ) or "is not the best fit so far"
+
+
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0,
                       accept_budget: bool = False, workers: int = 1, abandon: bool = False) -> tuple:
     """Solve from each start in turn until a fit is good enough; keep the fit of lowest
@@ -526,14 +541,11 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         solved one after another: those after the one that ends the search are
         discarded unseen, so that the kept fit and the attempts are the same either
         way (two restarts that are both needed cost the wall time of one solve).
-    abandon : a start is stopped where its final stage stays far above the lowest
-        objective of the fits finished so far that count (converged ones, or any with
-        ``accept_budget``: a BestSoFar, so a start solved at once beside another sees
-        that one's fit as soon as it ends; solver.ABANDON_RULE); it is recorded as an
-        attempt of status "abandoned" and cannot be the kept fit, which is the same
-        whichever starts were stopped (they end far above it).  Which starts are
-        stopped depends on which fits ended first: with starts solved at once, on
-        their timing.
+    abandon : stop a start whose final stage stays far above the lowest objective of
+        the finished fits that count (converged, or any with ``accept_budget``; a
+        BestSoFar shared with the starts solved at once; ABANDON_RULE): an attempt of
+        status "abandoned".  The kept fit is the same; which starts stop depends on
+        which fits end first.
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -563,24 +575,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     if processes > 1:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
-    for k, (record, start) in enumerate(starts):
+    for k, (record, _) in enumerate(starts):
         if 0 < k < min_solves:
             log.info(f"start {k + 1} of the {min_solves} compared")
         elif k:
-            last = attempts[-1]
-            if last["status"] == "failed":
-                why = "failed"
-            elif last["status"] == "abandoned":
-                why = "was abandoned far above the best"
-            elif last["status"] in BUDGET_STATUSES:
-                why = "used up its iteration budget"
-            else:
-                why = " and ".join(
-                    ([f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"]
-                     if last["physics_per_sample"] > restart_physics else [])
-                    + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False else [])
-                ) or "is not the best fit so far"
-            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit {why}")
+            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
+                     f"{_restart_reason(attempts[-1], restart_physics)}")
         if k and k not in solved:  # a restart: with the next ones in as many processes as may run
             batch = list(range(k, len(starts)))
             processes = fork_processes(workers, len(batch))
