@@ -18,7 +18,7 @@ Status policy (:func:`run_stages`):
   iteration or time budget keeps its last iterate and its status (success False);
 - a final stage whose step computation failed (:data:`RETRY_STATUSES`) is redone once
   from its last iterate with the Gauss–Newton model and the ridge :data:`RETRY_RIDGE`;
-- a restart's final stage that stays far above the best fit so far is stopped
+- a start's final stage that stays far above the best fit so far is stopped
   (:data:`ABANDON_RULE`, ``abandon_above``): StartAbandoned, which
   :func:`solve_from_starts` records as an abandoned attempt.
 
@@ -61,7 +61,7 @@ RETRY_STATUSES = ("Error_In_Step_Computation", "Restoration_Failed")
 RETRY_RIDGE = 1.0
 #: tacest's status of a final stage stopped by :data:`ABANDON_RULE` (not IPOPT's)
 ABANDONED_STATUS = "Abandoned_Far_Above_Best"
-#: when a restart is hopeless: (iterations, ratio) pairs; a final stage whose lowest
+#: when a start is hopeless: (iterations, ratio) pairs; a final stage whose lowest
 #: objective after at least ``iterations`` of its iterations is above ``ratio`` times the
 #: best fit's so far is stopped (its fit could not be kept).  Measured on the final
 #: stages of every start of 20 dynamic 2-D recordings (boxes with and without force,
@@ -179,7 +179,7 @@ def held(lbx, ubx) -> np.ndarray:
 
 
 class StartAbandoned(SolveFailedError):
-    """A restart's final stage stopped by :data:`ABANDON_RULE`: its fit could not be
+    """A start's final stage stopped by :data:`ABANDON_RULE`: its fit could not be
     kept (solve_from_starts records it as an abandoned attempt)."""
 
 
@@ -353,8 +353,9 @@ class BuiltSolver:
         """One IPOPT solve; returns (solution dict, StageInfo).  acceptable_tol : IPOPT's
         acceptable tolerance (None: the problem's); abandon_above : the best fit's
         objective so far (a number or a BestSoFar, read at every iteration), beside
-        which a hopeless solve is stopped (:func:`hopeless`; status ABANDONED_STATUS).  An interrupt during the solve raises
-        KeyboardInterrupt (:func:`tacest.interrupt.raise_if_interrupted`)."""
+        which a hopeless solve is stopped (:func:`hopeless`; status ABANDONED_STATUS).
+        An interrupt during the solve raises KeyboardInterrupt
+        (:func:`tacest.interrupt.raise_if_interrupted`)."""
         max_iter = self.config.solver.max_iter if max_iter is None else int(max_iter)
         key = (hessian, max_iter, acceptable_tol)
         if key not in self.solvers:
@@ -380,7 +381,6 @@ class BuiltSolver:
         status = st.get("return_status", "unknown")
         if self.progress.abandoned and not watch.interrupted:
             status = ABANDONED_STATUS
-        self.progress.abandon_above = float("inf")
         raise_if_interrupted(status, watch)
         return sol, StageInfo(name=label, status=status, iterations=int(st.get("iter_count", 0)), wall_time=wall,
                               objective=float(sol["f"]))
@@ -539,8 +539,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         then the restarts in batches of as many (tacest.parallel.fork_processes: 0 one
         per core, 1 one after another).  The batch's fits are taken in order as if
         solved one after another: those after the one that ends the search are
-        discarded unseen, so that the kept fit and the attempts are the same either
-        way (two restarts that are both needed cost the wall time of one solve).
+        discarded unseen, so that the kept fit and the attempts (but for those
+        ``abandon`` stopped) are the same either way (a restart pair: one solve's time).
     abandon : stop a start whose final stage stays far above the lowest objective of
         the finished fits that count (converged, or any with ``accept_budget``; a
         BestSoFar shared with the starts solved at once; ABANDON_RULE): an attempt of
