@@ -12,9 +12,12 @@ import numpy as np
 
 
 def scatter_matrix(blocks, n_rows, n_cols):
-    """A global sparse (n_rows, n_cols) MX matrix from local sparse blocks that do not
-    overlap.  blocks: list of (M MX (m, n_y · B): B local blocks side by side, each with
-    the sparsity ``sp`` (m, n_y); rows (B, m) and cols (B, n_y) int global indices)."""
+    """A global sparse (n_rows, n_cols) MX matrix from local sparse blocks.
+    blocks: list of (M MX (m, n_y · B): B local blocks side by side, each with the
+    sparsity ``sp`` (m, n_y); rows (B, m) and cols (B, n_y) int global indices).  Entries
+    that land on one global place are summed (a block whose inputs repeat one variable,
+    e.g. a 3-D stage window at a run's start: the chain rule); without such repeats the
+    map is a permutation of the stacked nonzeros."""
     import scipy.sparse as sp_
 
     rows, cols, src, vecs = [], [], [], []
@@ -32,12 +35,28 @@ def scatter_matrix(blocks, n_rows, n_cols):
         vecs.append(ca.vec(Mx.nz[:]))
     rows, cols, src = np.concatenate(rows), np.concatenate(cols), np.concatenate(src)
     P = sp_.csc_matrix((src + 1.0, (rows, cols)), shape=(n_rows, n_cols))
-    if P.nnz != len(src):
-        raise AssertionError("internal: overlapping Jacobian blocks")
-    P.sort_indices()
-    order = (P.data - 1).astype(np.int64)
-    return ca.MX(ca.Sparsity(n_rows, n_cols, P.indptr.tolist(), P.indices.tolist()),
-                 ca.vertcat(*vecs)[order.tolist()])
+    if P.nnz == len(src):  # no repeats: a permutation
+        P.sort_indices()
+        order = (P.data - 1).astype(np.int64)
+        return ca.MX(ca.Sparsity(n_rows, n_cols, P.indptr.tolist(), P.indices.tolist()),
+                     ca.vertcat(*vecs)[order.tolist()])
+    return _summed(rows, cols, src, ca.vertcat(*vecs), n_rows, n_cols)
+
+
+def _summed(rows, cols, src, values, n_rows, n_cols):
+    """The (n_rows, n_cols) MX matrix whose entry (i, j) is the sum of values[src] over
+    the entries with rows == i and cols == j: one constant sparse matrix times the values."""
+    import scipy.sparse as sp_
+
+    pattern = sp_.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_rows, n_cols))
+    pattern.sum_duplicates()
+    pattern.sort_indices()
+    lookup = sp_.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(n_rows, n_cols))
+    nz_of = np.asarray(lookup[rows, cols]).reshape(-1).astype(np.int64) - 1
+    A = sp_.csc_matrix((np.ones(len(src)), (nz_of, src)), shape=(pattern.nnz, values.shape[0]))
+    A_dm = ca.DM(ca.Sparsity(A.shape[0], A.shape[1], A.indptr.tolist(), A.indices.tolist()), A.data)
+    return ca.MX(ca.Sparsity(n_rows, n_cols, pattern.indptr.tolist(), pattern.indices.tolist()),
+                 ca.mtimes(A_dm, values))
 
 
 def assemble_hessian(blocks, n):
@@ -48,8 +67,6 @@ def assemble_hessian(blocks, n):
     A 1x1 dense ``sp`` with idx (B, 1) adds diagonal entries.  The scatter-add is one
     constant sparse matrix times the stacked nonzeros of the local blocks.
     """
-    import scipy.sparse as sp_
-
     rows, cols, src, vecs = [], [], [], []
     base = 0
     for H, sp, idx in blocks:
@@ -68,15 +85,7 @@ def assemble_hessian(blocks, n):
             raise AssertionError("internal: local Hessian blocks do not have the expected sparsity")
         vecs.append(ca.vec(H.nz[:]))
     rows, cols, src = np.concatenate(rows), np.concatenate(cols), np.concatenate(src)
-    pattern = sp_.csc_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    pattern.sum_duplicates()
-    pattern.sort_indices()
-    lookup = sp_.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(n, n))
-    nz_of = np.asarray(lookup[rows, cols]).reshape(-1).astype(np.int64) - 1
-    A = sp_.csc_matrix((np.ones(len(src)), (nz_of, src)), shape=(pattern.nnz, base))
-    A_dm = ca.DM(ca.Sparsity(A.shape[0], A.shape[1], A.indptr.tolist(), A.indices.tolist()), A.data)
-    h_nz = ca.mtimes(A_dm, ca.vertcat(*vecs))
-    return ca.MX(ca.Sparsity(n, n, pattern.indptr.tolist(), pattern.indices.tolist()), h_nz)
+    return _summed(rows, cols, src, ca.vertcat(*vecs), n, n)
 
 
 class LazyHessians(dict):

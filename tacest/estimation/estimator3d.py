@@ -303,7 +303,7 @@ class Estimator3D:
 
     def initial_guess(self, s0=None) -> np.ndarray:
         """Scaled z0: theta (shape s0, log mass 0, uniform-density inertia, friction at
-        the prior), the observed (or resting) poses, small ground impulses (replaced by
+        the prior, effect parameters at their start or prior centre), the observed (or resting) poses, small ground impulses (replaced by
         :meth:`ground_impulses_nnls` before the solve), finger impulses from the
         measured force (or a small push along the measured normal)."""
         pr, sc = self.problem, self.scales
@@ -314,6 +314,8 @@ class Estimator3D:
             ca.DM(self.shape.uniform_cholesky_reference(ca.DM(s0)))).reshape(-1)
         theta[pr.theta_index("friction_ground")] = self.config.prior.friction
         theta[pr.theta_index("friction_finger")] = self.config.prior.friction
+        for j, (_, par) in enumerate(pr.effect_params):  # as the 2-D start (initial.py)
+            theta[pr.n_shape + len(PHYS_NAMES_3D) + j] = par.centre if par.start is None else par.start
         X = np.zeros((NP, self.layout.S))
         LF = np.zeros((3 * self.F, self.layout.M))
         V = numeric_vertices_3d(self.shape, s0, sc.L)
@@ -450,9 +452,9 @@ class Estimator3D:
         pr = self.problem
         theta, X, U, LF = pr.split(z)
         D, g, w = pr.split_parameters(p)
-        tr = pr.triples
         M = self.layout.M
-        args = [X[:, tr[:, 0]], X[:, tr[:, 1]], X[:, tr[:, 2]], np.zeros_like(U), LF, theta, D[:, tr[:, 2]], g, w]
+        poses, D_win = pr.stage_window_arguments(X, D)
+        args = poses + [np.zeros_like(U), LF, theta, D_win, g, w]
         res, jac = pr.direct_residual_functions()
         r0 = np.asarray(res.map(M)(*args))  # (n_r, M) at lambda_n = 0
         A = np.asarray(jac.map(M)(*args))  # (n_r, K M)
@@ -650,9 +652,8 @@ class Estimator3D:
         pr = self.problem
         theta, X, U, LF = pr.split(z)
         D, g, _ = pr.split_parameters(self.p_final if p is None else p)
-        tr = pr.triples
-        out = pr.stage_fun.map(self.layout.M)(X[:, tr[:, 0]], X[:, tr[:, 1]], X[:, tr[:, 2]], U, LF, theta,
-                                              D[:, tr[:, 2]], g)
+        poses, D_win = pr.stage_window_arguments(X, D)
+        out = pr.stage_fun.map(self.layout.M)(*poses, U, LF, theta, D_win, g)
         f0 = pr.first
         o0 = pr.start_fun.map(len(self.runs))(X[:, f0], X[:, f0 + 1], theta, D[:, f0], D[:, f0 + 1], g)
         return ({n: np.asarray(v) for n, v in zip(pr.stage_fun.name_out(), out)},

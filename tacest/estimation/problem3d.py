@@ -56,7 +56,8 @@ class Problem3D(StageModel3D):
         self.u_offset = self.x_offset + NP * lay.S
         self.lf_offset = self.u_offset + self.K * lay.M
         self.n_z = self.lf_offset + 3 * self.F * lay.M
-        self.triples = lay.triples
+        #: (M, n_poses) sample indices of each dynamic interval's stage window, oldest first
+        self.windows = lay.windows(self.n_poses)
         self.first = lay.first
         self._build()
 
@@ -111,7 +112,8 @@ class Problem3D(StageModel3D):
         ridge_sym = ca.MX.sym("ridge")
         p_all = ca.vertcat(ca.vec(D), gsym, w_sym, prior_sym, ridge_sym)
         self.n_p = p_all.shape[0]
-        ia, ib, ic = (list(self.triples[:, k]) for k in range(3))
+        win = self.windows
+        ic = list(win[:, -1])
         f0, f1 = list(self.first), list(self.first + 1)
 
         # per-interval and per-start functions (SX); the NLP maps them over all samples
@@ -122,7 +124,7 @@ class Problem3D(StageModel3D):
         th_sx = ca.SX.sym("theta", self.n_theta)
         pr_sx = ca.SX.sym("prior", self.n_prior())
         self.prior_fun = ca.Function("prior3d", [th_sx, pr_sx], [self.prior_residual(th_sx, pr_sx)])
-        jr = self._jacobian_function(self.res_fun, 6)
+        jr = self._jacobian_function(self.res_fun, self.n_poses + 3)
         j0 = self._jacobian_function(self.res0_fun, 3)
         # compiled to C once per machine when a compiler is available (kernels.py)
         self.kernel_tag = f"tacest3d_{self.shape.name.replace(':', '')}_{'_'.join(self.effects) or 'plain'}_F{F}"
@@ -131,7 +133,7 @@ class Problem3D(StageModel3D):
         res_k, res0_k = kern[self.res_fun.name()], kern[self.res0_fun.name()]
         jr_k, j0_k = kern[jr.name()], kern[j0.name()]
 
-        stage_args = [X[:, ia], X[:, ib], X[:, ic], U, LF, theta, D[:, ic], gsym]
+        stage_args = [X[:, list(win[:, k])] for k in range(self.n_poses)] + [U, LF, theta, D[:, ic], gsym]
         start_args = [X[:, f0], X[:, f1], theta, D[:, f0], D[:, f1], gsym]
         r_stage = res_k.map(M, "serial")(*stage_args, w_sym)  # (n_r, M)
         r_start = res0_k.map(R, "serial")(*start_args, w_sym)  # (n_r0, R)
@@ -147,9 +149,8 @@ class Problem3D(StageModel3D):
 
         # global sparse Jacobian of the whitened residuals from per-sample blocks
         th_idx = np.arange(self.n_theta)[None]
-        y_stage = np.hstack([self.x_index(self.triples[:, 0]), self.x_index(self.triples[:, 1]),
-                             self.x_index(self.triples[:, 2]), self.u_index(np.arange(M)),
-                             self.lf_index(np.arange(M)), np.repeat(th_idx, M, 0)])
+        y_stage = np.hstack([self.x_index(win[:, k]) for k in range(self.n_poses)]
+                            + [self.u_index(np.arange(M)), self.lf_index(np.arange(M)), np.repeat(th_idx, M, 0)])
         y_start = np.hstack([self.x_index(self.first), self.x_index(self.first + 1), np.repeat(th_idx, R, 0)])
         n_r, n_r0, n_rp = self.res_rows, self.res0_rows, self.prior_fun.size1_out(0)
         rows_stage = np.arange(M)[:, None] * n_r + np.arange(n_r)
@@ -185,7 +186,7 @@ class Problem3D(StageModel3D):
 
         def exact():
             """The exact model adds Σ_i r_i ∇² r_i (built and compiled on first use)."""
-            h2 = self._second_order_function(self.res_fun, 6)
+            h2 = self._second_order_function(self.res_fun, self.n_poses + 3)
             h20 = self._second_order_function(self.res0_fun, 3)
             h2p = self._second_order_function(self.prior_fun, 1)
             k2 = compile_functions([h2, h20], self.kernel_tag + "_exact")
@@ -236,4 +237,10 @@ class Problem3D(StageModel3D):
         poses and parameters)."""
         res, _ = self._residual_function(self._stage_function(direct=True), STAGE_TERMS, n_state=3)
         ins = res.sx_in()
-        return res, ca.Function("jac_ln3d", ins, [ca.densify(ca.jacobian(res(*ins), ins[3]))])
+        return res, ca.Function("jac_ln3d", ins, [ca.densify(ca.jacobian(res(*ins), ins[self.n_poses]))])
+
+    def stage_window_arguments(self, X, D):
+        """The pose inputs of the stage over every dynamic interval (n_poses arrays (7, M),
+        oldest first) and the interval's data D (n_d, M), from X (7, S) and D (n_d, S)."""
+        win = self.windows
+        return [X[:, win[:, k]] for k in range(self.n_poses)], D[:, win[:, -1]]

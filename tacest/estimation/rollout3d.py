@@ -2,7 +2,8 @@
 residuals (tacest.model.stage3d.StageModel3D), for rollouts of an estimated (or nominal) model
 and for synthetic test data.
 
-One step (t-1 -> t) takes the poses at t-2 and t-1 and finds the velocity over the
+One step (t-1 -> t) takes the poses at t-2 and t-1 (and the earlier ones an effect looks
+back at: restitution's approach before an impact, StageModel3D.n_poses) and finds the velocity over the
 interval (v world m/s, omega_b body rad/s) and the normal ground impulses lambda_n >= 0
 (K) that minimise the model's residuals with no observation: the momentum balance (D1,
 with the closed-form Coulomb friction of the estimator; made nearly hard by
@@ -122,7 +123,8 @@ class TimeStepper3D:
     def _build(self):
         K = self.model.K
         stage = self.model._stage_function(direct=True)
-        xa, xb = ca.SX.sym("x_a", NP), ca.SX.sym("x_b", NP)
+        past = [ca.SX.sym(f"x_{k}", NP) for k in range(self.model.n_poses - 1)]  # oldest first
+        xb = past[-1]
         y = ca.SX.sym("y", 6 + K)  # [v (3) m/s, omega_b (3) rad/s, lambda_n (K) in m0 g dt]
         th = ca.SX.sym("theta", self.model.n_theta)
         d = ca.SX.sym("d", self.model.n_d)
@@ -130,9 +132,9 @@ class TimeStepper3D:
         dt, L = d[DI["dt"]], g[0]
         q_c = qmul(xb[3:7], qexp_half(y[3:6], dt))
         xc = ca.vertcat(xb[0:3] + dt * y[0:3] / L, q_c)
-        out = dict(zip(stage.name_out(), stage(xa, xb, xc, y[6:], ca.SX(0, 1), th, d, g)))
+        out = dict(zip(stage.name_out(), stage(*past, xc, y[6:], ca.SX(0, 1), th, d, g)))
         contact = ca.vertcat(out["penetration"], out["complementarity"])
-        par = ca.vertcat(xa, xb, th, d, g)
+        par = ca.vertcat(*past, th, d, g)
         self._pose_fun = ca.Function("pose3d_next", [y, par], [xc])
         nlp = {"x": y, "p": par, "f": 0.5 * (DYNAMICS_WEIGHT ** 2 * ca.sumsqr(out["dynamics"]) + ca.sumsqr(contact))}
         return ca.nlpsol("step3d", "ipopt", nlp, {
@@ -140,8 +142,8 @@ class TimeStepper3D:
             "ipopt": {"print_level": 0, "sb": "yes", "tol": STEP_TOL, "max_iter": STEP_MAX_ITER,
                       "mu_strategy": "adaptive", "hessian_approximation": "exact"}})
 
-    def _solve(self, y0, xa, xb, theta, lbx):
-        par = np.concatenate([xa, xb, theta, self.d, self.g])
+    def _solve(self, y0, past, theta, lbx):
+        par = np.concatenate([*past, theta, self.d, self.g])
         with watch_interrupts() as watch:
             sol = self._step_fun(x0=y0, p=par, lbx=lbx, ubx=np.inf)
         status = self._step_fun.stats()["return_status"]
@@ -152,18 +154,24 @@ class TimeStepper3D:
         pose = np.asarray(pose, float)
         return np.concatenate([pose[:3] / self.L, pose[3:] / np.linalg.norm(pose[3:])])
 
-    def step(self, pose_a, pose_b, y0=None):
-        """Pose (7,) at t from the poses at t-2 and t-1; returns (pose, y) with y the
-        solved [v, omega_b, lambda_n] (a warm start for the next step).  A step where IPOPT
-        does not converge (directly nor by continuation in friction) keeps its last
-        iterate and is counted in ``unconverged``; a non-finite one raises SolveFailedError."""
+    def step(self, pose_a, pose_b, y0=None, earlier=()):
+        """Pose (7,) at t from the poses at t-2 and t-1 (and ``earlier``: the poses before
+        t-2, oldest first, that the model looks back at, StageModel3D.n_poses - 3 of them;
+        missing ones repeat the oldest given pose, as the estimator's windows do at a run's
+        start); returns (pose, y) with y the solved [v, omega_b, lambda_n] (a warm start
+        for the next step).  A step where IPOPT does not converge (directly nor by
+        continuation in friction) keeps its last iterate and is counted in
+        ``unconverged``; a non-finite one raises SolveFailedError."""
         xa, xb = self._scaled(pose_a), self._scaled(pose_b)
+        need = self.model.n_poses - 3
+        earlier = [self._scaled(x) for x in list(earlier)[-need:]] if need else []
+        past = [(earlier or [xa])[0]] * (need - len(earlier)) + earlier + [xa, xb]
         K = self.model.K
         if y0 is None:
             v, w = (pose_b[:3] - pose_a[:3]) / self.dt, quat_log_rate(xa[3:], xb[3:], self.dt)
             y0 = np.concatenate([v, w, np.zeros(K)])
         lbx = np.concatenate([np.full(6, -np.inf), np.zeros(K)])
-        y, status = self._solve(np.maximum(y0, lbx), xa, xb, self.theta, lbx)
+        y, status = self._solve(np.maximum(y0, lbx), past, self.theta, lbx)
         if status not in SUCCESS:
             # stiff friction at a hard impact: continuation from the frictionless step
             k = self.model.theta_index("friction_ground")
@@ -171,11 +179,11 @@ class TimeStepper3D:
             for frac in FRICTION_CONTINUATION:
                 th = self.theta.copy()
                 th[k] *= frac
-                y, status = self._solve(y, xa, xb, th, lbx)
+                y, status = self._solve(y, past, th, lbx)
         if not np.all(np.isfinite(y)):
             raise SolveFailedError(f"simulation step failed: IPOPT {status}")
         self.unconverged += status not in SUCCESS
-        par = np.concatenate([xa, xb, self.theta, self.d, self.g])
+        par = np.concatenate([*past, self.theta, self.d, self.g])
         xc = np.asarray(self._pose_fun(y, par)).ravel()
         return np.concatenate([xc[:3] * self.L, xc[3:] / np.linalg.norm(xc[3:])]), y
 
@@ -190,12 +198,13 @@ class TimeStepper3D:
                                quat_multiply(pose0[3:], quat_conjugate(np.asarray(
                                    ca.DM(qexp_half(ca.DM(w_b), self.dt))).ravel()))])
         poses = [pose0]
-        a, b = prev, pose0
+        window = [prev, pose0]  # the poses before t, oldest first
         y = None
+        keep = self.model.n_poses - 1
         for _ in range(T - 1):
-            c, y = self.step(a, b, y)
+            c, y = self.step(window[-2], window[-1], y, earlier=window[:-2])
             poses.append(c)
-            a, b = b, c
+            window = (window + [c])[-keep:]
         return np.array(poses)
 
     def impulses(self, y):

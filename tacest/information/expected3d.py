@@ -56,6 +56,7 @@ from tacest.information.expected import HOLD_TIME, PREDICT_SUBSTEPS, PredictedPo
 from tacest.information.sensitivity import Linearized, impulse_prior, information
 from tacest.io.run import Run
 from tacest.model.priors import prior_head
+from tacest.model.registry import resolve
 from tacest.model.stage3d import NP, START_TERMS, STAGE_TERMS, TERMS3D, Layout3D, impulse_variable
 
 #: rows of the pose at the reference sample: a body-frame twist (m, rad)
@@ -147,6 +148,9 @@ class ModelState3:
         m0 = float(est.extra_attrs.get("mass_scale", sc.m0))
         scales = Scales(L=L, m0=m0, g=sc.g)
         effects = tuple(str(e) for e in est.model) if est.model else effects_3d(shape, config)
+        # the information's linearization has a stage of three poses: an effect that
+        # looks further back (restitution's impacts) is left out of the planning model
+        effects = tuple(e for e in effects if not any(x.history_3d for x in resolve(e, 3)))
         theta = theta_of_estimate(shape, effects, V, p, inertia, scales)
         return cls(shape=shape, effects=effects, scales=scales, theta=theta, vertices=V, mass=float(p["mass"]),
                    inertia=inertia, friction_ground=float(p["friction_ground"]),
@@ -284,6 +288,9 @@ class ExpectedInformation3D:
         self.config = config
         self.scales = scales
         self.pr = pr = Problem3D(self.shape, Layout3D(lengths=(3,), F=self.F), config, tuple(effects))
+        if pr.n_poses != 3:
+            raise TacestError(f"the 3-D expected information linearizes stages of three poses; effects "
+                              f"{', '.join(effects)} look further back (ModelState3 leaves them out)")
         self.K, self.n_theta = pr.K, pr.n_theta
         jr = Problem3D._jacobian_function(pr.res_fun, 6)
         j0 = Problem3D._jacobian_function(pr.res0_fun, 3)

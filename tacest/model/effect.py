@@ -166,6 +166,14 @@ class Effect:
     settled_output: Optional[str] = None
 
     # -- 3-D model hooks (tacest.model.stage3d; see Stage3DContext) --------------------
+    #: poses before t-2 the 3-D stage of the interval (t-1, t] must see for this effect
+    #: (0: the stage's three; restitution looks back at the approach before an impact)
+    history_3d: int = 0
+
+    def impacts_3d(self, ctx) -> None:
+        """Change the contact laws at impacts (ctx.phi, ctx.impulse_R; law rows in
+        ctx.dynamics_rows), from the earlier poses and velocities (ctx.history)."""
+
     def com_shift_3d(self, u: dict, L):
         """(3,) m: where the centre of mass lies in the shape's own frame (its centroid at
         the origin), or None.  The body frame's origin is the COM: shape points move by

@@ -1,5 +1,5 @@
-"""Effects at the ground contact: restitution (2-D), soft_contact and face_friction (2-D
-and 3-D), edge_radius and ground_offset (3-D).
+"""Effects at the ground contact: restitution, soft_contact and face_friction (2-D and
+3-D), edge_radius and ground_offset (3-D).
 
 docs/diagnosis.md ("NLP augmentations") gives the equations and the measurements behind
 each choice made here; docs/estimation3d.md those of the 3-D ones.
@@ -12,6 +12,7 @@ import numpy as np
 
 from tacest.dynamics.laws import smooth_pos
 from tacest.dynamics.rigid2d import ground_contacts, point_velocity
+from tacest.dynamics.rigid3d import cross
 from tacest.geometry.shapes import rot2
 from tacest.model.effect import Effect, EffectParameter
 
@@ -50,20 +51,26 @@ RESTITUTION_START = 0.5
 
 
 class Restitution(Effect):
-    """Newton's impact law with the impact inside a sample interval (2-D): after an
-    impact a vertex leaves with -e × its approach velocity.  State: per vertex, the
-    approach speed of an impact within the sample's interval (the impact memory, m/s)."""
+    """Newton's impact law with the impact inside a sample interval: after an impact a
+    vertex leaves with -e × its approach velocity.  2-D state: per vertex, the approach
+    speed of an impact within the sample's interval (the impact memory, m/s).  3-D: no
+    state; the stage looks back two more poses and computes the memory from them
+    (:meth:`impacts_3d`)."""
 
     name = "restitution"
-    dims = (2,)
+    dims = (2, 3)
     doc = "bouncy impacts: a vertex leaves the ground with e times its approach speed"
+    #: the 3-D stage of (t-1, t] sees the poses t-4 .. t: the approach before an impact
+    #: in (t-2, t-1] is the velocity of (t-3, t-2], and whether that interval was itself
+    #: the one after an impact needs (t-4, t-3]
+    history_3d = 2
 
     def parameters(self, K, dim):
         return (EffectParameter("e", 0.0, 0.5, 0.0, 0.95, start=RESTITUTION_START,
                                 doc="coefficient of restitution"),)
 
     def state_rows(self, K, dim):
-        return K
+        return K if dim == 2 else 0
 
     def state_lower(self):
         return 0.0  # approach speeds (m/s)
@@ -166,6 +173,64 @@ class Restitution(Effect):
     def start_2d(self, ctx):
         # no impact before sample 0: the impact memory starts empty
         ctx.rest_rows[self.name] = [ctx.s[self.name] / (ctx.g_sig_proc * ctx.grav * ctx.dt)]
+
+    @staticmethod
+    def _impact_3d(ctx, past, k):
+        """An impact of vertex k in the interval after the past pose ``past``
+        (stage3d.PastPose) from the approach it had there: (approach a m/s, its weight
+        (impact gate × reached the ground within the interval, as in :meth:`impacts_2d`),
+        p m: how far the approach would carry it below the ground)."""
+        point_v = past.v + ca.mtimes(past.R, cross(past.w, past.levers[k]))
+        a = smooth_pos(-ca.dot(ctx.n_g, point_v), 1e-3)
+        p = a * ctx.dt - past.phi[k]
+        reach = smooth_pos(p + IMPACT_REACH, IMPACT_DEPTH_EPS)
+        return a, a ** 2 / (a ** 2 + BOUNCE_SPEED ** 2) * reach / (reach + IMPACT_DEPTH_EPS), p
+
+    def impacts_3d(self, ctx):
+        """The law of :meth:`impacts_2d` in 3-D, with the impact memory computed from the
+        stage's earlier poses instead of held as a state.  ctx.past holds the poses t-1,
+        t-2, t-3 with the velocities of the intervals ending there.  For vertex k:
+
+        - A' = w(t-2)·a(t-2): an impact in (t-3, t-2] from the approach of (t-4, t-3];
+        - A = (1 - gate(A'))·w(t-1)·a(t-1): an impact in (t-2, t-1] (not counted in the
+          interval right after one, whose velocity mixes approach and rebound);
+        - after = gate(A): this interval follows an impact; the vertex's normal velocity
+          over it must be e·A less what gravity took (a dynamics row, whitened by the
+          process sigma + RESTITUTION_SCATTER·A, as in 2-D);
+        - struck = (1 - after)·w(t): an impact within this interval;
+        - the gap the contact laws see loses what the rise has of it, by
+          struck + after - struck·after (the ground may push a vertex that it sends up);
+        - the ground impulse of the vertex acts on the body under the rotation at the
+          impact: for an impact within the interval, interpolated between the poses t-1
+          and t at the impact's fraction of the interval; after an impact, at t-1.
+
+        The memory of 2-D is exact recursively; here the guard on A' is left out (an
+        impact in (t-3, t-2] right after one in (t-4, t-3] counts twice: three impacts of
+        one vertex in a row)."""
+        if len(ctx.past) < 3:
+            raise AssertionError("internal: restitution's 3-D stage needs the poses t-4 .. t")
+        e_r = ctx.u[self.name]["e"]
+        now, before, earliest = ctx.past[0], ctx.past[1], ctx.past[2]
+        frames, rows = [], []
+        for k in range(len(ctx.phi)):
+            a_old, w_old, _ = self._impact_3d(ctx, earliest, k)
+            memory_old = w_old * a_old
+            a_prev, w_prev, _ = self._impact_3d(ctx, before, k)
+            A = (1 - memory_old ** 2 / (memory_old ** 2 + BOUNCE_SPEED ** 2)) * w_prev * a_prev  # m/s
+            after = A ** 2 / (A ** 2 + BOUNCE_SPEED ** 2)
+            vn = ca.dot(ctx.n_g, ctx.v + ca.mtimes(ctx.R, cross(ctx.w, ctx.levers[k])))
+            leave = smooth_pos(e_r * A - ctx.grav * ctx.dt, REBOUND_SMOOTHING)
+            rows.append(after * (vn - leave) / (ctx.sig_v + RESTITUTION_SCATTER * A))
+            a_now, w_now, p = self._impact_3d(ctx, now, k)
+            struck = (1 - after) * w_now
+            freed = struck + after - struck * after
+            ctx.phi[k] = ctx.phi[k] - freed * smooth_pos(ctx.phi[k], IMPACT_DEPTH_EPS)
+            above = smooth_pos(now.phi[k], IMPACT_DEPTH_EPS)
+            into = above / (above + smooth_pos(p, IMPACT_DEPTH_EPS) + IMPACT_DEPTH_EPS)  # impact time / dt
+            at_impact = now.R + into * (ctx.R - now.R)
+            frames.append(ctx.R + struck * (at_impact - ctx.R) + after * (now.R - ctx.R))
+        ctx.impulse_R = frames
+        ctx.dynamics_rows += rows
 
 
 # ---------------------------------------------------------------------------------------

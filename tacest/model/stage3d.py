@@ -62,7 +62,7 @@ in 3-D (docs/estimation3d.md, "Effects").
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import casadi as ca
@@ -177,10 +177,16 @@ class Layout3D:
     @property
     def triples(self):
         """(M, 3) sample indices (t-2, t-1, t) of each dynamic interval."""
+        return self.windows(3)
+
+    def windows(self, n: int) -> np.ndarray:
+        """(M, n) sample indices (t-n+1, ..., t) of each dynamic interval, oldest first;
+        the ones before a run's first sample are that first sample (a pose repeated: a
+        velocity of 0 in the interval that would end there)."""
         out = []
         for a, T in zip(self.first, self.lengths):
             t = a + np.arange(2, T)
-            out.append(np.stack([t - 2, t - 1, t], 1))
+            out.append(np.maximum(t[:, None] + np.arange(1 - n, 1)[None, :], a))
         return np.concatenate(out).astype(int)
 
     def run_samples(self, i):
@@ -202,8 +208,16 @@ class Stage3DContext:
     """What an effect's 3-D hooks see of one interval (tacest.model.effect.Effect):
     u {effect: {parameter: scaled value}}; L m, m0 kg, grav m/s², dt s; v (3) m/s world
     and w (3) rad/s body, the interval's velocity; R (3, 3) body to world; n_g (3) the
-    ground's normal; lam_n (K) normal ground impulses (units of m0·g·dt).  Hooks change
-    mu_g (the ground's friction) and phi (K vertex gaps, m, as the contact laws see them)."""
+    ground's normal; lam_n (K) normal ground impulses (units of m0·g·dt); levers (K x
+    (3,)) the body-frame contact points, m; sig_v m/s the
+    process sigma of a velocity change over the interval; past: the earlier poses of
+    the stage's window, newest first (t-1, t-2, ...: as many as have an interval ending
+    at them in the window, :attr:`StageModel3D.n_poses`; none for a window of three),
+    each a :class:`PastPose`.
+    Hooks change mu_g (the ground's friction), phi (K vertex gaps, m, as the contact
+    laws see them), impulse_R (K rotations body to world, None: R, under which each
+    vertex's ground impulse acts on the body) and add whitened law rows to the dynamics
+    term (dynamics_rows)."""
 
     u: dict
     L: Any
@@ -217,6 +231,24 @@ class Stage3DContext:
     lam_n: Any
     mu_g: Any
     phi: list
+    sig_v: Any = None
+    levers: list = field(default_factory=list)
+    past: list = field(default_factory=list)
+    impulse_R: Any = None
+    dynamics_rows: list = field(default_factory=list)
+
+
+@dataclass
+class PastPose:
+    """An earlier pose of a 3-D stage's window (Stage3DContext.past): the vertices' gaps
+    phi (K, m), levers (K x (3,), body-frame contact points, m) and R (3, 3) there, and the
+    velocity of the interval ending there: v (3) m/s world, w (3) rad/s body."""
+
+    phi: list
+    levers: list
+    R: Any
+    v: Any
+    w: Any
 
 
 class StageModel3D:
@@ -239,6 +271,9 @@ class StageModel3D:
         self.n_eff = len(self.effect_params)
         self.n_theta = self.n_shape + len(PHYS_NAMES_3D) + self.n_eff
         self.n_d = n_data(self.F)
+        #: poses the stage of the interval (t-1, t] sees: t-2, t-1, t and the earlier
+        #: ones its effects look back at (Effect.history_3d), oldest first
+        self.n_poses = 3 + max([e.history_3d for e in self.effect_objects], default=0)
 
     def theta_index(self, name):
         """Index in theta of a physical parameter (PHYS_NAMES_3D), of an effect's first
@@ -358,12 +393,44 @@ class StageModel3D:
         return d[DI["w_pose"]] * ca.vertcat((p - d[DI["px"]: DI["pz"] + 1]) / d[DI["sig_pos"]],
                                             quat_error_vector(d[DI["qw"]: DI["qz"] + 1], q_hat) / d[DI["sig_ang"]])
 
+    def pose_input_names(self):
+        """Names of the stage's pose inputs, oldest first (n_poses of them: ..., x_tm2,
+        x_tm1, x_t)."""
+        return [f"x_tm{k}" for k in range(self.n_poses - 1, 0, -1)] + ["x_t"]
+
+    def _past_poses(self, xs, th, d, L):
+        """[PastPose] of the window's poses t-1, t-2, ... that have an interval ending
+        at them in the window (xs: the scaled pose inputs, oldest first)."""
+        dt = d[DI["dt"]]
+        out = []
+        for j in range(len(xs) - 2, 0, -1):
+            v, w = pose_velocity(xs[j - 1], xs[j], dt, L)
+            phi, _, levers, R = self.ground_geometry(xs[j][0:3] * L, xs[j][3:7], v, w, th, d, L)
+            out.append(PastPose(phi=phi, levers=levers, R=R, v=v, w=w))
+        return out
+
+    def _ground_context(self, xs, v, w, th, d, L, m0, ln, mu_g, sig_v):
+        """(Stage3DContext after the effects' ground hooks, slip (K x (3,)) m/s) of the
+        interval ending at the last of the scaled poses xs (oldest first)."""
+        phi, slip, levers, R = self.ground_geometry(xs[-1][0:3] * L, xs[-1][3:7], v, w, th, d, L)
+        ctx = Stage3DContext(u=self.effect_values(th), L=L, m0=m0, grav=d[DI["grav"]], dt=d[DI["dt"]], v=v, w=w,
+                             R=R, n_g=d[DI["nx"]: DI["nz"] + 1], lam_n=ln, mu_g=mu_g, phi=list(phi), sig_v=sig_v,
+                             levers=list(levers), past=self._past_poses(xs, th, d, L) if self.n_poses > 3 else [])
+        for e in self.effect_objects:
+            e.ground_surface_3d(ctx)
+            e.ground_friction_3d(ctx)
+        for e in self.effect_objects:
+            e.impacts_3d(ctx)
+        return ctx, slip
+
     def _stage_function(self, direct=False):
-        """Residuals of one dynamic interval (t-1, t] from the poses t-2, t-1, t.  The
-        ground-impulse input is the variable u (lambda_n = softplus(u)) or, with
-        ``direct``, lambda_n itself (for the non-negative least squares start)."""
+        """Residuals of one dynamic interval (t-1, t] from the poses t-2, t-1, t (and
+        the earlier ones of :attr:`n_poses`).  The ground-impulse input is the variable u
+        (lambda_n = softplus(u)) or, with ``direct``, lambda_n itself (for the
+        non-negative least squares start)."""
         K, F = self.K, self.F
-        xa, xb, xc = (ca.SX.sym(n, NP) for n in ("x_tm2", "x_tm1", "x_t"))
+        xs = [ca.SX.sym(n, NP) for n in self.pose_input_names()]
+        xa, xb, xc = xs[-3:]
         u_in = ca.SX.sym("lam_ground" if direct else "u_ground", K)
         ln = u_in if direct else impulse_of(u_in)
         lf = ca.SX.sym("lam_finger", 3 * F)
@@ -377,13 +444,11 @@ class StageModel3D:
         p, q = xc[0:3] * L, xc[3:7]
         v, w = pose_velocity(xb, xc, dt, L)
         v_prev, w_prev = pose_velocity(xa, xb, dt, L)
-        phi, slip, levers, R = self.ground_geometry(p, q, v, w, th, d, L)
-        ctx = Stage3DContext(u=self.effect_values(th), L=L, m0=m0, grav=d[DI["grav"]], dt=dt, v=v, w=w, R=R,
-                             n_g=n_g, lam_n=ln, mu_g=mu_g, phi=list(phi))
-        for e in self.effect_objects:
-            e.ground_surface_3d(ctx)
-            e.ground_friction_3d(ctx)
-        phi, mu_g, gain = ctx.phi, ctx.mu_g, physics_gain(self.effect_objects, ctx.u)
+        grav = d[DI["grav"]]  # m/s², the run's gravity
+        sig_v = g[G3["sig_proc"]] * grav * dt
+        ctx, slip = self._ground_context(xs, v, w, th, d, L, m0, ln, mu_g, sig_v)
+        phi, levers, R, mu_g, gain = ctx.phi, ctx.levers, ctx.R, ctx.mu_g, physics_gain(self.effect_objects, ctx.u)
+        frames = ctx.impulse_R or [R] * K
         shift = self.com_shift(th, L)
         imp_world = ca.SX.zeros(3)  # Σ impulses / (m0 g dt), world
         torque_b = ca.SX.zeros(3)  # Σ r × Rᵀ impulse, body frame, m · (m0 g dt)
@@ -394,7 +459,7 @@ class StageModel3D:
             lt_out.append(lt)
             imp = ln[k] * n_g + lt
             imp_world += imp
-            torque_b += cross(levers[k], ca.mtimes(R.T, imp))
+            torque_b += cross(levers[k], ca.mtimes(frames[k].T, imp))
             # smoothed gap in units of sig_gap, shifted by one as in 2-D: within about one
             # sig_gap of the ground a vertex counts as touching; saturating, and relative
             # to the object's own weight (lambda_n is in units of m0 g dt)
@@ -442,12 +507,10 @@ class StageModel3D:
                 imp_world += extra[0] / Lam
                 torque_b += extra[1] / Lam
         # D1 divided by the mass (matrix), whitened as process noise on the velocity change
-        grav = d[DI["grav"]]  # m/s², the run's gravity
         acc_scale = grav * dt * (m0 / mass)  # scaled impulse -> velocity change, m/s
         r_lin = (v - v_prev) - dt * d[DI["gx"]: DI["gz"] + 1] - acc_scale * imp_world
         r_ang = (w - w_prev) - ca.solve(a_inertia, acc_scale * torque_b - dt * cross(w, ca.mtimes(a_inertia, w)))
-        sig_v = g[G3["sig_proc"]] * grav * dt
-        r_dyn = ca.sqrt(g[G3["dyn_mult"]]) * ca.vertcat(r_lin / sig_v, r_ang * (L / 2) / sig_v)
+        r_dyn = ca.sqrt(g[G3["dyn_mult"]]) * ca.vertcat(r_lin / sig_v, r_ang * (L / 2) / sig_v, *ctx.dynamics_rows)
         empty = ca.SX.zeros(0)
         outs = {
             "force": ca.vertcat(*r_force) if F else empty,
@@ -470,10 +533,11 @@ class StageModel3D:
             "velocity": ca.vertcat(v, w),
         }
         names = list(outs)
-        return ca.Function(f"stage3d_K{K}_F{F}" + ("_direct" if direct else ""),
-                           [xa, xb, xc, u_in, lf, th, d, g], [outs[n] for n in names],
-                           ["x_tm2", "x_tm1", "x_t", "lam_ground" if direct else "u_ground", "lam_finger",
-                            "theta", "d", "g"], names)
+        tag = f"_P{self.n_poses}" if self.n_poses != 3 else ""
+        return ca.Function(f"stage3d_K{K}_F{F}{tag}" + ("_direct" if direct else ""),
+                           [*xs, u_in, lf, th, d, g], [outs[n] for n in names],
+                           self.pose_input_names() + ["lam_ground" if direct else "u_ground", "lam_finger",
+                                                      "theta", "d", "g"], names)
 
     def _start_function(self):
         """Terms of a run's first two samples: pose observations, penetration, finger gaps,
