@@ -6,8 +6,7 @@ recordings whose effect is hidden from it.
         [--poke-style STYLE] [--known-mass REL] [--touch-alone] [--cache DIR] [--timeout 1800]
         [--json OUT.json] [--quiet]
 
-For every effect (default: ``none`` and every SPEC effect, restitution included, which
-the 3-D model has not: tacest.diagnosis.diagnose3d.NOT_MODELLED_3D) and
+For every effect (default: ``none`` and every SPEC effect) and
 seeds FIRST..FIRST+N-1 it records a box in the MuJoCo world (one force-sensing finger,
 the effect at the strength its seed draws, docs/effects.md; the pose observed at 0.5 mm
 as by motion capture) and diagnoses the runs without the truth: the first half trains,

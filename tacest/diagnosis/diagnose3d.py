@@ -85,8 +85,8 @@ AUGMENTATIONS = {
 TRANSFORMS_3D = ("latency", "time_scale")
 #: full fits per transform candidate (the 2-D diagnosis' fits_per_candidate)
 TRANSFORM_FITS = 3
-#: SPEC effects without a 3-D model (reported as not compared): restitution needs an
-#: impact memory per vertex (states the 3-D NLP does not have yet)
+#: SPEC effects without a 3-D model (reported as not compared; none since restitution
+#: has its five-pose stage, docs/estimation3d.md)
 NOT_MODELLED_3D = tuple(n for n in EFFECT_NAMES if n not in SPEC_EFFECTS_3D + TRANSFORMS_3D and n != NONE)
 #: the loss terms (tacest.estimation.floor.TERMS: the estimator's own)
 TERMS = FLOOR_TERMS
