@@ -139,3 +139,24 @@ def test_the_planning_model_leaves_restitution_out():
 
     with pytest.raises(TacestError, match="restitution"):
         ExpectedInformation3D("box", 1, EstimatorConfig(), ("restitution",), Scales(L=0.1, m0=0.4, g=9.81))
+
+
+@pytest.mark.parametrize("ablated,blamed", [(2.0, False), (2.9, True)])
+def test_restitution_is_blamed_only_if_e_itself_closes_the_gap(ablated, blamed):
+    """The 3-D verdict rule's ablation (diagnose3d.ABLATED): restitution relieves the
+    contact laws at impacts whatever e is, so its held-out gain over the plain model is
+    checked again against the same fit with e = 0.  Plain 3.0 per sample over 400
+    held-out samples, floor 1.0, restitution 2.0: blamed when e = 0 loses what e gained
+    (2.9), not when e = 0 does as well (2.0), and the reason says why."""
+    from tacest.diagnosis.diagnose3d import NONE, Fit3D, _guards, _rule_terms
+
+    fits = {NONE: Fit3D(name=NONE, params={}, status="ok", seconds=0.0, heldout_loss_per_sample=3.0),
+            "restitution": Fit3D(name="restitution", params={"restitution.e": 0.5}, status="ok", seconds=0.0,
+                                 heldout_loss_per_sample=2.0, ablated_loss_per_sample=ablated)}
+    e = {"name": "restitution"}
+    e.update(_rule_terms(e, fits, 400, 1.0, 2.0, mass_known=True))
+    assert e["improvement"] == pytest.approx(400.0)
+    assert e["effect_improvement"] == pytest.approx(400 * (ablated - 2.0))
+    assert e["counts"] is blamed
+    assert e["ablation_guard"] is (not blamed)
+    assert any("restitution.e = 0" in g for g in _guards(e)) is (not blamed)
