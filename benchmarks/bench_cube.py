@@ -1,7 +1,7 @@
 """Benchmark the 3-D estimator on the real tossed cube (ContactNets data).
 
     .venv/bin/python benchmarks/bench_cube.py [--train 0:30] [--heldout 100:150] [--shape box]
-                                              [--data DIR] [--json OUT.json] [--quiet]
+                                              [--restitution E ...] [--data DIR] [--json OUT.json] [--quiet]
 
 1. ``tacest estimate toss_<train>.h5 ... --shape box -o EST.h5`` in a subprocess (the
    command a user runs): its wall time (Python start-up included) and the estimator's
@@ -18,7 +18,9 @@
    estimated model and for the nominal one (box 0.1048 m, mass 0.37 kg, inertia
    8.1e-4 kg·m² · 1, friction 0.15): position error as % of the cube's width (0.1048 m),
    averaged over samples then tosses (as ContactNets reports it), and the mean
-   orientation error in degrees.
+   orientation error in degrees.  ``--restitution E ...`` adds the estimated model with
+   the restitution law of coefficient E (tacest.model.effects_contact.Restitution; E = 0
+   is its impact relief alone), as the 3-D diagnosis fits it (docs/estimation3d.md).
 
 Targets (printed with PASS / FAIL): edge within 2 % of 0.1048 m; friction in 0.1-0.4;
 estimated rollout error below the nominal's; wall time <= 2 s per training toss.
@@ -62,6 +64,8 @@ def main(argv=None):
     ap.add_argument("--config", type=Path, default=None, help="estimator config (TOML) passed to tacest estimate")
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
+    ap.add_argument("--restitution", type=float, nargs="*", default=[],
+                    help="also roll out the estimated model with restitution of these coefficients")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
     log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
@@ -145,6 +149,11 @@ def main(argv=None):
         "nominal": TimeStepper3D("box", [NOMINAL["edge"]] * 3, NOMINAL["mass"], NOMINAL["inertia"] * np.eye(3),
                                  NOMINAL["friction"], dt=read_run(held[0]).dt),
     }
+    for e_r in args.restitution:
+        models[f"est+e={e_r:g}"] = TimeStepper3D(
+            shape, sp if sp is not None else np.linalg.norm(est.vertices, axis=1), mass, I, mu,
+            dt=read_run(held[0]).dt, edge_radius=edge_radius, ground_height=ground_offset,
+            effect_params={"restitution.e": e_r})
     width = NOMINAL["edge"]
     errs = {k: [] for k in models}
     t0 = time.perf_counter()
@@ -165,7 +174,7 @@ def main(argv=None):
                       "unconverged_steps": {k: int(m.unconverged) for k, m in models.items()}, "steps": steps}
     print(f"\nrollouts on {len(held)} held-out tosses (toss_{args.heldout.start:03d}..{args.heldout.stop - 1:03d}), "
           f"{roll_time:.0f} s:")
-    print(f"  {'model':<10} {'pos err mean':>13} {'median':>8} {'final':>8} {'angle err':>10}   (% of width, deg)")
+    print(f"  {'model':<12} {'pos err mean':>13} {'median':>8} {'final':>8} {'angle err':>10}   (% of width, deg)")
     for name in models:
         a = np.array(errs[name])
         out["rollout"][name] = {"position_error_pct_mean": float(a[:, 0].mean()),
@@ -174,7 +183,7 @@ def main(argv=None):
                                 "angle_error_deg_mean": float(a[:, 2].mean()),
                                 "per_toss_position_error_pct": a[:, 0].tolist()}
         r = out["rollout"][name]
-        print(f"  {name:<10} {r['position_error_pct_mean']:12.1f} % {r['position_error_pct_median']:7.1f} % "
+        print(f"  {name:<12} {r['position_error_pct_mean']:12.1f} % {r['position_error_pct_median']:7.1f} % "
               f"{r['final_position_error_pct_mean']:7.1f} % {r['angle_error_deg_mean']:9.1f}°")
     better = np.mean(np.array(errs["estimated"])[:, 0] < np.array(errs["nominal"])[:, 0])
     out["rollout"]["fraction_estimated_better"] = float(better)
