@@ -115,7 +115,7 @@ def test_3d_restitution_is_recovered_from_seen_bounces(e):
     0.041 and 0.496 ± 0.035: the first-order law's rebound is what the stepper's is,
     about 5 % low, and the noise on the approach adds the rest), its std is finite, and
     the fit explains the bounces the plastic model cannot (objective 387 and 495 against
-    2590 and 3913).  Both starts of solve_observed_tracks are recorded."""
+    2590 and 3913).  Both starts of estimator3d.solve_observed_tracks are recorded."""
     from tacest.estimation.estimator3d import estimate_3d
 
     runs = [_drop(e, T=60, dt=0.0068, noise_seed=s) for s in (0, 1)]
@@ -125,6 +125,10 @@ def test_3d_restitution_is_recovered_from_seen_bounces(e):
     assert est.params["restitution.e"] == pytest.approx(e, rel=0.3)
     assert 0 < est.std["restitution.e"] < e
     assert est.objective < 0.5 * plain.objective
+    import json
+
+    starts = json.loads(est.extra_attrs["starts"])
+    assert [a["start"] for a in starts] == ["smoothed observations", "observations"]
     # the height is told by the resting pose: within 2 mm
     assert np.ptp(est.vertices[:, 2]) == pytest.approx(EXTENTS[2], abs=0.002)
 

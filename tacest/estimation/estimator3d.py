@@ -479,7 +479,7 @@ class Estimator3D:
         """Staged solves (:meth:`solve_from_shape`).  Runs with pose observations (or held
         parameters, or no fingertip) solve once, from the observed poses and
         :meth:`choose_start_shape` (with an effect that models impacts, twice:
-        :meth:`solve_observed_tracks`).  Without pose observations: the starts of
+        :func:`solve_observed_tracks`).  Without pose observations: the starts of
         :func:`order_starts` (initial3d.start_candidates_3d's and :meth:`sampled_start`'s),
         the compared ones all solved, then restarts while the fit of lowest objective
         fails or violates its own physics by more than ``solver3d.restart_physics``
@@ -496,7 +496,7 @@ class Estimator3D:
             log.info(f"starting shape {np.round(s0 * self.scales.L, 4)} m ({time.perf_counter() - t0:.2f} s)")
             held = self.fixed_theta is not None and self.F and any(r.pose_obs is None for r in self.runs)
             if not held and self.has_pose and pr.n_poses > 3:
-                return self.solve_observed_tracks(s0)
+                return solve_observed_tracks(self, s0)
             self.start_tracks = held_shape_tracks(self.runs, self.shape, s0, self.scales.L) if held else None
             try:
                 return self.solve_from_shape(s0)
@@ -513,7 +513,7 @@ class Estimator3D:
 
         def solve_one(c, abandon_above):
             s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
-            return self._solve_start(s0, c.poses, abandon_above)
+            return solve_start(self, s0, c.poses, abandon_above)
 
         records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
                     "touch_inconsistency": float(c.inconsistency), **c.extra} for c in starts]
@@ -526,44 +526,6 @@ class Estimator3D:
             if len(starts) == 1:
                 raise
             raise SolveFailedError(f"no converged fit from any of {len(starts)} starts; the first: {first}") from None
-        self.z = out.z
-        return out
-
-    def _solve_start(self, s0, tracks, abandon_above):
-        """One start of solver.solve_from_starts: the staged solve from shape s0 (scaled)
-        and the per-run start poses ``tracks`` (None: the estimator's own, start_poses)."""
-        self.start_tracks = tracks
-        try:  # solve_from_starts judges budget fits
-            out = self.solve_from_shape(s0, accept_budget=True, abandon_above=abandon_above)
-        finally:
-            self.start_tracks = None
-        V, mass, _, mu_g, mu_f = self.physical(out.z)
-        found = {"vertices": np.asarray(V, float),
-                 "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
-        return (out, self.physics_per_sample(out.z), (s0, self.p_final, self.bounds_final),
-                self.fit_quality(out.z).local, found)
-
-    def solve_observed_tracks(self, s0) -> SolveOutcome:
-        """The pose-observed solve of a model with impacts (an effect whose stage looks
-        back, restitution): from the smoothed observations (start_poses) and from the
-        observations themselves, both solved, the lower objective kept (attempts in
-        ``starts``).  Why both: the smoothing that keeps observation noise out of the
-        start's dynamics (initial3d.smoothed_start_track) rounds a bounce off over its
-        window; from it a fit of bouncing tosses kept e at 0 (objective 1318 and 3892 on
-        two noisy own-model recordings with e 0.6), from the observations it found e
-        (e 0.45 ± 0.03 at objective 440 on the flat drop; docs/estimation3d.md,
-        "Restitution")."""
-        V = numeric_vertices_3d(self.shape, s0, self.scales.L)
-        raw = []
-        for run in self.runs:
-            poses, _ = observed_poses(run, smooth=False)
-            raw.append(poses if poses is not None else self.start_poses(run, V))
-        starts = [({"start": "smoothed observations"}, None), ({"start": "observations"}, raw)]
-        out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-            starts, lambda tracks, abandon_above: self._solve_start(s0, tracks, abandon_above),
-            self.config.solver3d.restart_physics, self.attempts, min_solves=len(starts),
-            accept_budget=self.accept_budget, workers=start_workers(self.config.solver),
-            abandon=self.config.solver.abandon_hopeless)
         self.z = out.z
         return out
 
@@ -794,6 +756,46 @@ def sampled_start_3d(runs: list, sc: Scales, tracked: Start3D, config: Estimator
     return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
                    extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
                           "max_tilt_deg": best.max_tilt_deg})
+
+
+def solve_start(est: "Estimator3D", s0, tracks, abandon_above):
+    """One start of solver.solve_from_starts: the staged solve from shape s0 (scaled)
+    and the per-run start poses ``tracks`` (None: the estimator's own, start_poses)."""
+    est.start_tracks = tracks
+    try:  # solve_from_starts judges budget fits
+        out = est.solve_from_shape(s0, accept_budget=True, abandon_above=abandon_above)
+    finally:
+        est.start_tracks = None
+    V, mass, _, mu_g, mu_f = est.physical(out.z)
+    found = {"vertices": np.asarray(V, float),
+             "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
+    return (out, est.physics_per_sample(out.z), (s0, est.p_final, est.bounds_final),
+            est.fit_quality(out.z).local, found)
+
+
+def solve_observed_tracks(est: "Estimator3D", s0) -> SolveOutcome:
+    """The pose-observed solve of a model with impacts (an effect whose stage looks
+    back, restitution): from the smoothed observations (Estimator3D.start_poses) and from the
+    observations themselves, both solved, the lower objective kept (attempts in
+    ``starts``).  Why both: the smoothing that keeps observation noise out of the
+    start's dynamics (initial3d.smoothed_start_track) rounds a bounce off over its
+    window; from it a fit of bouncing tosses kept e at 0 (objective 1318 and 3892 on
+    two noisy own-model recordings with e 0.6), from the observations it found e
+    (e 0.45 ± 0.03 at objective 440 on the flat drop; docs/estimation3d.md,
+    "Restitution")."""
+    V = numeric_vertices_3d(est.shape, s0, est.scales.L)
+    raw = []
+    for run in est.runs:
+        poses, _ = observed_poses(run, smooth=False)
+        raw.append(poses if poses is not None else est.start_poses(run, V))
+    starts = [({"start": "smoothed observations"}, None), ({"start": "observations"}, raw)]
+    out, (est.s0, est.p_final, est.bounds_final) = solve_from_starts(
+        starts, lambda tracks, abandon_above: solve_start(est, s0, tracks, abandon_above),
+        est.config.solver3d.restart_physics, est.attempts, min_solves=len(starts),
+        accept_budget=est.accept_budget, workers=start_workers(est.config.solver),
+        abandon=est.config.solver.abandon_hopeless)
+    est.z = out.z
+    return out
 
 
 def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
