@@ -20,7 +20,7 @@
    averaged over samples then tosses (as ContactNets reports it), and the mean
    orientation error in degrees.  ``--restitution E ...`` adds the estimated model with
    the restitution law of coefficient E (tacest.model.effects_contact.Restitution; E = 0
-   is its impact relief alone), as the 3-D diagnosis fits it (docs/estimation3d.md).
+   is its impact relief alone; the other parameters are the estimate's, made without it).
 
 Targets (printed with PASS / FAIL): edge within 2 % of 0.1048 m; friction in 0.1-0.4;
 estimated rollout error below the nominal's; wall time <= 2 s per training toss.

@@ -295,7 +295,10 @@ def _heldout(fit, est, out, shape, cfg, effects, held):
         key, value = ABLATED[fit.name]
         theta[est.problem.theta_index(key)] = value
         est_a = _estimator(held, shape, cfg, effects, fixed_theta=theta)
-        fit.ablated_loss_per_sample = _losses(est_a, _check(est_a.solve()).z)[1]
+        try:  # a failed ablation withholds the blame (_rule_terms), not the candidate's fit
+            fit.ablated_loss_per_sample = _losses(est_a, _check(est_a.solve()).z)[1]
+        except TacestError as exc:
+            log.info(f"{fit.name}: the held-out fit with {key} = {value:g} failed ({exc})")
     return est_h, out_h
 
 
@@ -357,8 +360,11 @@ def _guards(e: dict) -> list:
     out = [f"{k} at its bound" for k in e["at_bound"]] + [f"{k} immaterial" for k in e["immaterial"]]
     if e.get("ablation_guard", False):
         key, value = ABLATED[e["name"]]
-        out.append(f"the held-out fit with {key} = {value:g} does as well: the model's form, not the effect, "
-                   f"closes the gap")
+        if not np.isfinite(e.get("ablated_loss_per_sample", float("nan"))):
+            out.append(f"its held-out fit with {key} = {value:g} failed, so what {key} itself closes is unknown")
+        else:
+            out.append(f"{key} closes less than a fifth of what its held-out fit with {key} = {value:g} leaves: "
+                       f"the model's form, not the effect, closes the gap")
     return out
 
 

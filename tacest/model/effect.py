@@ -172,7 +172,7 @@ class Effect:
 
     def impacts_3d(self, ctx) -> None:
         """Change the contact laws at impacts (ctx.phi, ctx.impulse_R; law rows in
-        ctx.dynamics_rows), from the earlier poses and velocities (ctx.history)."""
+        ctx.dynamics_rows), from the earlier poses and velocities (ctx.past)."""
 
     def com_shift_3d(self, u: dict, L):
         """(3,) m: where the centre of mass lies in the shape's own frame (its centroid at

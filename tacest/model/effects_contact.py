@@ -204,9 +204,10 @@ class Restitution(Effect):
           impact: for an impact within the interval, interpolated between the poses t-1
           and t at the impact's fraction of the interval; after an impact, at t-1.
 
-        The memory of 2-D is exact recursively; here the guard on A' is left out (an
-        impact in (t-3, t-2] right after one in (t-4, t-3] counts twice: three impacts of
-        one vertex in a row)."""
+        The memory of 2-D is exact recursively; here A' has no guard of its own: where
+        (t-4, t-3] held an impact, the mixed velocity of (t-3, t-2] may be taken for a
+        second approach, and that A' may switch off A, the law row of a real impact in
+        (t-2, t-1]."""
         if len(ctx.past) < 3:
             raise AssertionError("internal: restitution's 3-D stage needs the poses t-4 .. t")
         e_r = ctx.u[self.name]["e"]

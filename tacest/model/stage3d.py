@@ -17,7 +17,8 @@ interior-point method takes full Newton steps without second-order corrections.
 
 All runs are laid end to end: samples j = 0 .. S-1 of every run in order.  Dynamics (D1)
 are enforced on the intervals (t-1, t] with t >= 2 of each run ("dynamic intervals",
-M = Σ (T_i - 2) of them): they involve the poses t-2, t-1, t.  ONE stage function is
+M = Σ (T_i - 2) of them): they involve the poses t-2, t-1, t (and, with an effect that
+looks back, restitution, the earlier ones of the window, Layout3D.windows).  ONE stage function is
 mapped over all dynamic intervals of all runs, one start function over the runs.
 
 Decision vector z (all scaled to O(1); L length scale, m0 mass scale)::
