@@ -303,7 +303,8 @@ class Estimator3D:
 
     def initial_guess(self, s0=None) -> np.ndarray:
         """Scaled z0: theta (shape s0, log mass 0, uniform-density inertia, friction at
-        the prior, effect parameters at their start or prior centre), the observed (or resting) poses, small ground impulses (replaced by
+        the prior, effect parameters at their start or prior centre), the observed (or
+        resting) poses, small ground impulses (replaced by
         :meth:`ground_impulses_nnls` before the solve), finger impulses from the
         measured force (or a small push along the measured normal)."""
         pr, sc = self.problem, self.scales

@@ -112,8 +112,6 @@ class Problem3D(StageModel3D):
         ridge_sym = ca.MX.sym("ridge")
         p_all = ca.vertcat(ca.vec(D), gsym, w_sym, prior_sym, ridge_sym)
         self.n_p = p_all.shape[0]
-        win = self.windows
-        ic = list(win[:, -1])
         f0, f1 = list(self.first), list(self.first + 1)
 
         # per-interval and per-start functions (SX); the NLP maps them over all samples
@@ -133,7 +131,8 @@ class Problem3D(StageModel3D):
         res_k, res0_k = kern[self.res_fun.name()], kern[self.res0_fun.name()]
         jr_k, j0_k = kern[jr.name()], kern[j0.name()]
 
-        stage_args = [X[:, list(win[:, k])] for k in range(self.n_poses)] + [U, LF, theta, D[:, ic], gsym]
+        poses, D_win = self.stage_window_arguments(X, D)
+        stage_args = poses + [U, LF, theta, D_win, gsym]
         start_args = [X[:, f0], X[:, f1], theta, D[:, f0], D[:, f1], gsym]
         r_stage = res_k.map(M, "serial")(*stage_args, w_sym)  # (n_r, M)
         r_start = res0_k.map(R, "serial")(*start_args, w_sym)  # (n_r0, R)
@@ -149,7 +148,7 @@ class Problem3D(StageModel3D):
 
         # global sparse Jacobian of the whitened residuals from per-sample blocks
         th_idx = np.arange(self.n_theta)[None]
-        y_stage = np.hstack([self.x_index(win[:, k]) for k in range(self.n_poses)]
+        y_stage = np.hstack([self.x_index(self.windows[:, k]) for k in range(self.n_poses)]
                             + [self.u_index(np.arange(M)), self.lf_index(np.arange(M)), np.repeat(th_idx, M, 0)])
         y_start = np.hstack([self.x_index(self.first), self.x_index(self.first + 1), np.repeat(th_idx, R, 0)])
         n_r, n_r0, n_rp = self.res_rows, self.res0_rows, self.prior_fun.size1_out(0)
@@ -241,6 +240,7 @@ class Problem3D(StageModel3D):
 
     def stage_window_arguments(self, X, D):
         """The pose inputs of the stage over every dynamic interval (n_poses arrays (7, M),
-        oldest first) and the interval's data D (n_d, M), from X (7, S) and D (n_d, S)."""
+        oldest first) and the interval's data D (n_d, M), from X (7, S) and D (n_d, S)
+        (numpy arrays, or the NLP's CasADi symbols)."""
         win = self.windows
-        return [X[:, win[:, k]] for k in range(self.n_poses)], D[:, win[:, -1]]
+        return [X[:, win[:, k].tolist()] for k in range(self.n_poses)], D[:, win[:, -1].tolist()]
