@@ -220,6 +220,22 @@ def estimate_1(tmp_path_factory):
     return est, run
 
 
+def test_the_planning_model_of_an_estimate_with_restitution_leaves_it_out(estimate_1):
+    """ModelState3.from_estimate: an estimate made with restitution (whose stage looks
+    back five poses) is planned with the rest of its model; restitution's e is not
+    needed in /params and the planning model equals the one without it."""
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+
+    est_path, run_path = estimate_1
+    est, run = read_estimate(est_path), read_run(run_path)
+    plain = ModelState3.from_estimate(est, [run], EstimatorConfig())
+    est.model = [*est.model, "restitution"] if est.model else [*plain.effects, "restitution"]
+    with_law = ModelState3.from_estimate(est, [run], EstimatorConfig())
+    assert "restitution" not in with_law.effects and with_law.effects == plain.effects
+    assert np.array_equal(with_law.theta, plain.theta)
+
+
 def test_plan_3d_cli(estimate_1, tmp_path):
     """`tacest plan` on a 3-D estimate: eig with the identity and marginal information,
     3-D poke vectors aimed at the estimated centroid; `tacest record --plan` executes it;

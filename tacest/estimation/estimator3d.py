@@ -801,13 +801,15 @@ def solve_observed_tracks(est: "Estimator3D", s0) -> SolveOutcome:
 
 def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
     """One solve of ``est``'s final stage from the solution ``z_other`` (scaled) of another
-    fit of runs of the same lengths and fingers: the nested model (``est`` without its
-    effects, whose theta are the first entries of est's; the effects start at their
-    initial values, where est's model is the nested one), or the same model of slightly
-    other data (a data transform's runs).  s0 : that fit's starting shape (the shape
-    prior's reference, so that both objectives agree there).  From the nested model's
-    optimum the fit ends at or below its objective (up to the interior point's step
-    inside the effects' bounds)."""
+    fit of runs of the same lengths and fingers: the model ``est`` without its effects
+    (whose theta are the first entries of est's; the effects start at their starting
+    values, ``EffectParameter.start``), or the same model of slightly other data (a data
+    transform's runs).  s0 : that fit's starting shape (the shape prior's reference, so
+    that both objectives agree there).  Where every effect starts at its nested value
+    (the plain model: all but restitution, whose e starts at 0.5 and whose impact relief
+    holds at any e) the fit ends at or below the plain optimum's objective (up to the
+    interior point's step inside the effects' bounds); restitution starts elsewhere and
+    carries no such guarantee."""
     pr = est.problem
     z_other = np.asarray(z_other, float)
     n_plain = len(z_other) - (pr.n_z - pr.n_theta)

@@ -117,8 +117,8 @@ class Problem3D(StageModel3D):
         # per-interval and per-start functions (SX); the NLP maps them over all samples
         self.stage_fun = self._stage_function()
         self.start_fun = self._start_function()
-        self.res_fun, self.res_rows = self._residual_function(self.stage_fun, STAGE_TERMS, n_state=3)
-        self.res0_fun, self.res0_rows = self._residual_function(self.start_fun, START_TERMS, n_state=2)
+        self.res_fun, self.res_rows = self._residual_function(self.stage_fun, STAGE_TERMS)
+        self.res0_fun, self.res0_rows = self._residual_function(self.start_fun, START_TERMS)
         th_sx = ca.SX.sym("theta", self.n_theta)
         pr_sx = ca.SX.sym("prior", self.n_prior())
         self.prior_fun = ca.Function("prior3d", [th_sx, pr_sx], [self.prior_residual(th_sx, pr_sx)])
@@ -204,9 +204,10 @@ class Problem3D(StageModel3D):
     # ------------------------------------------------------------------------------
     # derivative building blocks (SX, per sample)
 
-    def _residual_function(self, fun, terms, n_state):
+    def _residual_function(self, fun, terms):
         """SX Function (inputs of fun..., w) -> the stacked residual: sqrt(w_t) r_t of the
-        given terms, then the quaternion-norm residuals of its n_state poses; and its length."""
+        given terms, then fun's quaternion-norm residuals (one per pose it takes); and its
+        length."""
         ins = fun.sx_in()
         w = ca.SX.sym("w", len(TERMS3D))
         out = dict(zip(fun.name_out(), fun(*ins)))
@@ -234,7 +235,7 @@ class Problem3D(StageModel3D):
         """(res: stage inputs with lambda_n in place of u -> r (n_r,); jac: -> dense (n_r, K)
         Jacobian of r with respect to lambda_n, constant: r is affine in lambda_n for held
         poses and parameters)."""
-        res, _ = self._residual_function(self._stage_function(direct=True), STAGE_TERMS, n_state=3)
+        res, _ = self._residual_function(self._stage_function(direct=True), STAGE_TERMS)
         ins = res.sx_in()
         return res, ca.Function("jac_ln3d", ins, [ca.densify(ca.jacobian(res(*ins), ins[self.n_poses]))])
 

@@ -50,6 +50,25 @@ IMPACT_REACH = 1e-3
 RESTITUTION_START = 0.5
 
 
+def _gate(speed):
+    """speed²/(speed² + BOUNCE_SPEED²): how much of an impact at this approach speed
+    (m/s) counts as one (slower landings are plastic)."""
+    return speed ** 2 / (speed ** 2 + BOUNCE_SPEED ** 2)
+
+
+def _impact(normal_velocity, gap, dt):
+    """An impact of a vertex within the next interval, from its normal velocity
+    (m/s, along the ground normal: negative approaching) and its gap (m) at the
+    interval's start: ``(a, weight, p)`` with a m/s the approach speed, p = a·dt - gap m
+    how far the approach would carry it below the ground, and weight the impact gate
+    :func:`_gate` (a) × whether it reached the ground within the interval (p >
+    -IMPACT_REACH, to within the first-order path's error), smoothed."""
+    a = smooth_pos(-normal_velocity, 1e-3)  # m/s, approach
+    p = a * dt - gap
+    reach = smooth_pos(p + IMPACT_REACH, IMPACT_DEPTH_EPS)
+    return a, _gate(a) * reach / (reach + IMPACT_DEPTH_EPS), p
+
+
 class Restitution(Effect):
     """Newton's impact law with the impact inside a sample interval: after an impact a
     vertex leaves with -e × its approach velocity.  2-D state: per vertex, the approach
@@ -139,7 +158,7 @@ class Restitution(Effect):
         phi_c, vn_c, levers = ctx.phi_c, ctx.vn_c, ctx.levers
         for k in range(K):
             # the interval after an impact: the vertex leaves with e × its approach
-            after = A_prev[k] ** 2 / (A_prev[k] ** 2 + BOUNCE_SPEED ** 2)
+            after = _gate(A_prev[k])
             # its normal velocity over the interval (the first-order scheme's v(t) is the
             # interval's mean): e·A less what gravity took since the impact, one interval
             # on average (from an impact at a uniform time in the previous interval to
@@ -150,10 +169,8 @@ class Restitution(Effect):
             leave = smooth_pos(e_r * A_prev[k] - grav * dt, REBOUND_SMOOTHING)
             r_after.append(after * (vn_c[k] - leave) / (sig_v + RESTITUTION_SCATTER * A_prev[k]))
             # an impact within this interval
-            a = smooth_pos(-ca.dot(ctx.n_g, point_velocity(ctx.v_prev, levers_prev[k])), 1e-3)  # m/s, approach
-            p = a * dt - phi_prev[k]  # m, how far the approach would carry it below the ground
-            reach = smooth_pos(p + IMPACT_REACH, IMPACT_DEPTH_EPS)
-            struck = (1 - after) * a ** 2 / (a ** 2 + BOUNCE_SPEED ** 2) * reach / (reach + IMPACT_DEPTH_EPS)
+            a, hit, p = _impact(ca.dot(ctx.n_g, point_velocity(ctx.v_prev, levers_prev[k])), phi_prev[k], dt)
+            struck = (1 - after) * hit
             targets.append(struck * a)
             r_memory.append((A_now[k] - struck * a) / sig_v)
             # the contact laws: the rise the impact gives the vertex is not held against
@@ -176,15 +193,10 @@ class Restitution(Effect):
 
     @staticmethod
     def _impact_3d(ctx, past, k):
-        """An impact of vertex k in the interval after the past pose ``past``
-        (stage3d.PastPose) from the approach it had there: (approach a m/s, its weight
-        (impact gate × reached the ground within the interval, as in :meth:`impacts_2d`),
-        p m: how far the approach would carry it below the ground)."""
+        """:func:`_impact` of vertex k in the interval after the past pose ``past``
+        (stage3d.PastPose), from the velocity it had there."""
         point_v = past.v + ca.mtimes(past.R, cross(past.w, past.levers[k]))
-        a = smooth_pos(-ca.dot(ctx.n_g, point_v), 1e-3)
-        p = a * ctx.dt - past.phi[k]
-        reach = smooth_pos(p + IMPACT_REACH, IMPACT_DEPTH_EPS)
-        return a, a ** 2 / (a ** 2 + BOUNCE_SPEED ** 2) * reach / (reach + IMPACT_DEPTH_EPS), p
+        return _impact(ca.dot(ctx.n_g, point_v), past.phi[k], ctx.dt)
 
     def impacts_3d(self, ctx):
         """The law of :meth:`impacts_2d` in 3-D, with the impact memory computed from the
@@ -207,7 +219,10 @@ class Restitution(Effect):
         The memory of 2-D is exact recursively; here A' has no guard of its own: where
         (t-4, t-3] held an impact, the mixed velocity of (t-3, t-2] may be taken for a
         second approach, and that A' may switch off A, the law row of a real impact in
-        (t-2, t-1]."""
+        (t-2, t-1].  With soft_contact as well, the past poses' gaps are to the rigid
+        ground: the 3-D sink is quasi-static under the interval's own load, and the loads
+        of past intervals are not inputs of the stage (an impact is then detected up to a
+        sink, about a millimetre, late)."""
         if len(ctx.past) < 3:
             raise AssertionError("internal: restitution's 3-D stage needs the poses t-4 .. t")
         e_r = ctx.u[self.name]["e"]
@@ -217,8 +232,8 @@ class Restitution(Effect):
             a_old, w_old, _ = self._impact_3d(ctx, earliest, k)
             memory_old = w_old * a_old
             a_prev, w_prev, _ = self._impact_3d(ctx, before, k)
-            A = (1 - memory_old ** 2 / (memory_old ** 2 + BOUNCE_SPEED ** 2)) * w_prev * a_prev  # m/s
-            after = A ** 2 / (A ** 2 + BOUNCE_SPEED ** 2)
+            A = (1 - _gate(memory_old)) * w_prev * a_prev  # m/s
+            after = _gate(A)
             vn = ca.dot(ctx.n_g, ctx.v + ca.mtimes(ctx.R, cross(ctx.w, ctx.levers[k])))
             leave = smooth_pos(e_r * A - ctx.grav * ctx.dt, REBOUND_SMOOTHING)
             rows.append(after * (vn - leave) / (ctx.sig_v + RESTITUTION_SCATTER * A))
