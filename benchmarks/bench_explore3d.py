@@ -16,7 +16,8 @@ tacest record's default sensor noise), one loop at a time in this process:
 Policies: ``eig`` (expected information gain, the marginalized information: the
 default), ``eig:<information>`` (``eig:identity``, ``eig:diffsim``, ``eig:schur``: EIG
 with another construction of the information), ``random``, ``identity`` (the
-quasi-static identity-Jacobian baseline).  The first poke of a seed is the same for every
+quasi-static identity-Jacobian baseline); ``<policy>@K`` moves K fingers in each planned
+action (``eig@2``, ``random@3``; tacest explore --fingers-per-action K).  The first poke of a seed is the same for every
 policy (the simulator's random poke); the seeds are paired.
 
 ``--poke-style dynamic``: the first poke from the simulator's dynamic mix and every
@@ -80,9 +81,11 @@ def case_object(case: str) -> tuple:
 
 
 def policy_settings(policy: str) -> tuple:
-    """(explore policy, information or None) of a benchmark policy label."""
-    head, _, info = policy.partition(":")
-    return head, (info or None)
+    """(explore policy, information or None, fingers per action) of a benchmark policy
+    label ``<policy>[:<information>][@<fingers per action>]``."""
+    label, _, k = policy.partition("@")
+    head, _, info = label.partition(":")
+    return head, (info or None), int(k or 1)
 
 
 def run_loop(case: str, seed: int, policy: str, args, cache: Path) -> dict:
@@ -90,15 +93,15 @@ def run_loop(case: str, seed: int, policy: str, args, cache: Path) -> dict:
     {"ok": False, "error"}."""
     from tacest.planning.explore import ExploreOptions, explore
 
-    name = f"{case}-{seed}-{policy.replace(':', '_')}"
+    name = f"{case}-{seed}-{policy.replace(':', '_').replace('@', '_k')}"
     path = cache / f"{name}.json"
     if path.exists():
         return json.loads(path.read_text())
     obj, shape = case_object(case)
-    pol, info = policy_settings(policy)
+    pol, info, per_action = policy_settings(policy)
     opts = ExploreOptions(object_spec=obj, seed=seed, policy=pol, pokes=args.pokes, shape=shape, dim=3,
                           fingers=args.fingers, force_stream=False, information=info, iterations=args.iterations,
-                          population=args.population, poke_style=args.poke_style)
+                          population=args.population, poke_style=args.poke_style, fingers_per_action=per_action)
     t0 = time.perf_counter()
     print(f"{name}: running ...", file=sys.stderr, flush=True)
     try:
@@ -177,9 +180,15 @@ def main(argv=None):
     cases = [c for c in args.cases.split(",") if c]
     policies = [p for p in args.policies.split(",") if p]
     known = ("eig", "random", "identity")
-    if any(c not in CASES for c in cases) or any(policy_settings(p)[0] not in known for p in policies) \
+    try:
+        settings = [policy_settings(p) for p in policies]
+    except ValueError:
+        ap.error("a policy's fingers per action (after @) must be an integer")
+    if any(c not in CASES for c in cases) or any(pol not in known for pol, _, _ in settings) \
+            or any(not 1 <= k <= args.fingers for _, _, k in settings) \
             or args.seeds < 1 or args.pokes < 1 or not 1 <= args.fingers <= 3:
-        ap.error(f"cases from {CASES}, policies from {known} (eig:<information>), seeds and pokes >= 1, 1-3 fingers")
+        ap.error(f"cases from {CASES}, policies from {known} (eig:<information>, <policy>@<fingers per action> "
+                 "up to --fingers), seeds and pokes >= 1, 1-3 fingers")
     import logging
 
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -194,7 +203,7 @@ def main(argv=None):
     for seed in seeds:  # seed by seed, so that a partial benchmark compares like with like
         for case in cases:
             for pol in policies:
-                path = cache / f"{case}-{seed}-{pol.replace(':', '_')}.json"
+                path = cache / f"{case}-{seed}-{pol.replace(':', '_').replace('@', '_k')}.json"
                 if args.report_only:
                     res = json.loads(path.read_text()) if path.exists() else None
                 else:

@@ -43,11 +43,14 @@ EXPLORE_FILES = ("run.h5", "summary.json", "learning_curve.png", "view_3d.png", 
               help="Cross-entropy iterations (eig, identity; per finger in 2-D, one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
+@click.option("--fingers-per-action", type=click.IntRange(1, 3), default=1, show_default=True,
+              help="[3-D] fingers that move together in each planned action (each from its own direction; "
+                   "docs/planning.md).")
 @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
               help="Estimator TOML settings (`tacest config --defaults` prints every key).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
 def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, pokes, shape, information, score, vary,
-            poke_style, iterations, population, config_path, quiet):
+            poke_style, iterations, population, fingers_per_action, config_path, quiet):
     """Explore a simulated object (2-D, or 3-D with --dim 3): record a poke, estimate,
     plan the next poke with POLICY, repeat until POKES pokes; write per-step files,
     summary.json and a learning-curve plot (3-D: and views) to OUTPUT."""
@@ -71,7 +74,8 @@ def explore(out_dir, dim, object_spec, fingers, force_stream, seed, policy, poke
     opts = ExploreOptions(object_spec=object_spec, seed=seed, policy=policy, pokes=pokes, shape=shape, score=score,
                           config_path=config_path, vary=tuple(vary), dim=int(dim), fingers=fingers,
                           force_stream=force_stream, information=information, iterations=iterations,
-                          population=population, poke_style=poke_style).validate()
+                          population=population, poke_style=poke_style,
+                          fingers_per_action=fingers_per_action).validate()
     setup_logging(quiet)
 
     progress = step_progress(quiet, "pokes")

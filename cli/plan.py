@@ -31,8 +31,12 @@ import click
               help="Cross-entropy iterations (per finger in 2-D; one search in 3-D).")
 @click.option("--population", type=click.IntRange(2, 500), default=12, show_default=True,
               help="Candidates per cross-entropy iteration.")
+@click.option("--fingers-per-action", type=click.IntRange(1, 3), default=1, show_default=True,
+              help="[3-D] fingers that move together in the planned action (each from its own direction; "
+                   "docs/planning.md).")
 @click.option("--quiet", is_flag=True, help="No progress output.")
-def plan(estimate, runs, output, method, score, information, seed, vary, poke_style, iterations, population, quiet):
+def plan(estimate, runs, output, method, score, information, seed, vary, poke_style, iterations, population,
+         fingers_per_action, quiet):
     """Plan the next poke of the object in ESTIMATE (an estimate file) from the RUNS it
     was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
     centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
@@ -45,6 +49,7 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     from tacest.io.plan import RUNS_SHA256, write_plan
     from tacest.io.run import read_runs
     from tacest.dims import dimension
+    from tacest.planning.actions import split_action
     from tacest.planning.planner import PlanSettings
 
     from tacest.cli.logs import setup_logging
@@ -52,7 +57,8 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     setup_logging(quiet)
     output = check_output(output, inputs=[estimate, *runs])
     settings = PlanSettings(method=method, score=score, seed=seed, vary=tuple(vary), iterations=iterations,
-                            population=population, information=information, poke_style=poke_style).validate()
+                            population=population, information=information, poke_style=poke_style,
+                            fingers_per_action=fingers_per_action).validate()
     est = read_estimate(estimate)
     loaded = read_runs(runs)
     check_runs_match(est, runs)
@@ -65,14 +71,16 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     result.extra_attrs[RUNS_SHA256] = json.dumps([sha256_file(p) for p in runs])
     write_plan(result, output)
     if not quiet:
-        a = result.chosen_dict()
-        if "approach_angle" in a:
-            towards = f"approach {math.degrees(a['approach_angle']):.1f} deg"
-        else:
-            towards = (f"approach azimuth {math.degrees(a['approach_azimuth']):.1f} deg, elevation "
-                       f"{math.degrees(a['approach_elevation']):.1f} deg")
-        target = ", ".join(f"{a[k]:.4f}" for k in ("target_x", "target_y", "target_z") if k in a)
+        pokes = []
+        for x in split_action(result.chosen_dict()):
+            if "approach_angle" in x:
+                towards = f"approach {math.degrees(x['approach_angle']):.1f} deg"
+            else:
+                towards = (f"approach azimuth {math.degrees(x['approach_azimuth']):.1f} deg, elevation "
+                           f"{math.degrees(x['approach_elevation']):.1f} deg")
+            target = ", ".join(f"{x[k]:.4f}" for k in ("target_x", "target_y", "target_z") if k in x)
+            pokes.append(f"finger {int(x['finger'])}, {towards} toward ({target}) m, depth {1e3 * x['depth']:.0f} mm, "
+                         f"speed {1e3 * x['speed']:.0f} mm/s")
         click.echo(f"wrote {output}: {method} ({score} {result.scores.max() if method != 'random' else result.scores[0]:.4g}, "
-                   f"{len(result.scores)} candidates, {float(result.extra_attrs['wall_time']):.1f} s): finger "
-                   f"{int(a['finger'])}, {towards} toward ({target}) m, depth {1e3 * a['depth']:.0f} mm, "
-                   f"speed {1e3 * a['speed']:.0f} mm/s", err=True)
+                   f"{len(result.scores)} candidates, {float(result.extra_attrs['wall_time']):.1f} s): "
+                   + "; ".join(pokes), err=True)

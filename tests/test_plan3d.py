@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.estimation.data import choose_scales
 from tacest.estimation.estimator3d import effects_3d
@@ -142,6 +143,60 @@ def test_information_of_a_poke_against_finite_differences(truth_model):
                                rtol=1e-9, atol=1e-9 * np.abs(F).max())
 
 
+def test_a_squeeze_of_two_fingers_informs_more_than_one_of_its_pokes(truth_model):
+    """An action of two fingers (tacest.sim3d.pokes.action_names(2)) pressing an untouched
+    face and the face opposite it, together: both fingers touch in the prediction, and
+    it scores above the single poke at that face (it feels both faces: the box's width
+    along that axis), after a past that knows another face."""
+    model, info = truth_model
+    az_known, az_new = _face_azimuths(model)
+    F_known = info.information(model, predict_poke_3d(model, _poke(model, az_known)), "identity")
+    I_past = info.prior_information(model) + F_known
+    one = _poke(model, az_new)
+    pred_two = predict_poke_3d(model, np.r_[one, _poke(model, az_new + math.pi, finger=1)])
+    assert pred_two.contact[:, 0].any() and pred_two.contact[:, 1].any() and len(pred_two.action) == 16
+    s_one = score(info.information(model, predict_poke_3d(model, one), "identity"), I_past)
+    s_two = score(info.information(model, pred_two, "identity"), I_past)
+    assert s_two > s_one, (s_two, s_one)
+
+
+def test_the_3d_action_space_of_several_fingers():
+    """ActionSpace3 with fingers_per_action = 2: the searched coordinates and bounds are
+    one finger's, twice (names suffixed .1); an action takes the finger nearest each
+    direction, a second one never the first's; random actions move two distinct
+    fingers; 2-D and more fingers than the model has are one clear error each."""
+    from tacest.planning.actions import ActionSpace, ActionSpace3, split_action
+    from tacest.sim3d.pokes import action_names, pokes_from_vector
+
+    fingers = np.array([[0.2, 0.0, 0.05], [-0.2, 0.0, 0.05], [0.0, 0.2, 0.05]])
+    sp = ActionSpace3(n_fingers=3, p_finger__world=fingers, fingers_per_action=2, vary=("depth",))
+    one = ActionSpace3(n_fingers=3, p_finger__world=fingers, vary=("depth",))
+    assert sp.names == one.names + [f"{n}.1" for n in one.names]
+    lo, hi = sp.bounds()
+    assert np.array_equal(lo, np.tile(one.bounds()[0], 2)) and np.array_equal(hi, np.tile(one.bounds()[1], 2))
+    # both directions from +x: the first takes finger 0 (at +x), the second the next nearest
+    a = sp.action(None, [0.0, 0.3, 0.02, 0.1, 0.3, 0.03], np.zeros(3))
+    pokes = pokes_from_vector(a, 3, sp.poke_names)
+    assert sp.poke_names == action_names(2) and [p.finger for p in pokes][0] == 0 and pokes[1].finger != 0
+    assert [p.depth for p in pokes] == [0.02, 0.03]
+    d = dict(zip(sp.poke_names, a))
+    assert [x["finger"] for x in split_action(d)] == [p.finger for p in pokes]
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        r = pokes_from_vector(sp.random_action(rng, np.zeros(3)), 3)
+        assert len({p.finger for p in r}) == 2
+    with pytest.raises(TacestError, match="fingers-per-action"):
+        ActionSpace3(n_fingers=1, p_finger__world=fingers[:1], fingers_per_action=2)
+    from tacest.planning.actions import action_space_for
+
+    class Flat:  # a 2-D planning model state's shape of things
+        n_fingers, up, vertices, pose = 2, np.array([0.0, 1.0]), np.array([[0.0, 0.0], [0.1, 0.05]]), np.zeros(3)
+
+    assert isinstance(action_space_for(Flat()), ActionSpace)
+    with pytest.raises(TacestError, match="3-D only"):
+        action_space_for(Flat(), fingers_per_action=2)
+
+
 def test_twist_map_against_finite_differences():
     """twist_map: d[p / L, q] / d(δp_b, δr_b) against central differences of _twisted."""
     q = np.array([0.9, 0.1, -0.3, 0.2])
@@ -234,6 +289,38 @@ def test_the_planning_model_of_an_estimate_with_restitution_leaves_it_out(estima
     with_law = ModelState3.from_estimate(est, [run], EstimatorConfig())
     assert "restitution" not in with_law.effects and with_law.effects == plain.effects
     assert np.array_equal(with_law.theta, plain.theta)
+
+
+def test_a_plan_of_two_fingers_is_recorded_as_one_action(estimate_1, tmp_path):
+    """`tacest plan --fingers-per-action 2`: candidates are actions of two distinct
+    fingers' pokes (names tacest.sim3d.pokes.action_names(2)), the message names both;
+    `tacest record --plan` appends them as two rows of one segment; in 2-D, or with more
+    fingers than the run has, one line and exit 2."""
+    from tacest.io.plan import read_plan
+    from tacest.io.run import read_run
+    from tacest.sim3d.pokes import action_names, pokes_from_vector
+
+    est, run = (str(p) for p in estimate_1)
+    plan_path = tmp_path / "two.h5"
+    res = subprocess.run([TACEST, "plan", est, run, "--fingers-per-action", "2", "--iterations", "1",
+                          "--population", "3", "-o", str(plan_path)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    plan = read_plan(plan_path)
+    assert list(plan.names) == list(action_names(2)) and plan.candidates.shape == (3, 16)
+    for c in plan.candidates:
+        assert len({p.finger for p in pokes_from_vector(c, 3, plan.names)}) == 2
+    assert res.stderr.count("finger ") >= 2 and "; finger" in res.stderr
+    appended = tmp_path / "run.h5"
+    appended.write_bytes(Path(run).read_bytes())
+    res = subprocess.run([TACEST, "record", "--source", "sim", "--dim", "3", "--fingers", "3", "--no-force",
+                          "--plan", str(plan_path), "-o", str(appended)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    seg = read_run(appended).actions.segments
+    assert len(seg) == 3 and np.array_equal(seg[1], seg[2]) and seg[1, 0] == seg[0, 1]
+    for args in (["explore", "--fingers-per-action", "2", "--fingers", "2", "--pokes", "1"],
+                 ["explore", "--dim", "3", "--fingers", "1", "--fingers-per-action", "2", "--pokes", "1"]):
+        res = subprocess.run([TACEST, *args, "-o", str(tmp_path / "loop")], capture_output=True, text=True)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "fingers" in res.stderr, res.stderr
 
 
 def test_plan_3d_cli(estimate_1, tmp_path):

@@ -493,3 +493,66 @@ def test_toss_cannot_continue_a_run(tmp_path):
     write_run(record_sim(SimOptions(seed=1, pokes=1, **CLEAN)), path)
     with pytest.raises(TacestError, match="--toss starts a new recording"):
         record_sim(SimOptions(seed=1, pokes=1, toss=True, **CLEAN), append_to=path)
+
+
+# ---------------------------------------------------------------------------------
+# several fingers in one action
+
+
+def test_one_poke_has_the_same_path_alone_and_as_a_one_finger_action():
+    """poke_path of a Poke3 and of the list [it]: the same waypoints (the recordings of
+    single pokes do not change with the action format)."""
+    from tacest.sim3d.pokes import Poke3, poke_path
+
+    pk = Poke3.from_vector(_poke(finger=1, az=0.4, el=0.3), 2)
+    p0 = np.array([[0.2, 0.0, 0.1], [-0.2, 0.1, 0.12]])
+    one, start, end = poke_path(pk, p0, 0.05, 0.06, np.array([0.01, 0.01]))
+    lst, starts, ends = poke_path([pk], p0, [0.05], 0.06, np.array([0.01, 0.01]))
+    assert np.array_equal(one.times, lst.times) and np.array_equal(one.p_ctl__world, lst.p_ctl__world)
+    assert np.array_equal(starts[0], start) and np.array_equal(ends[0], end)
+
+
+def test_two_fingers_of_one_action_approach_together_and_squeeze_the_box(tmp_path):
+    """An action of two fingers (tacest.sim3d.pokes.action_names(2)) from opposite sides
+    at the same speed.  In the path (one finger going 1 cm deeper) both approaches start
+    at the same instant and each reaches its end after its own distance / speed.  In the
+    world both fingers touch the box in the same samples and it moves less than a fifth
+    of what one finger's push moves it (over 1 cm): the squeeze's horizontal impulses
+    cancel.  The run file holds one row per finger sharing one segment, and a planned
+    action of two fingers is executed with both touching;
+    an action that moves a finger twice is one clear error."""
+    from tacest.sim3d.pokes import Poke3, action_names, poke_path, pokes_from_vector
+
+    left = _poke(finger=0, az=math.pi, el=0.3, target=(0.0, 0.0, 0.03), depth=0.02, speed=0.05)
+    right = _poke(finger=1, az=0.0, el=0.3, target=(0.0, 0.0, 0.03), depth=0.02, speed=0.05)
+    deeper = _poke(finger=0, az=math.pi, el=0.3, target=(0.0, 0.0, 0.03), depth=0.03, speed=0.05)
+    pokes = pokes_from_vector(np.array(deeper + right), 2)
+    assert [p.finger for p in pokes] == [0, 1]
+    p0 = np.array([[-0.2, 0.0, 0.1], [0.2, 0.0, 0.1]])
+    path, starts, ends = poke_path(pokes, p0, [0.05, 0.05], 0.06, np.array([0.01, 0.01]))
+    moving = np.linalg.norm(np.diff(path.p_ctl__world, axis=0), axis=2) > 0  # (N-1, F) which finger moves per leg
+    legs = np.flatnonzero(moving.all(axis=1))  # legs where both move: the approach (two pieces) and the retreat
+    t_go = path.times[legs[0]]
+    for f, (a, e) in enumerate(zip(starts, ends)):
+        dur = float(np.linalg.norm(e - a)) / 0.05
+        assert np.allclose(path.at(np.array([t_go + dur]))[0, f], e, atol=1e-9)
+        assert np.allclose(path.at(np.array([t_go]))[0, f], a, atol=1e-9)
+    obj = _box(mass=0.3, mu_g=0.5, mu_f=0.8)
+    opts = SimOptions(fingers=2, **CLEAN)
+    st = state_at_rest(obj, fingers=2)
+    squeeze = simulate_pokes(st, np.array([left + right]), opts, names=action_names(2))
+    push = simulate_pokes(state_at_rest(obj, fingers=2), np.array([right]), opts)
+    both = squeeze.contact.astype(bool).all(axis=1)
+    assert both.sum() >= 10, "both fingers touch the box together"
+    moved = lambda run: float(np.linalg.norm(run.truth.pose[-1, :2] - run.truth.pose[0, :2]))  # noqa: E731
+    assert moved(push) > 0.01 and moved(squeeze) < 0.2 * moved(push)
+    assert squeeze.actions.params.shape == (2, 8) and np.array_equal(squeeze.actions.segments[0],
+                                                                      squeeze.actions.segments[1])
+    assert isinstance(pokes[0], Poke3)
+    with pytest.raises(TacestError, match="twice"):
+        pokes_from_vector(np.array(left + left), 2)
+    plan = tmp_path / "two.h5"
+    _plan(plan, left + right, names=action_names(2))
+    run = record_sim(SimOptions(dim=3, seed=4, fingers=2), plan_path=plan)
+    assert run.actions.params.shape == (2, 8) and set(run.actions.params[:, 0]) == {0.0, 1.0}
+    assert run.contact.astype(bool).any(axis=0).all(), "each finger of the planned action touches"

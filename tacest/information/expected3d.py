@@ -197,24 +197,25 @@ def theta_of_estimate(shape: Shape3D, effects: tuple, vertices, params: dict, in
 
 def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
                     settle_time: float = SETTLE_TIME, effects=()) -> PredictedPoke:
-    """Simulate one 3-D poke (an (8,) POKE3_NAMES vector) on the estimated object,
+    """Simulate one 3-D action (an (8k,) vector of k fingers' pokes, names
+    tacest.sim3d.pokes.action_names(k): one poke for k = 1) on the estimated object,
     noiseless, in the MuJoCo world (module docstring); effects : resolved
     tacest.sim.effects.Effect of the world besides the estimate (as predict_poke's).  The object starts at rest at
     the model's pose lowered (or raised) onto the ground and settles for
-    ``settle_time``; idle fingers are parked above it; the poking finger starts at
+    ``settle_time``; idle fingers are parked above it; each poking finger starts at
     ``target + d·(s_touch + CLEARANCE)`` and approaches ``target + d·(s_touch − depth)``
-    at ``speed``, then holds for ``hold_time``.  Sample 0 is the state at the approach
-    point."""
+    at its ``speed``, all starting together; then they hold for ``hold_time`` after the
+    longest approach.  Sample 0 is the state at the approach points."""
     from tacest.sim.pokes import CLEARANCE
     from tacest.sim.record import SIZE_BOUND
-    from tacest.sim3d.pokes import Poke3
+    from tacest.sim3d.pokes import pokes_from_vector
     from tacest.sim3d.world import World3
 
     from tacest.sim.effects import find
     from tacest.sim3d.objects import apply_com_offset
 
     F = model.n_fingers
-    poke = Poke3.from_vector(action, F)
+    pokes = pokes_from_vector(action, F)
     obj = model.sim_object()
     com = find(effects, "com_offset")
     if com is not None:
@@ -231,16 +232,18 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     hold = world.p_control__world
     for _ in range(int(round(settle_time / h))):
         world.step(hold, h)
-    d = poke.direction__world
     reach = SIZE_BOUND + float(np.max(radius))
-    s = world.touch_distance(poke.target__world, d, radius[poke.finger], s_min=-reach, s_max=reach)
-    s_touch = 0.0 if s is None else s
-    start = poke.target__world + d * (s_touch + CLEARANCE)
-    end = poke.target__world + d * (s_touch - poke.depth)
-    f = poke.finger
-    world.place_finger(f, start)
+    lines = []  # (finger, start, end, duration s) per poke
+    for pk in pokes:
+        d = pk.direction__world
+        s = world.touch_distance(pk.target__world, d, radius[pk.finger], s_min=-reach, s_max=reach)
+        s_touch = 0.0 if s is None else s
+        start = pk.target__world + d * (s_touch + CLEARANCE)
+        end = pk.target__world + d * (s_touch - pk.depth)
+        world.place_finger(pk.finger, start)
+        lines.append((pk.finger, start, end, float(np.linalg.norm(end - start)) / pk.speed))
     world.take_measurement()
-    duration = float(np.linalg.norm(end - start)) / poke.speed
+    duration = max(ln[3] for ln in lines)
     T = int(math.ceil((duration + hold_time) / model.dt - 1e-9)) + 1
     poses, fps = np.empty((T, 7)), np.empty((T, F, 3))
     contact, imp, nrm = np.zeros((T, F), bool), np.zeros((T, F, 3)), np.full((T, F, 3), np.nan)
@@ -250,7 +253,8 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     for k in range(1, T):
         for j in range(n_sub):
             t = ((k - 1) * n_sub + j + 1) * h
-            ctl[f] = start + (end - start) * min(t / duration, 1.0)
+            for f, start, end, dur in lines:
+                ctl[f] = start + (end - start) * min(t / dur, 1.0)
             world.step(ctl, h)
         m = world.take_measurement()
         poses[k], fps[k] = world.pose, world.p_finger__world
@@ -258,7 +262,7 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     q = np.vstack([model.pose[3:], poses[:, 3:]])
     poses[:, 3:] = align_quaternion_signs(q)[1:]  # continuous, in the estimate's hemisphere
     return PredictedPoke(pose=poses, p_finger__world=fps, contact=contact, impulse__world=imp,
-                         normal__world=nrm, dt=model.dt, action=poke.to_vector())
+                         normal__world=nrm, dt=model.dt, action=np.concatenate([pk.to_vector() for pk in pokes]))
 
 
 def prediction_run_3d(pred: PredictedPoke, model: ModelState3) -> Run:

@@ -23,7 +23,12 @@ planner chooses, per finger:
 In 3-D (:class:`ActionSpace3`, tacest.sim3d.pokes.POKE3_NAMES) the approach angle
 becomes an approach direction: ``approach_azimuth`` in [-π, π] (any side) and
 ``approach_elevation`` in :data:`ELEVATION_RANGE` (10° .. 90°: from the side to straight
-down onto the top face), with the same optional depth and speed.
+down onto the top face), with the same optional depth and speed.  An action may move
+``fingers_per_action`` = k fingers at once (``tacest plan/explore --fingers-per-action
+K``): the searched coordinates are k directions (each with its own optional depth,
+speed and height: names suffixed ``.1`` ... for the second, third finger), each poked
+by the nearest finger not yet taken, and the action's vector is the k pokes
+(tacest.sim3d.pokes.action_names).
 """
 
 from __future__ import annotations
@@ -103,9 +108,14 @@ class ActionSpace:
         return HEIGHT_RANGE
 
     @property
+    def finger_names(self) -> list:
+        """Names of one finger's searched coordinates (direction first)."""
+        return ["approach_angle", *self.vary]
+
+    @property
     def names(self) -> list:
         """Names of the searched coordinates (angle first)."""
-        return ["approach_angle", *self.vary]
+        return self.finger_names
 
     def bounds(self):
         lo, hi = self._direction_bounds()
@@ -123,14 +133,19 @@ class ActionSpace:
         return list(range(self.n_fingers))
 
     @property
-    def poke_names(self) -> tuple:
-        """The names of the poke vector (the plan file's names)."""
+    def finger_poke_names(self) -> tuple:
+        """The names of one finger's poke vector."""
         return POKE_NAMES
+
+    @property
+    def poke_names(self) -> tuple:
+        """The names of an action's vector (the plan file's names)."""
+        return self.finger_poke_names
 
     def action(self, finger: int, u, target__world) -> np.ndarray:
         """Poke vector (:attr:`poke_names`) of searched coordinates u aimed at target (D,) m."""
         u = np.asarray(u, float).reshape(-1)
-        vals = dict(zip(self.names, u))
+        vals = dict(zip(self.finger_names, u))
         depth = float(vals.get("depth", self.depth))
         speed = float(vals.get("speed", (CLEARANCE + depth) / APPROACH_TIME))
         t = np.asarray(target__world, float)
@@ -138,7 +153,7 @@ class ActionSpace:
             t = t + float(vals.pop("height")) * self.object_height * np.asarray(self.up, float)
         named = {**vals, "finger": finger, "depth": depth, "speed": speed,
                  **{f"target_{c}": float(v) for c, v in zip("xyz", t)}}
-        return np.array([named[n] for n in self.poke_names], float)
+        return np.array([named[n] for n in self.finger_poke_names], float)
 
     def _random_direction(self, rng: np.random.Generator) -> list:
         angle = float(rng.uniform(*RANDOM_ANGLE_RANGE))
@@ -160,12 +175,26 @@ class ActionSpace:
 @dataclass
 class ActionSpace3(ActionSpace):
     """The 3-D action space (module docstring): approach azimuth and elevation per
-    finger, optionally depth and speed; poke vectors of tacest.sim3d.pokes.POKE3_NAMES."""
+    finger, optionally depth and speed; poke vectors of tacest.sim3d.pokes.POKE3_NAMES,
+    or with ``fingers_per_action`` = k > 1 actions of k fingers' pokes at once
+    (tacest.sim3d.pokes.action_names)."""
 
     elevation_range: tuple = ELEVATION_RANGE
     #: (F, 3) m, the fingertips now; given, one search covers every finger: a direction
     #: is poked by the finger nearest its approach (:meth:`nearest_finger`)
     p_finger__world: np.ndarray | None = None
+    #: fingers moving in one action (1 .. n_fingers)
+    fingers_per_action: int = 1
+
+    def __post_init__(self):
+        super().__post_init__()
+        k = int(self.fingers_per_action)
+        if not 1 <= k <= self.n_fingers:
+            raise TacestError(f"--fingers-per-action {self.fingers_per_action} is outside 1..{self.n_fingers} "
+                              "(the recording's fingers)")
+        if k > 1 and self.p_finger__world is None:
+            raise TacestError("several fingers per action need the fingertips' positions")
+        self.fingers_per_action = k
 
     def searched_fingers(self) -> list:
         """[None] (one search, the nearest finger per direction) when the fingertips are
@@ -173,29 +202,59 @@ class ActionSpace3(ActionSpace):
         the same direction informs the same whichever finger pokes; else each finger."""
         return [None] if self.p_finger__world is not None else super().searched_fingers()
 
-    def nearest_finger(self, u, target__world) -> int:
-        """The finger nearest the approach line's point APPROACH_REACH out from the
-        target (the shortest transit to the poke's start)."""
+    def nearest_finger(self, u, target__world, taken=()) -> int:
+        """The finger, not in ``taken``, nearest the approach line's point APPROACH_REACH
+        out from the target (the shortest transit to the poke's start)."""
         az, el = float(u[0]), float(u[1])
         d = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
         start = np.asarray(target__world, float) + APPROACH_REACH * d
-        return int(np.argmin(np.linalg.norm(np.asarray(self.p_finger__world, float) - start, axis=1)))
+        dist = np.linalg.norm(np.asarray(self.p_finger__world, float) - start, axis=1)
+        dist[list(taken)] = np.inf
+        return int(np.argmin(dist))
 
     def action(self, finger, u, target__world) -> np.ndarray:
-        """As ActionSpace.action; finger None: :meth:`nearest_finger`."""
-        if finger is None:
-            finger = self.nearest_finger(u, target__world)
-        return super().action(finger, u, target__world)
+        """As ActionSpace.action; finger None: :meth:`nearest_finger`.  With k fingers per
+        action u holds k fingers' coordinates one after another (:attr:`names`); each
+        takes the nearest finger not taken by the ones before it (``finger`` is then
+        ignored) and the vector is their k pokes."""
+        u = np.asarray(u, float).reshape(-1)
+        if self.fingers_per_action == 1:
+            if finger is None:
+                finger = self.nearest_finger(u, target__world)
+            return super().action(finger, u, target__world)
+        n, taken, out = len(self.finger_names), [], []
+        for j in range(self.fingers_per_action):
+            uj = u[j * n:(j + 1) * n]
+            taken.append(self.nearest_finger(uj, target__world, taken))
+            out.append(super().action(taken[-1], uj, target__world))
+        return np.concatenate(out)
 
     @property
-    def names(self) -> list:
+    def finger_names(self) -> list:
         return ["approach_azimuth", "approach_elevation", *self.vary]
 
     @property
-    def poke_names(self) -> tuple:
+    def names(self) -> list:
+        """Names of the searched coordinates: one finger's :attr:`finger_names`, then
+        those of the other fingers of an action, suffixed ``.1``, ``.2`` ..."""
+        one = self.finger_names
+        return one + [f"{n}.{j}" for j in range(1, self.fingers_per_action) for n in one]
+
+    @property
+    def finger_poke_names(self) -> tuple:
         from tacest.sim3d.pokes import POKE3_NAMES
 
         return POKE3_NAMES
+
+    @property
+    def poke_names(self) -> tuple:
+        from tacest.sim3d.pokes import action_names
+
+        return action_names(self.fingers_per_action)
+
+    def bounds(self):
+        lo, hi = super().bounds()
+        return np.tile(lo, self.fingers_per_action), np.tile(hi, self.fingers_per_action)
 
     def _direction_bounds(self):
         return [AZIMUTH_RANGE[0], self.elevation_range[0]], [AZIMUTH_RANGE[1], self.elevation_range[1]]
@@ -203,6 +262,30 @@ class ActionSpace3(ActionSpace):
     def _random_direction(self, rng: np.random.Generator) -> list:
         """As the 3-D simulator's random pokes: azimuth U(-π, π), elevation U(10°, 65°)."""
         return [float(rng.uniform(*AZIMUTH_RANGE)), float(rng.uniform(*RANDOM_ANGLE_RANGE))]
+
+    def random_action(self, rng: np.random.Generator, target__world) -> np.ndarray:
+        """As ActionSpace.random_action; with k fingers per action, k distinct random
+        fingers, each with its own random direction (and depth, speed, height)."""
+        if self.fingers_per_action == 1:
+            return super().random_action(rng, target__world)
+        fingers = rng.choice(self.n_fingers, self.fingers_per_action, replace=False)
+        out = []
+        for f in fingers:
+            u = self._random_direction(rng) + [float(rng.uniform(*self.range_of(v))) for v in self.vary]
+            out.append(super().action(int(f), u, target__world))
+        return np.concatenate(out)
+
+
+def split_action(action: dict) -> list:
+    """The per-finger pokes of an action {name: value} (a plan's chosen_dict): the names
+    without a suffix, then those with ``.1``, ``.2`` ... (tacest.sim3d.pokes.action_names),
+    each as a dict of the unsuffixed names."""
+    first = {k: v for k, v in action.items() if "." not in k}
+    out, j = [first], 1
+    while f"finger.{j}" in action:
+        out.append({k[: -len(f".{j}")]: v for k, v in action.items() if k.endswith(f".{j}")})
+        j += 1
+    return out
 
 
 def object_height(model) -> float:
@@ -215,11 +298,15 @@ def object_height(model) -> float:
     return float(np.ptp(Vw @ np.asarray(model.up, float)))
 
 
-def action_space_for(model, style: str = "gentle", vary=()) -> ActionSpace:
+def action_space_for(model, style: str = "gentle", vary=(), fingers_per_action: int = 1) -> ActionSpace:
     """The action space of a planning model state (ModelState: :class:`ActionSpace`;
-    ModelState3: :class:`ActionSpace3` over its fingertips), poke style ``style``."""
+    ModelState3: :class:`ActionSpace3` over its fingertips), poke style ``style``,
+    ``fingers_per_action`` fingers moving in one action (3-D only)."""
     shared = dict(n_fingers=model.n_fingers, vary=tuple(vary), style=style, object_height=object_height(model),
                   up=np.asarray(model.up, float))
     if np.asarray(model.up).shape[0] == 3:
-        return ActionSpace3(p_finger__world=model.p_finger__world, **shared)
+        return ActionSpace3(p_finger__world=model.p_finger__world, fingers_per_action=int(fingers_per_action),
+                            **shared)
+    if int(fingers_per_action) != 1:
+        raise TacestError("several fingers per action are offered in 3-D only (a 2-D action moves one finger)")
     return ActionSpace(**shared)

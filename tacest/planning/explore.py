@@ -72,7 +72,8 @@ class ExploreOptions:
     poke's style (tacest record --poke-style) and the planner's action space (dynamic:
     fast pokes whose speed and aim height are chosen, tacest.planning.actions); noise_* :
     sensor noise of the simulator
-    (tacest record's defaults); iterations, population : CEM settings.
+    (tacest record's defaults); iterations, population : CEM settings;
+    fingers_per_action : fingers moving together in each planned action (3-D only).
     """
 
     object_spec: str = "box"
@@ -93,6 +94,7 @@ class ExploreOptions:
     force_stream: bool | None = None
     information: str | None = None
     poke_style: str = "gentle"
+    fingers_per_action: int = 1
 
     def validate(self) -> "ExploreOptions":
         if int(self.dim) not in (2, 3):
@@ -105,6 +107,11 @@ class ExploreOptions:
             raise TacestError(f"--pokes must be >= 1, got {self.pokes}")
         if int(self.seed) < 0:
             raise TacestError(f"--seed must be >= 0, got {self.seed}")
+        if not 1 <= int(self.fingers_per_action) <= int(self.fingers):
+            raise TacestError(f"--fingers-per-action must be in 1..{self.fingers} (the fingers), "
+                              f"got {self.fingers_per_action}")
+        if int(self.fingers_per_action) > 1 and int(self.dim) != 3:
+            raise TacestError("several fingers per action are offered in 3-D only (--dim 3)")
         return self
 
     @property
@@ -125,7 +132,8 @@ class ExploreOptions:
 
         return PlanSettings(method=self.policy, score=self.score, seed=plan_seed(self.seed, n), vary=tuple(self.vary),
                             iterations=self.iterations, population=self.population,
-                            information=self.information, poke_style=self.poke_style).validate()
+                            information=self.information, poke_style=self.poke_style,
+                            fingers_per_action=int(self.fingers_per_action)).validate()
 
 
 def _write_json(path: Path, obj) -> None:
@@ -172,7 +180,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     steps = []
     summary = {"object": opts.object_spec, "dim": int(opts.dim), "fingers": int(opts.fingers),
                "force": opts.records_force, "seed": int(opts.seed), "policy": opts.policy, "pokes": N,
-               "shape": shape, "score": opts.score,
+               "shape": shape, "score": opts.score, "fingers_per_action": int(opts.fingers_per_action),
                "information": opts.plan_settings(1).information_for(int(opts.dim)),
                "options": {**asdict(opts), "vary": list(opts.vary)},
                "steps": steps}
@@ -264,11 +272,15 @@ def _check_object(object_spec: str, dim: int) -> None:
 
 
 def describe_approach(action: dict) -> str:
-    """``approach 35 deg`` (2-D) or ``finger 1 from azimuth 40 deg, elevation 30 deg`` (3-D)."""
+    """``approach 35 deg`` (2-D) or ``finger 1 from azimuth 40 deg, elevation 30 deg`` (3-D;
+    the other fingers of an action joined by ``+``)."""
     if "approach_angle" in action:
         return f"approach {math.degrees(action['approach_angle']):.0f} deg"
-    return (f"finger {int(action['finger'])} from azimuth {math.degrees(action['approach_azimuth']):.0f} deg, "
-            f"elevation {math.degrees(action['approach_elevation']):.0f} deg")
+    from tacest.planning.actions import split_action
+
+    parts = [f"finger {int(x['finger'])} from azimuth {math.degrees(x['approach_azimuth']):.0f} deg, elevation "
+             f"{math.degrees(x['approach_elevation']):.0f} deg" for x in split_action(action)]
+    return " + ".join(parts)
 
 
 def _views_3d(out: Path, run_path: Path, N: int, what: str) -> dict:

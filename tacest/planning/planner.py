@@ -61,7 +61,8 @@ class PlanSettings:
     sensor draws (0: the closed form at the noiseless prediction; 2-D only);
     information : schur | identity | diffsim | marginal (tacest.information.sensitivity;
     None: :data:`DEFAULT_INFORMATION` of the estimate's dimension; the ``identity``
-    method always uses ``identity``).
+    method always uses ``identity``); fingers_per_action : fingers moving together in one
+    action (3-D only; tacest.planning.actions.ActionSpace3).
     """
 
     method: str = "eig"
@@ -75,6 +76,7 @@ class PlanSettings:
     noise_samples: int = 0
     information: str | None = None
     poke_style: str = "gentle"
+    fingers_per_action: int = 1
 
     def validate(self) -> "PlanSettings":
         if self.method not in METHODS:
@@ -91,6 +93,8 @@ class PlanSettings:
             raise TacestError(f"unknown poke style {self.poke_style!r}: use {', '.join(ACTION_STYLES)}")
         if self.information is not None and self.information not in INFORMATION_METHODS:
             raise TacestError(f"unknown information {self.information!r}: use {', '.join(INFORMATION_METHODS)}")
+        if int(self.fingers_per_action) < 1:
+            raise TacestError(f"--fingers-per-action must be >= 1, got {self.fingers_per_action}")
         if self.method == "identity" and self.information not in (None, "identity"):
             raise TacestError(f"method identity is the identity-Jacobian information; "
                               f"--information {self.information} goes with method eig")
@@ -208,7 +212,8 @@ def make_scorer(est, runs, settings: PlanSettings) -> Scorer:
 def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     """The next poke for the object of ``est`` (an Estimate) recorded in ``runs``.
 
-    Returns a Plan: candidates (N, n) poke vectors (POKE_NAMES, or POKE3_NAMES in 3-D)
+    Returns a Plan: candidates (N, n) action vectors (POKE_NAMES, or in 3-D
+    tacest.sim3d.pokes.action_names of settings.fingers_per_action)
     with their scores, the chosen one, method, score, estimate_sha256 and attrs ``planner`` (settings JSON),
     ``wall_time`` (s), ``evaluations``, ``target`` (the estimated centroid, m).
     """
@@ -216,7 +221,7 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     t0 = time.perf_counter()
     scorer = make_scorer(est, runs, settings)
     model = scorer.model
-    space = action_space_for(model, settings.poke_style, settings.vary)
+    space = action_space_for(model, settings.poke_style, settings.vary, settings.fingers_per_action)
     target = model.centroid__world
     rng = np.random.default_rng(np.random.SeedSequence([int(settings.seed), 4]))
     cands, scores = [], []

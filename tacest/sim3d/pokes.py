@@ -22,6 +22,15 @@ the object, across, and down to the start point ``target + d·(s_touch + CLEARAN
 approach to ``target + d·(s_touch − depth)`` at ``speed``; retreat to the start point
 in RETREAT_TIME.  ``s_touch`` is where the finger sphere first touches the object in its
 pose at poke start (tacest.sim3d.world.World3.touch_distance).
+
+**Several fingers in one action.**  An action may move k distinct fingers at once: its
+vector is k poke vectors one after another, named POKE3_NAMES and then the same names
+with the suffix ``.1``, ``.2`` ... (:func:`action_names`; a plan file's ``/chosen/params``
+and ``names``).  A reader that knows only POKE3_NAMES finds the first finger's poke.
+The fingers go to their start points one after another, approach together (each at its
+own speed and depth, starting at the same instant) and retreat together.  In a run file
+each finger's poke is its own row of ``/actions/params`` (POKE3_NAMES) and the rows of
+one action share their ``/actions/segments`` row.
 """
 
 from __future__ import annotations
@@ -36,7 +45,8 @@ from tacest.sim.pokes import (APPROACH_TIME, CLEARANCE, DEPTH_LIMITS, POKE_KIND,
                               RANDOM_DEPTH_RANGE, RETREAT_TIME, SAFE_MARGIN, SPEED_LIMITS, Path, _PathBuilder,
                               draw_style)
 
-__all__ = ["POKE3_NAMES", "POKE_KIND", "Poke3", "random_poke", "poke_path", "Path"]
+__all__ = ["POKE3_NAMES", "POKE_KIND", "Poke3", "action_names", "pokes_from_vector", "random_poke", "poke_path",
+           "Path"]
 
 #: the parameter names of a 3-D poke (/actions/params attrs names)
 POKE3_NAMES = ("finger", "approach_azimuth", "approach_elevation", "target_x", "target_y", "target_z",
@@ -104,6 +114,46 @@ class Poke3:
                    speed=p["speed"])
 
 
+def action_names(k: int) -> tuple:
+    """The names of an action of k fingers' pokes (module docstring): POKE3_NAMES, then
+    POKE3_NAMES with the suffix ``.1`` ... ``.{k-1}``."""
+    if int(k) < 1:
+        raise TacestError(f"an action moves at least one finger, not {k}")
+    return POKE3_NAMES + tuple(f"{n}.{j}" for j in range(1, int(k)) for n in POKE3_NAMES)
+
+
+def pokes_from_vector(vec, n_fingers: int, names=None) -> list:
+    """The pokes [Poke3] of one action whose vector ``vec`` has entries ``names``
+    (default :func:`action_names` of len(vec) / 8): the first from the names of
+    POKE3_NAMES, one more for each suffix ``.j`` (j = 1, 2, ...) whose whole set of
+    names is present.  TacestError (naming the bad value) if a poke is bad or a finger
+    moves twice."""
+    vec = np.asarray(vec, float).reshape(-1)
+    if names is None:
+        if len(vec) % len(POKE3_NAMES):
+            raise TacestError(f"an action of {len(vec)} values is not a whole number of 3-D pokes "
+                              f"({len(POKE3_NAMES)} values each)")
+        names = action_names(len(vec) // len(POKE3_NAMES))
+    names = [str(n) for n in names]
+    if len(names) != len(vec):
+        raise TacestError(f"poke: {len(vec)} values for {len(names)} names")
+    pokes = [Poke3.from_vector(vec, n_fingers, names)]
+    j = 1
+    while all(f"{n}.{j}" in names for n in POKE3_NAMES):
+        cols = [names.index(f"{n}.{j}") for n in POKE3_NAMES]
+        try:
+            pokes.append(Poke3.from_vector(vec[cols], n_fingers))
+        except TacestError as exc:
+            raise TacestError(f"{exc} (the poke of suffix .{j})") from None
+        j += 1
+    fingers = [p.finger for p in pokes]
+    if len(set(fingers)) != len(fingers):
+        twice = sorted({f for f in fingers if fingers.count(f) > 1})
+        raise TacestError(f"an action moves finger(s) {', '.join(map(str, twice))} twice; the fingers of one "
+                          "action must differ")
+    return pokes
+
+
 def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int, style: str = "gentle",
                 vertices__world=None, ground_height: float = 0.0) -> Poke3:
     """A random poke of ``style`` (tacest.sim.pokes.POKE_STYLES or ``gentle``).
@@ -133,29 +183,55 @@ def random_poke(rng: np.random.Generator, centroid__world, n_fingers: int, style
                  (CLEARANCE + depth) / APPROACH_TIME)
 
 
-def poke_path(poke: Poke3, p_ctl0__world, s_touch, object_top, finger_radius) -> tuple:
-    """The control path of one poke (module docstring).
+def poke_path(poke, p_ctl0__world, s_touch, object_top, finger_radius) -> tuple:
+    """The control path of one action (module docstring).
 
-    p_ctl0__world : (F, 3) m, control positions at poke start; s_touch : m or None
-    (the line misses the object); object_top : m, highest object point now;
-    finger_radius : (F,) m.
-    Returns ``(path (tacest.sim.pokes.Path with (N, F, 3) points), start (3,), end (3,))``.
+    poke : a Poke3, or a list of Poke3 of distinct fingers moving in one action;
+    p_ctl0__world : (F, 3) m, control positions at the action's start; s_touch : m or
+    None (the line misses the object), one per poke for a list; object_top : m, highest
+    object point now; finger_radius : (F,) m.
+    Returns ``(path (tacest.sim.pokes.Path with (N, F, 3) points), start, end)``: the
+    approach's start and end points, (3,) for one Poke3, (k, 3) for a list of k.
     """
-    d = poke.direction__world
-    s = 0.0 if s_touch is None else float(s_touch)
-    start = poke.target__world + d * (s + CLEARANCE)
-    end = poke.target__world + d * (s - poke.depth)
-    f = poke.finger
+    single = isinstance(poke, Poke3)
+    pokes = [poke] if single else list(poke)
+    touches = [s_touch] if single else list(s_touch)
+    starts, ends = [], []
+    for pk, st in zip(pokes, touches):
+        d = pk.direction__world
+        s = 0.0 if st is None else float(st)
+        starts.append(pk.target__world + d * (s + CLEARANCE))
+        ends.append(pk.target__world + d * (s - pk.depth))
     p0 = np.array(p_ctl0__world, float)
     z_safe = object_top + float(np.max(finger_radius)) + SAFE_MARGIN
-    # idle fingers lift out of the way; the poking finger goes up, across, down
+    # idle fingers lift out of the way; each poking finger in turn goes up, across, down
     lifted = p0.copy()
     lifted[:, 2] = np.maximum(lifted[:, 2], z_safe)
-    z_via = max(z_safe, p0[f, 2], start[2])
     b = _PathBuilder(p0)
-    b.move(f, np.array([p0[f, 0], p0[f, 1], z_via]), others=np.where(np.arange(len(p0))[:, None] == f, p0, lifted))
-    b.move(f, np.array([start[0], start[1], z_via]))
-    b.move(f, start)
-    b.move(f, end, duration=float(np.linalg.norm(start - end)) / poke.speed)
-    b.move(f, start, duration=RETREAT_TIME)
-    return b.build(), start, end
+    for j, (pk, start) in enumerate(zip(pokes, starts)):
+        f = pk.finger
+        now = b.points[-1][f]
+        z_via = max(z_safe, now[2], start[2])
+        if j == 0:
+            b.move(f, np.array([now[0], now[1], z_via]), others=np.where(np.arange(len(p0))[:, None] == f, p0, lifted))
+        else:
+            b.move(f, np.array([now[0], now[1], z_via]))
+        b.move(f, np.array([start[0], start[1], z_via]))
+        b.move(f, start)
+    # the approaches start together, each at its own speed; the retreats end together
+    fingers = [pk.finger for pk in pokes]
+    durations = [float(np.linalg.norm(a - e)) / pk.speed for pk, a, e in zip(pokes, starts, ends)]
+    at_start = b.points[-1].copy()
+    elapsed = 0.0
+    for t_next in sorted(set(durations)):
+        pos = b.points[-1].copy()
+        for f, a, e, dur in zip(fingers, starts, ends, durations):
+            pos[f] = e if t_next >= dur else a + (e - a) * (t_next / dur)
+        b.move(fingers[0], pos[fingers[0]], duration=t_next - elapsed, others=pos)
+        elapsed = t_next
+    b.move(fingers[0], starts[0], duration=RETREAT_TIME, others=np.where(np.isin(np.arange(len(p0)), fingers)[:, None],
+                                                                          at_start, b.points[-1]))
+    path = b.build()
+    if single:
+        return path, starts[0], ends[0]
+    return path, np.array(starts), np.array(ends)

@@ -7,7 +7,7 @@ Public API (the 3-D counterparts of tacest.sim.record; options are its SimOption
     initial_state(opts) -> WorldState3 a new object at rest on the ground
     state_at_rest(obj, xy=(0, 0), quat=None, fingers=1, finger_radius=0.01, effects=()) -> WorldState3
     toss_state(state, rng, xy=None) -> WorldState3  the object released in the air (a toss)
-    simulate_pokes(state, actions, opts=None, names=POKE3_NAMES, settle_first=False, random_pokes=0) -> Run
+    simulate_pokes(state, actions, opts=None, names=None, settle_first=False, random_pokes=0) -> Run
     record_sim(opts, plan_path=None, append_to=None) -> Run
     state_from_run(run) -> WorldState3            continue from a run's last truth state
 
@@ -44,7 +44,7 @@ from tacest.sim.record import (EMPTY_TIME, PARK_HEIGHT, PARK_SPACING, POSE_ANGLE
 from tacest.sim3d.objects import (SimObject3, apply_com_offset, inradius, make_shape, resting_pose, rest_orientation,
                                   uniform_object)
 from tacest.sim.pokes import style_of_poke
-from tacest.sim3d.pokes import POKE3_NAMES, POKE_KIND, Poke3, poke_path, random_poke
+from tacest.sim3d.pokes import POKE3_NAMES, POKE_KIND, Poke3, poke_path, pokes_from_vector, random_poke
 from tacest.sim3d.world import GRAVITY, MAX_FINGER_FORCE, World3
 
 log = logging.getLogger(__name__)
@@ -229,8 +229,9 @@ def _at_rest(velocity) -> bool:
 
 def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idle=False,
               settle_first=False) -> _Trajectory:
-    """Run the pokes ``sources`` (each a (8,) POKE3_NAMES vector or None for a random
-    poke) from ``state``.  Every poke but the first (and the first too with
+    """Run the actions ``sources`` (each a (8,) POKE3_NAMES vector, a (k, 8) array of k
+    distinct fingers' pokes moving in one action (tacest.sim3d.pokes), or None for a
+    random poke) from ``state``.  Every poke but the first (and the first too with
     ``lead_idle``) starts after one idle sample interval, so segments tile the run.
     With ``settle_first`` (a toss) the fingers first hold still until the object has
     come to rest (at most TOSS_WAIT s; then SETTLE_TIME more when there are no pokes):
@@ -284,15 +285,15 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
             hold(1)
         start = len(cols["q"]) - 1
         if src is None:
-            poke = random_poke(rng_pokes, world.centroid__world(), F, style_of_poke(opts.poke_style, rng_pokes, i),
-                               world.vertices__world())
+            pokes = [random_poke(rng_pokes, world.centroid__world(), F, style_of_poke(opts.poke_style, rng_pokes, i),
+                                 world.vertices__world())]
         else:
-            poke = Poke3.from_vector(src, F)
+            pokes = [Poke3.from_vector(row, F) for row in np.asarray(src, float).reshape(-1, len(POKE3_NAMES))]
         reach = SIZE_BOUND + float(np.max(world.finger_radius))
-        s_touch = world.touch_distance(poke.target__world, poke.direction__world,
-                                       world.finger_radius[poke.finger], s_min=-reach, s_max=reach)
+        s_touch = [world.touch_distance(pk.target__world, pk.direction__world, world.finger_radius[pk.finger],
+                                        s_min=-reach, s_max=reach) for pk in pokes]
         top = float(np.max(world.vertices__world()[:, 2]))
-        path, _, _ = poke_path(poke, world.p_control__world, s_touch, top, world.finger_radius)
+        path, _, _ = poke_path(pokes, world.p_control__world, s_touch, top, world.finger_radius)
         extra = SETTLE_TIME if i == A - 1 else 0.0
         n_samples = int(math.ceil((path.duration + extra) / dt - 1e-9))
         ctl = path.at(h * np.arange(1, n_samples * n_sub + 1))
@@ -302,8 +303,9 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
             record(world.take_measurement())
         # like a robot, wait until the object has stopped (a tipped object may still fall)
         hold_until_rest(REST_WAIT)
-        segments.append((start, len(cols["q"])))
-        params.append(poke.to_vector())
+        for pk in pokes:  # one row per finger; the rows of one action share its segment
+            segments.append((start, len(cols["q"])))
+            params.append(pk.to_vector())
     if A == 0:
         hold(int(round((SETTLE_TIME if settle_first else EMPTY_TIME) / dt)))
     T = len(cols["q"])
@@ -365,13 +367,14 @@ def _make_run(traj: _Trajectory, state0: WorldState3, opts: SimOptions, rng_nois
 
 
 def simulate_pokes(state, actions, opts: SimOptions = None,
-                   names=POKE3_NAMES, noise_key: int = 0, settle_first: bool = False, random_pokes: int = 0) -> Run:
+                   names=None, noise_key: int = 0, settle_first: bool = False, random_pokes: int = 0) -> Run:
     """Simulate the given 3-D pokes from ``state`` and return the recorded Run (with truth).
 
     state : WorldState3 (e.g. from :func:`initial_state` or :func:`state_from_run`), or
         a SimObject3, placed by :func:`state_at_rest` with ``opts.fingers`` fingers;
-    actions : (A, n) poke parameter vectors whose columns are ``names`` (default
-        POKE3_NAMES); targets are used as given;
+    actions : (A, n) action vectors whose columns are ``names`` (default: POKE3_NAMES,
+        or for n = 8k the k fingers' pokes of tacest.sim3d.pokes.action_names, moving
+        together); targets are used as given;
     opts : noise levels, dt, streams (SimOptions; its object, seed, pokes and effects
         are not used: the object and effects are the state's).
     Sample 0 is ``state`` itself; poke i covers /actions/segments[i].  With
@@ -386,10 +389,10 @@ def simulate_pokes(state, actions, opts: SimOptions = None,
         state = state_at_rest(state, fingers=opts.fingers, finger_radius=opts.finger_radius)
     acts = np.asarray(actions, float)
     if acts.size == 0:
-        acts = acts.reshape(0, len(names))
+        acts = acts.reshape(0, len(POKE3_NAMES if names is None else names))
     if acts.ndim == 1:
         acts = acts[None, :]
-    sources = [Poke3.from_vector(a, state.n_fingers, names).to_vector() for a in acts] + [None] * int(random_pokes)
+    sources = [_action_rows(a, state.n_fingers, names) for a in acts] + [None] * int(random_pokes)
     traj = _simulate(state, sources, opts, _rng(opts.seed, _STREAM_POKES, noise_key), settle_first=settle_first)
     return _make_run(traj, state, opts, _rng(opts.seed, _STREAM_NOISE, noise_key))
 
@@ -455,6 +458,12 @@ def state_from_run(run: Run) -> WorldState3:
 # the recorder
 
 
+def _action_rows(vec, n_fingers, names) -> np.ndarray:
+    """(k, 8) POKE3_NAMES rows of the k fingers' pokes of one action vector ``vec``
+    named ``names`` (tacest.sim3d.pokes.pokes_from_vector)."""
+    return np.array([pk.to_vector() for pk in pokes_from_vector(vec, n_fingers, names)])
+
+
 def _plan_sources(plan_path, n_fingers, where=""):
     from tacest.io.plan import read_plan
 
@@ -462,10 +471,11 @@ def _plan_sources(plan_path, n_fingers, where=""):
     if plan.kind != POKE_KIND:
         raise TacestError(f"{plan_path}: plan action kind is {plan.kind!r}; the simulator executes 'poke'")
     try:
-        src = Poke3.from_vector(plan.chosen, n_fingers, plan.names).to_vector()
+        src = _action_rows(plan.chosen, n_fingers, plan.names)
     except TacestError as exc:
         raise TacestError(f"{plan_path}: {exc}") from None
-    log.info(f"executing the planned poke of {plan_path} ({plan.method}, {plan.score}){where}")
+    what = "poke" if len(src) == 1 else f"action of {len(src)} fingers"
+    log.info(f"executing the planned {what} of {plan_path} ({plan.method}, {plan.score}){where}")
     return [src]
 
 
@@ -480,7 +490,9 @@ def _record(opts: SimOptions, plan_path=None, append_to=None) -> Run:
     """Record a simulated 3-D run (``opts.dim`` = 3).
 
     Without ``plan_path``: ``opts.pokes`` random pokes.  With ``plan_path``: the plan's
-    ``/chosen/params`` (3-D poke names, POKE3_NAMES) as one poke, its target as given.
+    ``/chosen/params`` (3-D poke names, POKE3_NAMES, and their suffixed copies for the
+    other fingers of an action: tacest.sim3d.pokes.action_names) as one action, its
+    targets as given.
     With ``append_to`` (an existing 3-D run file with /truth): continue that run's world
     and return the whole run, old samples first; otherwise a new object from ``opts``.
     Progress lines go to the module's logger.
