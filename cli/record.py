@@ -29,6 +29,9 @@ from tacest.sim.effects import EFFECT_NAMES  # light: no pymunk
                    "height), high (near the top: it tips and topples), flick (low and fast: it slides and spins "
                    "free), dynamic (each poke fast, high or flick), mixed (any of the four). docs/simulation.md.")
 @click.option("--fingers", type=click.IntRange(1, 3), default=1, show_default=True, help="[sim] fingertips.")
+@click.option("--fingers-per-action", type=click.IntRange(1, 3), default=1, show_default=True,
+              help="[sim, --dim 3] fingers that move together in each random action, each with its own random "
+                   "poke (docs/simulation.md).")
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:key=value,...]",
               help="[sim] inject an unmodelled effect (repeatable): " + ", ".join(EFFECT_NAMES)
                    + "; parameters not given are random, e.g. latency:samples=2; see docs/effects.md.")
@@ -149,6 +152,7 @@ def _record_sim(output, quiet, **kw):
         fingers=kw["fingers"], effects=list(kw["effects"]), noise_force=kw["noise_force"],
         noise_position=kw["noise_position"], noise_normal=kw["noise_normal"], force_stream=not kw["no_force"],
         observe_pose=kw["observe_pose"], dt=kw["dt"], toss=kw["toss"], poke_style=kw["poke_style"],
+        fingers_per_action=kw["fingers_per_action"],
     )
     append_to = output if kw["plan_path"] and output.exists() else None
     if append_to is not None:
@@ -161,5 +165,7 @@ def _record_sim(output, quiet, **kw):
         raise
     write_run(run, output, include_truth=not kw["no_truth"])
     if not quiet:
-        _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), "
-                  f"{0 if run.actions is None else len(run.actions.segments)} action(s)")
+        rows = 0 if run.actions is None else len(run.actions.segments)
+        actions = 0 if run.actions is None else len({tuple(s) for s in run.actions.segments.tolist()})
+        _echo_err(f"wrote {output}: {run.n_samples} samples, {run.n_fingers} finger(s), {actions} action(s)"
+                  + (f" ({rows} finger pokes)" if rows != actions else ""))

@@ -556,3 +556,29 @@ def test_two_fingers_of_one_action_approach_together_and_squeeze_the_box(tmp_pat
     run = record_sim(SimOptions(dim=3, seed=4, fingers=2), plan_path=plan)
     assert run.actions.params.shape == (2, 8) and set(run.actions.params[:, 0]) == {0.0, 1.0}
     assert run.contact.astype(bool).any(axis=0).all(), "each finger of the planned action touches"
+
+
+def test_random_actions_of_several_fingers(tmp_path):
+    """``record --dim 3 --fingers-per-action 2``: every random action moves two distinct
+    fingers (two rows of /actions/params sharing a segment) and both touch in most
+    actions; the recorder's message counts actions and finger pokes; in 2-D, or with more
+    fingers per action than fingers, one line and exit 2."""
+    run = record_sim(SimOptions(dim=3, fingers=3, fingers_per_action=2, pokes=3, seed=11, force_stream=False))
+    seg, fingers = run.actions.segments, run.actions.params[:, 0]
+    assert len(seg) == 6 and all(np.array_equal(seg[2 * i], seg[2 * i + 1]) for i in range(3))
+    assert all(fingers[2 * i] != fingers[2 * i + 1] for i in range(3))
+    both = [run.contact[a:b][:, [int(fingers[2 * i]), int(fingers[2 * i + 1])]].any(axis=0).all()
+            for i, (a, b) in enumerate(seg[::2])]
+    assert sum(both) >= 2, both
+    import subprocess
+    import sys
+
+    out = tmp_path / "sq.h5"
+    res = subprocess.run([sys.executable, "-m", "tacest", "record", "--dim", "3", "--fingers", "2",
+                          "--fingers-per-action", "2", "--pokes", "1", "--no-force", "-o", str(out)],
+                         capture_output=True, text=True)
+    assert res.returncode == 0 and "1 action(s) (2 finger pokes)" in res.stderr, res.stderr
+    for args in (["--fingers", "2", "--fingers-per-action", "2"], ["--dim", "3", "--fingers-per-action", "2"]):
+        res = subprocess.run([sys.executable, "-m", "tacest", "record", *args, "-o", str(tmp_path / "bad.h5")],
+                             capture_output=True, text=True)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr

@@ -108,7 +108,9 @@ class SimOptions:
     dt : s, sample period; finger_radius : m; substeps : minimum physics substeps per
     sample (more when dt / substeps > MAX_SUBSTEP); max_finger_force : N, finger drive limit;
     poke_style : how random pokes are drawn (tacest.sim.pokes.POKE_MIXES: ``gentle``, the
-    dynamic ``fast``, ``high``, ``flick``, their mix ``dynamic``, or ``mixed``).
+    dynamic ``fast``, ``high``, ``flick``, their mix ``dynamic``, or ``mixed``);
+    fingers_per_action : 3-D only: each random action moves this many distinct fingers
+    together, each with its own random poke of the action's style (tacest.sim3d.pokes).
     """
 
     dim: int = 2
@@ -128,6 +130,7 @@ class SimOptions:
     substeps: int = 20
     max_finger_force: float = MAX_FINGER_FORCE
     poke_style: str = "gentle"
+    fingers_per_action: int = 1
 
     def validate(self) -> "SimOptions":
         """Raise TacestError for any value the simulator cannot use."""
@@ -140,6 +143,11 @@ class SimOptions:
         check_poke_style(self.poke_style)
         if int(self.fingers) < 1:
             raise TacestError(f"--fingers must be >= 1, got {self.fingers}")
+        if not 1 <= int(self.fingers_per_action) <= int(self.fingers):
+            raise TacestError(f"--fingers-per-action must be in 1..{self.fingers} (the fingers), "
+                              f"got {self.fingers_per_action}")
+        if int(self.fingers_per_action) > 1 and int(self.dim) != 3:
+            raise TacestError("several fingers per action are offered in 3-D only (--dim 3)")
         for name in ("noise_force", "noise_position", "noise_normal"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):

@@ -227,6 +227,17 @@ def _at_rest(velocity) -> bool:
     return float(np.linalg.norm(velocity[:3])) < REST_SPEED and float(np.linalg.norm(velocity[3:])) < REST_OMEGA
 
 
+def _random_action(rng: np.random.Generator, world: World3, n_fingers: int, style: str, k: int) -> list:
+    """[Poke3] of one random action of ``style`` moving k distinct fingers (k = 1: the
+    random poke of tacest.sim3d.pokes.random_poke, as it always was), each with its own
+    random poke of that style."""
+    pokes = [random_poke(rng, world.centroid__world(), n_fingers, style, world.vertices__world()) for _ in range(k)]
+    if k > 1:
+        for pk, f in zip(pokes, rng.choice(n_fingers, k, replace=False)):
+            pk.finger = int(f)
+    return pokes
+
+
 def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idle=False,
               settle_first=False) -> _Trajectory:
     """Run the actions ``sources`` (each a (8,) POKE3_NAMES vector, a (k, 8) array of k
@@ -285,8 +296,8 @@ def _simulate(state: WorldState3, sources, opts: SimOptions, rng_pokes, lead_idl
             hold(1)
         start = len(cols["q"]) - 1
         if src is None:
-            pokes = [random_poke(rng_pokes, world.centroid__world(), F, style_of_poke(opts.poke_style, rng_pokes, i),
-                                 world.vertices__world())]
+            pokes = _random_action(rng_pokes, world, F, style_of_poke(opts.poke_style, rng_pokes, i),
+                                   int(opts.fingers_per_action))
         else:
             pokes = [Poke3.from_vector(row, F) for row in np.asarray(src, float).reshape(-1, len(POKE3_NAMES))]
         reach = SIZE_BOUND + float(np.max(world.finger_radius))
