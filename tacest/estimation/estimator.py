@@ -23,7 +23,8 @@ import numpy as np
 from tacest.errors import TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
-from tacest.estimation.data import Scales, choose_scales, parameter_vector, previous_trajectories, touching
+from tacest.estimation.data import (Scales, choose_scales, force_in_contact, parameter_vector, previous_trajectories,
+                                    touching)
 from tacest.estimation.initial import continued_trajectory, initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
@@ -93,7 +94,7 @@ class ImplicitEstimator:
         before = None if previous is None else previous_trajectories(previous, 2, self.shape.name, runs)
         self.scales: Scales = choose_scales(runs, self.config)
         self.structures = [RunStructure(T=r.n_samples, F=r.n_fingers, observed=r.pose_obs is not None) for r in runs]
-        self.has_force = any(r.force is not None for r in runs)
+        self.has_force = force_in_contact(runs)  # a force measured in contact: the mass is told
         size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
         self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound
         w, h = initial_extents(runs, self.scales.L)
@@ -126,7 +127,7 @@ class ImplicitEstimator:
         lbx[:ns], ubx[:ns] = self.shape.bounds(self.size_bound / self.scales.L)
         lbx[ns:ns + 4] = [LOG_MASS_BOUNDS[0], LOG_INERTIA_BOUNDS[0], FRICTION_BOUNDS[0], FRICTION_BOUNDS[0]]
         ubx[ns:ns + 4] = [LOG_MASS_BOUNDS[1], LOG_INERTIA_BOUNDS[1], FRICTION_BOUNDS[1], FRICTION_BOUNDS[1]]
-        if not self.has_force:  # DESIGN: without a force stream mass is not identifiable
+        if not self.has_force:  # DESIGN: without a force measured in contact mass is not identifiable
             pin(lbx, ubx, [ns], [0.0])  # held at the prior's value
         a = ns + len(PHYS_NAMES)  # effect parameters
         for j, (e, p) in enumerate(pr.effect_params):

@@ -30,8 +30,8 @@ from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inert
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
-from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, gravity_of,
-                                   previous_trajectories, touch_ends, touching)
+from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, force_in_contact,
+                                   gravity_of, previous_trajectories, touch_ends, touching)
 from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
@@ -263,7 +263,7 @@ class Estimator3D:
         self.scales: Scales = choose_scales(runs, self.config)
         self.F = max(r.n_fingers for r in runs)
         self.layout = Layout3D(lengths=tuple(int(r.n_samples) for r in runs), F=self.F)
-        self.has_force = any(r.force is not None for r in runs)
+        self.has_force = force_in_contact(runs)  # a force measured in contact: the mass is told
         self.has_pose = any(r.pose_obs is not None for r in runs)
         size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
         self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound
@@ -363,7 +363,7 @@ class Estimator3D:
         lbx[:ns], ubx[:ns] = self.shape.bounds(self.size_bound / self.scales.L)
         i_lm = pr.theta_index("log_mass")
         lbx[i_lm], ubx[i_lm] = LOG_MASS_BOUNDS
-        if not self.has_force:  # mass is not identifiable without a force measurement
+        if not self.has_force:  # mass is not identifiable without a force measured in contact
             pin(lbx, ubx, [i_lm], [0.0])
         for k, name in enumerate(PHYS_NAMES_3D[1:7]):
             j = pr.theta_index(name)
@@ -727,7 +727,7 @@ class Estimator3D:
                          shape_seen=shape_seen(self.runs), shape_names=tuple(self.shape.param_names))
         notes = []
         if not self.has_force:
-            notes.append("no force measurement: mass is not identifiable (held at the prior "
+            notes.append("no force measured in contact: mass is not identifiable (held at the prior "
                          f"{sc.m0:g} kg); inertia is identified only relative to it (I/m)")
         return assemble(3, self.shape.name, V, params, run_ests, out, wall_time, info, facts, self.config.to_dict(),
                         "implicit", extra={"length_scale": sc.L, "mass_scale": sc.m0,

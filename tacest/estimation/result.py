@@ -67,7 +67,8 @@ UNDETERMINED_FRACTION = 0.5
 class FitFacts:
     """What the identifiability policy needs besides the parameters and the information.
 
-    has_force : a force stream was measured; has_fingers : a fingertip touched;
+    has_force : a fingertip's force was measured while it touched (data.force_in_contact:
+    what tells the mass); has_fingers : a fingertip touched;
     at_bound : {name: True} for parameters that ended at a hard bound; effect_sigma :
     {information row name: prior sigma in physical units} of the effect parameters;
     effects : the modelled effects' names; held : every parameter was held fixed;

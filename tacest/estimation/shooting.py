@@ -75,7 +75,7 @@ from tacest.dynamics.rigid2d import generalized_impulse, ground_contacts, mass_m
 from tacest.errors import TacestError
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.data import Scales, choose_scales, pose_observation_columns
+from tacest.estimation.data import Scales, choose_scales, force_in_contact, pose_observation_columns
 from tacest.estimation.estimator import check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
 from tacest.estimation.result import FitFacts, assemble, shape_seen
@@ -603,7 +603,7 @@ class ShootingEstimator:
         self.config = config or EstimatorConfig()
         self.shape = make_shape(shape_spec, dim=2)
         self.scales = choose_scales(runs, self.config)
-        self.has_force = any(r.force is not None for r in runs)
+        self.has_force = force_in_contact(runs)  # a force measured in contact: the mass is told
         size_bounds = [float(r.prior["size_bound"]) for r in runs if "size_bound" in r.prior]
         self.size_bound = min(size_bounds) if size_bounds else self.config.prior.size_bound
         t0 = time.perf_counter()
