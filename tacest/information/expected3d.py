@@ -206,7 +206,6 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     ``target + d·(s_touch + CLEARANCE)`` and approaches ``target + d·(s_touch − depth)``
     at its ``speed``, all starting together; then they hold for ``hold_time`` after the
     longest approach.  Sample 0 is the state at the approach points."""
-    from tacest.sim.pokes import CLEARANCE
     from tacest.sim.record import SIZE_BOUND
     from tacest.sim3d.pokes import pokes_from_vector
     from tacest.sim3d.world import World3
@@ -235,11 +234,8 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     reach = SIZE_BOUND + float(np.max(radius))
     lines = []  # (finger, start, end, duration s) per poke
     for pk in pokes:
-        d = pk.direction__world
-        s = world.touch_distance(pk.target__world, d, radius[pk.finger], s_min=-reach, s_max=reach)
-        s_touch = 0.0 if s is None else s
-        start = pk.target__world + d * (s_touch + CLEARANCE)
-        end = pk.target__world + d * (s_touch - pk.depth)
+        start, end = pk.approach_line(world.touch_distance(pk.target__world, pk.direction__world, radius[pk.finger],
+                                                           s_min=-reach, s_max=reach))
         world.place_finger(pk.finger, start)
         lines.append((pk.finger, start, end, float(np.linalg.norm(end - start)) / pk.speed))
     world.take_measurement()

@@ -166,10 +166,12 @@ class ActionSpace:
         random pokes draw it (U(10°, 65°) from the right or its mirror from the left);
         depth, speed and height as :meth:`action` (uniform within their ranges if varied)."""
         finger = int(rng.integers(self.n_fingers))
-        u = self._random_direction(rng)
-        for v in self.vary:
-            u.append(float(rng.uniform(*self.range_of(v))))
-        return self.action(finger, u, target__world)
+        return self.action(finger, self._random_coordinates(rng), target__world)
+
+    def _random_coordinates(self, rng: np.random.Generator) -> list:
+        """One finger's random searched coordinates: a random direction, then each varied
+        variable uniform within its range."""
+        return self._random_direction(rng) + [float(rng.uniform(*self.range_of(v))) for v in self.vary]
 
 
 @dataclass
@@ -271,8 +273,7 @@ class ActionSpace3(ActionSpace):
         fingers = rng.choice(self.n_fingers, self.fingers_per_action, replace=False)
         out = []
         for f in fingers:
-            u = self._random_direction(rng) + [float(rng.uniform(*self.range_of(v))) for v in self.vary]
-            out.append(super().action(int(f), u, target__world))
+            out.append(super().action(int(f), self._random_coordinates(rng), target__world))
         return np.concatenate(out)
 
 

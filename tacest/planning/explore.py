@@ -107,11 +107,9 @@ class ExploreOptions:
             raise TacestError(f"--pokes must be >= 1, got {self.pokes}")
         if int(self.seed) < 0:
             raise TacestError(f"--seed must be >= 0, got {self.seed}")
-        if not 1 <= int(self.fingers_per_action) <= int(self.fingers):
-            raise TacestError(f"--fingers-per-action must be in 1..{self.fingers} (the fingers), "
-                              f"got {self.fingers_per_action}")
-        if int(self.fingers_per_action) > 1 and int(self.dim) != 3:
-            raise TacestError("several fingers per action are offered in 3-D only (--dim 3)")
+        from tacest.sim.pokes import check_fingers_per_action
+
+        check_fingers_per_action(self.fingers_per_action, self.fingers, self.dim)
         return self
 
     @property

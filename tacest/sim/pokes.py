@@ -108,6 +108,16 @@ def check_poke_style(name: str) -> str:
     return name
 
 
+def check_fingers_per_action(k: int, n_fingers: int, dim: int) -> int:
+    """k, the fingers that move together in one action, if 1 <= k <= n_fingers and (for
+    k > 1) dim is 3 (tacest.sim3d.pokes); a TacestError otherwise."""
+    if not 1 <= int(k) <= int(n_fingers):
+        raise TacestError(f"--fingers-per-action must be in 1..{n_fingers} (the fingers), got {k}")
+    if int(k) > 1 and int(dim) != 3:
+        raise TacestError("several fingers per action are offered in 3-D only (--dim 3)")
+    return int(k)
+
+
 def style_of_poke(mix: str, rng: np.random.Generator, index: int) -> str:
     """The style of poke ``index`` of a recording in ``mix``: a single style always; a
     mix draws one per poke (uniformly; no draw for a single style, so the gentle

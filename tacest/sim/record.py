@@ -48,7 +48,8 @@ from tacest.geometry.polygon import signed_area
 from tacest.geometry.transforms import rot2
 from tacest.sim.objects import (SimObject, apply_com_offset, inradius, make_shape, rest_angle, resting_pose,
                                 uniform_object)
-from tacest.sim.pokes import POKE_KIND, POKE_NAMES, Poke, check_poke_style, poke_path, random_poke, style_of_poke
+from tacest.sim.pokes import (POKE_KIND, POKE_NAMES, Poke, check_fingers_per_action, check_poke_style, poke_path,
+                              random_poke, style_of_poke)
 from tacest.sim.world import GRAVITY, MAX_FINGER_FORCE, MAX_SUBSTEP, World
 
 log = logging.getLogger(__name__)
@@ -143,11 +144,7 @@ class SimOptions:
         check_poke_style(self.poke_style)
         if int(self.fingers) < 1:
             raise TacestError(f"--fingers must be >= 1, got {self.fingers}")
-        if not 1 <= int(self.fingers_per_action) <= int(self.fingers):
-            raise TacestError(f"--fingers-per-action must be in 1..{self.fingers} (the fingers), "
-                              f"got {self.fingers_per_action}")
-        if int(self.fingers_per_action) > 1 and int(self.dim) != 3:
-            raise TacestError("several fingers per action are offered in 3-D only (--dim 3)")
+        check_fingers_per_action(self.fingers_per_action, self.fingers, self.dim)
         for name in ("noise_force", "noise_position", "noise_normal"):
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):

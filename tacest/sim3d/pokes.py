@@ -72,6 +72,14 @@ class Poke3:
         ce = math.cos(self.elevation)
         return np.array([ce * math.cos(self.azimuth), ce * math.sin(self.azimuth), math.sin(self.elevation)])
 
+    def approach_line(self, s_touch) -> tuple:
+        """(start, end) (3,) m of the approach: ``target + d·(s + CLEARANCE)`` to
+        ``target + d·(s − depth)``, s = s_touch m where the finger first touches along
+        the line (None, the line misses the object: 0)."""
+        d = self.direction__world
+        s = 0.0 if s_touch is None else float(s_touch)
+        return self.target__world + d * (s + CLEARANCE), self.target__world + d * (s - self.depth)
+
     def to_vector(self) -> np.ndarray:
         """(8,) in the order of POKE3_NAMES."""
         return np.array([self.finger, self.azimuth, self.elevation, *self.target__world, self.depth, self.speed],
@@ -196,12 +204,7 @@ def poke_path(poke, p_ctl0__world, s_touch, object_top, finger_radius) -> tuple:
     single = isinstance(poke, Poke3)
     pokes = [poke] if single else list(poke)
     touches = [s_touch] if single else list(s_touch)
-    starts, ends = [], []
-    for pk, st in zip(pokes, touches):
-        d = pk.direction__world
-        s = 0.0 if st is None else float(st)
-        starts.append(pk.target__world + d * (s + CLEARANCE))
-        ends.append(pk.target__world + d * (s - pk.depth))
+    starts, ends = (list(x) for x in zip(*(pk.approach_line(st) for pk, st in zip(pokes, touches))))
     p0 = np.array(p_ctl0__world, float)
     z_safe = object_top + float(np.max(finger_radius)) + SAFE_MARGIN
     # idle fingers lift out of the way; each poking finger in turn goes up, across, down
