@@ -39,7 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.sim.pokes import APPROACH_TIME, CLEARANCE, POKE_NAMES, RANDOM_ANGLE_RANGE, RANDOM_DEPTH_RANGE
+from tacest.sim.pokes import (APPROACH_TIME, CLEARANCE, POKE_NAMES, RANDOM_ANGLE_RANGE, RANDOM_DEPTH_RANGE,
+                              check_fingers_per_action)
 
 #: rad, approach angles the planner may choose (from the direction d = (cos a, sin a))
 ANGLE_RANGE = (math.radians(10.0), math.radians(170.0))
@@ -190,10 +191,7 @@ class ActionSpace3(ActionSpace):
 
     def __post_init__(self):
         super().__post_init__()
-        k = int(self.fingers_per_action)
-        if not 1 <= k <= self.n_fingers:
-            raise TacestError(f"--fingers-per-action {self.fingers_per_action} is outside 1..{self.n_fingers} "
-                              "(the recording's fingers)")
+        k = check_fingers_per_action(self.fingers_per_action, self.n_fingers, 3)
         if k > 1 and self.p_finger__world is None:
             raise TacestError("several fingers per action need the fingertips' positions")
         self.fingers_per_action = k
@@ -308,6 +306,5 @@ def action_space_for(model, style: str = "gentle", vary=(), fingers_per_action: 
     if np.asarray(model.up).shape[0] == 3:
         return ActionSpace3(p_finger__world=model.p_finger__world, fingers_per_action=int(fingers_per_action),
                             **shared)
-    if int(fingers_per_action) != 1:
-        raise TacestError("several fingers per action are offered in 3-D only (a 2-D action moves one finger)")
+    check_fingers_per_action(fingers_per_action, model.n_fingers, 2)
     return ActionSpace(**shared)
