@@ -40,6 +40,15 @@ then per policy the median and maximum loop wall time, and the issue's 3-D targe
 4. median Chamfer <= 3 mm (box) / 5 mm (polytope) with less than 10 s of recorded data;
 5. planning one poke <= 10 s and a whole 8-poke loop <= 10 min.
 
+``--retime N``: instead of running loops, plan again from the estimates the EIG loops
+of the first N seeds wrote after pokes 1 .. pokes-1 (the loop folders
+``<case>-<seed>-eig`` under ``--loops DIR``, default this code version's cache; the run
+cut to the estimate's samples), one plan at a time in this process, once per
+``--workers`` count (default ``1,2``: the candidates scored in this process, then by two
+forked processes), in turn, and print the median and maximum wall time per count, their
+ratio, and whether the plans agree (they must: the same candidates and scores).  Run it
+with nothing else running.
+
 Exit status 0 whether or not the targets are met (1 only for bad arguments).
 """
 
@@ -161,6 +170,50 @@ def extra_report(results: dict, cases, policies, seeds, pokes: int, bp) -> dict:
     return out
 
 
+def retime(loops: Path, cases, seeds, pokes: int, workers) -> dict:
+    """Wall times (s) of EIG plans from the loops' estimates, per workers count:
+    {case: {workers: [seconds, ...]}} (see --retime)."""
+    from tacest.diagnosis.slicing import slice_run
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+    from tacest.planning.explore import plan_seed
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    out = {}
+    for case in cases:
+        times, differ = {w: [] for w in workers}, 0
+        for seed in seeds:
+            folder = loops / f"{case}-{seed}-eig"
+            if not (folder / "run.h5").exists():
+                continue
+            run = read_run(folder / "run.h5")
+            for n in range(1, pokes):
+                path = folder / f"estimate_{n}.h5"
+                if not path.exists():
+                    continue
+                est = read_estimate(path)
+                piece = slice_run(run, 0, len(est.runs[0].pose))
+                plans = []
+                for w in workers:
+                    t0 = time.perf_counter()
+                    plans.append(plan_next(est, [piece], PlanSettings(method="eig", seed=plan_seed(seed, n),
+                                                                      workers=w)))
+                    times[w].append(time.perf_counter() - t0)
+                differ += any(not (np.array_equal(p.candidates, plans[0].candidates)
+                                   and np.array_equal(p.scores, plans[0].scores)) for p in plans[1:])
+        out[case] = times
+        if times[workers[0]]:
+            for w in workers:
+                print(f"{case}: EIG planning with {w} worker process(es): median {np.median(times[w]):.2f} s, "
+                      f"max {np.max(times[w]):.2f} s over {len(times[w])} plans")
+            for w in workers[1:]:
+                print(f"{case}: {w} against {workers[0]}: median ratio "
+                      f"{np.median(np.array(times[w]) / np.array(times[workers[0]])):.2f}")
+            print(f"{case}: plans that differ between worker counts: {differ} (load average now "
+                  f"{os.getloadavg()[0]:.2f}); target: planning one poke <= {TARGET_PLAN_TIME:.0f} s")
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -176,6 +229,9 @@ def main(argv=None):
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--retime", type=int, default=0, metavar="N")
+    ap.add_argument("--loops", default=None, metavar="DIR")
+    ap.add_argument("--workers", default="1,2")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
     policies = [p for p in args.policies.split(",") if p]
@@ -199,6 +255,13 @@ def main(argv=None):
     cache.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}", file=sys.stderr)
+    if args.retime > 0:
+        try:
+            workers = [int(w) for w in args.workers.split(",")]
+        except ValueError:
+            ap.error("--workers takes a comma-separated list of integers")
+        retime(Path(args.loops) if args.loops else cache, cases, seeds[: args.retime], args.pokes, workers)
+        return 0
     results = {}
     for seed in seeds:  # seed by seed, so that a partial benchmark compares like with like
         for case in cases:

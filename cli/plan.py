@@ -41,7 +41,6 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     was estimated from, and write the plan file OUTPUT.  The poke aims at the estimated
     centroid; `tacest record --source sim --plan OUTPUT -o RUN.h5` executes it."""
     import json
-    import math
 
     from tacest.io.estimate import check_runs_match, read_estimate
     from tacest.io.h5util import sha256_file
@@ -49,7 +48,7 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     from tacest.io.plan import RUNS_SHA256, write_plan
     from tacest.io.run import read_runs
     from tacest.dims import dimension
-    from tacest.planning.actions import split_action
+    from tacest.planning.actions import describe_action
     from tacest.planning.planner import PlanSettings
 
     from tacest.cli.logs import setup_logging
@@ -71,16 +70,6 @@ def plan(estimate, runs, output, method, score, information, seed, vary, poke_st
     result.extra_attrs[RUNS_SHA256] = json.dumps([sha256_file(p) for p in runs])
     write_plan(result, output)
     if not quiet:
-        pokes = []
-        for x in split_action(result.chosen_dict()):
-            if "approach_angle" in x:
-                towards = f"approach {math.degrees(x['approach_angle']):.1f} deg"
-            else:
-                towards = (f"approach azimuth {math.degrees(x['approach_azimuth']):.1f} deg, elevation "
-                           f"{math.degrees(x['approach_elevation']):.1f} deg")
-            target = ", ".join(f"{x[k]:.4f}" for k in ("target_x", "target_y", "target_z") if k in x)
-            pokes.append(f"finger {int(x['finger'])}, {towards} toward ({target}) m, depth {1e3 * x['depth']:.0f} mm, "
-                         f"speed {1e3 * x['speed']:.0f} mm/s")
         click.echo(f"wrote {output}: {method} ({score} {result.scores.max() if method != 'random' else result.scores[0]:.4g}, "
                    f"{len(result.scores)} candidates, {float(result.extra_attrs['wall_time']):.1f} s): "
-                   + "; ".join(pokes), err=True)
+                   + describe_action(result.chosen_dict(), detailed=True), err=True)

@@ -421,3 +421,76 @@ def test_one_search_pokes_each_direction_with_the_nearest_finger():
         assert a["finger"] == finger and a["approach_azimuth"] == az and a["target_z"] == 0.03
     lo, hi = space.bounds()
     np.testing.assert_allclose([lo, hi], [[-math.pi, math.radians(10)], [math.pi, math.radians(90)]])
+
+
+@pytest.mark.parametrize("faces", [None, [0.9, 0.1, 0.5, 0.3, 0.7, 0.2]])
+def test_a_prediction_from_the_kept_settled_world_is_the_fresh_one_bit_for_bit(truth_model, faces):
+    """predict_poke_3d keeps the settled world of a model (settled_world) and returns to
+    its snapshot for every later poke: a poke predicted after another one is, bit for bit,
+    the poke predicted on a fresh copy of the model (a world built and settled anew);
+    also with face_friction, whose ground friction the stepping changes in the model."""
+    import dataclasses
+
+    from tacest.sim.effects import Effect
+
+    model, _ = truth_model
+    effects = [] if faces is None else [Effect(name="face_friction", params={"values": faces})]
+    az = _face_azimuths(model)
+    first = predict_poke_3d(dataclasses.replace(model), _poke(model, az[0]), effects=effects)
+    kept = dataclasses.replace(model)  # no kept worlds (init=False field)
+    assert kept.worlds == {}
+    predict_poke_3d(kept, _poke(model, az[1], finger=1), effects=effects)  # another poke first: the world moved
+    again = predict_poke_3d(kept, _poke(model, az[0]), effects=effects)
+    assert len(kept.worlds) == 1
+    for name in ("pose", "p_finger__world", "contact", "impulse__world"):
+        assert np.array_equal(getattr(first, name), getattr(again, name)), name
+    assert np.array_equal(np.isnan(first.normal__world), np.isnan(again.normal__world))
+    assert np.array_equal(np.nan_to_num(first.normal__world), np.nan_to_num(again.normal__world))
+
+
+def test_the_residuals_at_many_states_in_one_call_are_the_residuals_at_each(truth_model):
+    """Linearized.residual_at of an (n_x, n) block of nuisance moves (one mapped call)
+    equals residual_at column by column."""
+    model, info = truth_model
+    lin = info.prediction(model, predict_poke_3d(model, _poke(model, _face_azimuths(model)[0])))
+    dX = np.random.default_rng(3).standard_normal((lin.n_x, 3)) * 1e-3
+    many = lin.residual_at(dX)
+    assert many.shape == (len(lin.r), 3)
+    for i in range(3):
+        np.testing.assert_array_equal(many[:, i], lin.residual_at(dX[:, i]))
+
+
+def test_a_3d_plan_is_the_same_for_any_number_of_worker_processes(estimate_1):
+    """The candidates of a 3-D search scored by two forked processes give the plan that
+    one process gives (every candidate's score does not depend on where it is computed)."""
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+    from tacest.parallel import fork_processes
+    from tacest.planning.planner import PlanSettings, plan_next
+
+    est, run = read_estimate(estimate_1[0]), read_run(estimate_1[1])
+    if fork_processes(2, 4) < 2:
+        pytest.skip("this process cannot fork workers (threads running, or not Linux)")
+    plans = [plan_next(est, [run], PlanSettings(iterations=2, population=4, workers=w)) for w in (1, 2)]
+    np.testing.assert_array_equal(plans[0].candidates, plans[1].candidates)
+    np.testing.assert_array_equal(plans[0].scores, plans[1].scores)
+    assert plans[0].extra_attrs["evaluations"] == plans[1].extra_attrs["evaluations"] == 8
+
+
+def test_an_action_in_words_short_and_detailed():
+    """describe_action: the loop's short line and `tacest plan`'s detailed one, each
+    finger of a two-finger action once, in order; a 2-D poke by its approach angle."""
+    from tacest.planning.actions import describe_action
+
+    poke = {"finger": 1.0, "approach_azimuth": math.radians(40.0), "approach_elevation": math.radians(30.0),
+            "target_x": 0.01, "target_y": 0.0, "target_z": 0.03, "depth": 0.02, "speed": 0.04}
+    two = {**poke, **{f"{k}.1": v for k, v in poke.items()}, "finger.1": 2.0}
+    assert describe_action(two) == "finger 1 from azimuth 40 deg, elevation 30 deg + finger 2 from azimuth 40 deg, " \
+                                   "elevation 30 deg"
+    long = describe_action(two, detailed=True).split("; ")
+    assert [p.split(",")[0] for p in long] == ["finger 1", "finger 2"]
+    assert long[0] == "finger 1, approach azimuth 40.0 deg, elevation 30.0 deg toward (0.0100, 0.0000, 0.0300) m, " \
+                      "depth 20 mm, speed 40 mm/s"
+    flat = {"finger": 0.0, "approach_angle": math.radians(35.0), "target_x": 0.0, "target_y": 0.0, "depth": 0.02,
+            "speed": 0.04}
+    assert describe_action(flat) == "approach 35 deg"

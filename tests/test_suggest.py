@@ -212,3 +212,19 @@ def test_an_unknown_injected_effect_is_refused_before_the_folder_is_made(tmp_pat
                           "-o", str(tmp_path / "w")], capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "unknown effect 'wobble'" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "w").exists()
+
+
+def test_the_suggestion_is_the_same_scored_in_forked_workers_or_here(recorded, monkeypatch):
+    """The search's candidates scored by forked copies of the process (the default where
+    forking is safe) give the suggestion that this process alone gives."""
+    import tacest.parallel
+
+    diag = SimpleNamespace(base=recorded.est, effects=[
+        CandidateResult(name="linear_drag", kind="nlp", n_params=1, params={"linear_drag.b": 1.0})])
+    if tacest.parallel.fork_processes(0, 6) < 2:
+        pytest.skip("this process cannot fork workers (one core, threads running, or not Linux)")
+    forked = S.suggest(diag, [recorded.run], n=1, seed=2, iterations=2, population=6)
+    monkeypatch.setattr(tacest.parallel, "fork_processes", lambda workers, jobs: 1)
+    here = S.suggest(diag, [recorded.run], n=1, seed=2, iterations=2, population=6)
+    np.testing.assert_array_equal(forked[0].plan.candidates, here[0].plan.candidates)
+    np.testing.assert_array_equal(forked[0].plan.scores, here[0].plan.scores)

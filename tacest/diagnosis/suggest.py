@@ -182,6 +182,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     diagnosis' EstimatorConfig (3-D; None: the defaults)."""
     from tacest.io.plan import Plan
     from tacest.planning.actions import action_space_for
+    from tacest.parallel import fork_map, fork_processes
     from tacest.planning.cem import cem_maximize
 
     if n < 1:
@@ -225,10 +226,21 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
 
     lo, hi = space.bounds()
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
+    processes = fork_processes(0, population)
+    if processes > 1 and dim == 3:  # every model's settled world once, inherited by the workers
+        from tacest.information.expected import PREDICT_SUBSTEPS
+        from tacest.information.expected3d import SETTLE_TIME, settled_world
+
+        for _, eff in models:
+            settled_world(model, model.dt / PREDICT_SUBSTEPS, SETTLE_TIME, eff)
     cands, scores = [], []
     for f in space.searched_fingers():
+        # each candidate's score is deterministic: forked copies of this process score
+        # an iteration's candidates (tacest.parallel.fork_map), with the same result
+        many = None if processes < 2 else (
+            lambda U: fork_map(lambda k: score(space.action(f, U[k], target)), len(U), processes))  # noqa: E731
         res = cem_maximize(lambda u: score(space.action(f, u, target)), lo, hi, rng, iterations=iterations,
-                           population=population, elite=max(1, population // 3))
+                           population=population, elite=max(1, population // 3), many=many)
         cands += [space.action(f, u, target) for u in res.samples]
         scores += list(res.scores)
     cands = np.asarray(cands, float)

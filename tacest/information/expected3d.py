@@ -33,6 +33,7 @@ the mass row is zero (the estimator holds the mass).
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 
@@ -69,12 +70,14 @@ SETTLE_TIME = 0.05
 
 
 def twist_map(q, L: float) -> np.ndarray:
-    """(7, 6) d[p / L, q] / d(δp_b, δr_b) of the body-frame twist at unit quaternion q:
-    p + R δp_b and q ⊗ exp(δr_b / 2) (so dq = ½ q ⊗ [0, δr_b])."""
-    w, x, y, z = (float(v) for v in q)
-    E = np.zeros((7, 6))
-    E[0:3, 0:3] = quat_to_matrix(np.array([w, x, y, z])) / L
-    E[3:7, 3:6] = 0.5 * np.array([[-x, -y, -z], [w, -z, y], [z, w, -x], [-y, x, w]])
+    """(..., 7, 6) d[p / L, q] / d(δp_b, δr_b) of the body-frame twist at unit quaternions
+    q (..., 4): p + R δp_b and q ⊗ exp(δr_b / 2) (so dq = ½ q ⊗ [0, δr_b])."""
+    q = np.asarray(q, float)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    E = np.zeros(q.shape[:-1] + (7, 6))
+    E[..., 0:3, 0:3] = quat_to_matrix(q) / L
+    E[..., 3:7, 3:6] = 0.5 * np.stack([np.stack([-x, -y, -z], -1), np.stack([w, -z, y], -1),
+                                       np.stack([z, w, -x], -1), np.stack([-y, x, w], -1)], -2)
     return E
 
 
@@ -86,7 +89,9 @@ class ModelState3:
     theta : (n_theta,) the estimator's scaled parameters; vertices : (K, 3) m body frame;
     mass kg; inertia (3, 3) kg·m²; friction_ground, friction_finger; pose : (7,) at the
     end of the last run; p_finger__world : (F, 3) m there; finger_radius : (F,) m; dt s;
-    has_force; up : (3,); ground_height m; gravity m/s² (magnitude); config.
+    has_force; up : (3,); ground_height m; gravity m/s² (magnitude); config; worlds :
+    the settled MuJoCo worlds of its predictions (:func:`settled_world`; not compared,
+    not pickled; a model is not changed after it is made).
     """
 
     shape: Shape3D
@@ -107,6 +112,10 @@ class ModelState3:
     ground_height: float = 0.0
     gravity: float = STANDARD_GRAVITY
     config: EstimatorConfig = field(default_factory=EstimatorConfig)
+    worlds: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __getstate__(self):
+        return {**self.__dict__, "worlds": {}}
 
     @property
     def n_fingers(self) -> int:
@@ -195,6 +204,40 @@ def theta_of_estimate(shape: Shape3D, effects: tuple, vertices, params: dict, in
 # prediction
 
 
+def settled_world(model: "ModelState3", h: float, settle_time: float, effects=()):
+    """The World3 of the estimated object (with ``effects``) lowered (or raised) onto the
+    ground at the model's pose, fingers parked above it, after ``settle_time`` s of
+    substeps ``h`` s: built and settled once per model and arguments (kept in
+    ``model.worlds``), returned to that settled state on every later call (the same
+    state, bit for bit, as building and settling anew)."""
+    from tacest.sim.effects import find
+    from tacest.sim3d.objects import apply_com_offset
+    from tacest.sim3d.world import World3
+
+    key = (float(h), float(settle_time), json.dumps([e.to_json_obj() for e in effects], sort_keys=True))
+    if key in model.worlds:
+        world, snap = model.worlds[key]
+        world.restore(snap)
+        return world
+    obj = model.sim_object()
+    com = find(effects, "com_offset")
+    if com is not None:
+        obj = apply_com_offset(obj, [com["dx"], com["dy"], com["dz"]])
+    pose = np.asarray(model.pose, float).copy()
+    Vw = obj.vertices @ quat_to_matrix(pose[3:]).T + pose[:3]
+    pose[:3] -= (float(np.min(Vw @ model.up)) - model.ground_height) * model.up
+    radius = model.finger_radius
+    top = float(np.max(Vw[:, 2])) - float(np.min(Vw[:, 2])) + model.ground_height
+    parked = np.asarray(model.p_finger__world, float).copy()
+    parked[:, 2] = np.maximum(parked[:, 2], top + radius + 0.02)
+    world = World3(obj, pose, np.zeros(6), parked, radius, effects=effects, timestep=h)
+    hold = world.p_control__world
+    for _ in range(int(round(settle_time / h))):
+        world.step(hold, h)
+    model.worlds[key] = (world, world.snapshot())
+    return world
+
+
 def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS, hold_time: float = HOLD_TIME,
                     settle_time: float = SETTLE_TIME, effects=()) -> PredictedPoke:
     """Simulate one 3-D action (an (8k,) vector of k fingers' pokes, names
@@ -208,29 +251,12 @@ def predict_poke_3d(model: ModelState3, action, substeps: int = PREDICT_SUBSTEPS
     longest approach.  Sample 0 is the state at the approach points."""
     from tacest.sim.record import SIZE_BOUND
     from tacest.sim3d.pokes import pokes_from_vector
-    from tacest.sim3d.world import World3
-
-    from tacest.sim.effects import find
-    from tacest.sim3d.objects import apply_com_offset
 
     F = model.n_fingers
     pokes = pokes_from_vector(action, F)
-    obj = model.sim_object()
-    com = find(effects, "com_offset")
-    if com is not None:
-        obj = apply_com_offset(obj, [com["dx"], com["dy"], com["dz"]])
-    pose = np.asarray(model.pose, float).copy()
-    Vw = obj.vertices @ quat_to_matrix(pose[3:]).T + pose[:3]
-    pose[:3] -= (float(np.min(Vw @ model.up)) - model.ground_height) * model.up
     radius = model.finger_radius
-    top = float(np.max(Vw[:, 2])) - float(np.min(Vw[:, 2])) + model.ground_height
-    parked = np.asarray(model.p_finger__world, float).copy()
-    parked[:, 2] = np.maximum(parked[:, 2], top + radius + 0.02)
     h = model.dt / int(substeps)
-    world = World3(obj, pose, np.zeros(6), parked, radius, effects=effects, timestep=h)
-    hold = world.p_control__world
-    for _ in range(int(round(settle_time / h))):
-        world.step(hold, h)
+    world = settled_world(model, h, settle_time, effects)
     reach = SIZE_BOUND + float(np.max(radius))
     lines = []  # (finger, start, end, duration s) per poke
     for pk in pokes:
@@ -298,7 +324,7 @@ class ExpectedInformation3D:
                                  derivatives=(pr.res_fun.name(), pr.res0_fun.name()))  # the estimator's, cached
         self._funs = {"res": _dense(kern[pr.res_fun.name()]), "jac": _dense(kern[jr.name()]),
                       "res0": _dense(kern[pr.res0_fun.name()]), "jac0": _dense(kern[j0.name()])}
-        self._direct = pr.direct_residual_functions()
+        self._direct = tuple(_dense(f) for f in pr.direct_residual_functions())
         self._mapped = {}
         self.names = information_names_3d(pr) + list(POSE_NAMES)
         self.row_terms = _row_terms(pr.stage_fun, STAGE_TERMS), _row_terms(pr.start_fun, START_TERMS)
@@ -350,8 +376,8 @@ class ExpectedInformation3D:
         M = X.shape[1] - 2
         args = [X[:, :-2], X[:, 1:-1], X[:, 2:], np.zeros((self.K, M)), LF, np.repeat(th[:, None], M, 1), D[:, 2:],
                 np.repeat(g[:, None], M, 1), np.repeat(self.w[:, None], M, 1)]
-        r0 = np.asarray(res_d.map(M)(*args))
-        A = np.asarray(jac_d.map(M)(*args))
+        (r0,) = self._call(res_d, M, *args)
+        (A,) = self._call(jac_d, M, *args)
         K = self.K
         LN = np.zeros((K, M))
         for n in range(M):
@@ -380,7 +406,7 @@ class ExpectedInformation3D:
         Jfull = sp.csc_matrix((np.concatenate([vv, J0[i0, j0]]), (np.concatenate([rr, n_r * M + i0]),
                                                                     np.concatenate([cc, j0]))), shape=(R, n_full))
         Jth = np.concatenate([np.transpose(J[:, :, n_loc:], (1, 0, 2)).reshape(M * n_r, nt), J0[:, 2 * NP:]], 0)
-        E = [twist_map(pt.X[3:, k], self.scales.L) for k in range(T)]
+        E = twist_map(pt.X[3:, :].T, self.scales.L)  # (T, NP, 6)
         free = np.ones(n_full, bool)
         on = touching(run)[2:]  # finger impulses are no variables where the flag is 0 (the estimator's bounds)
         free[n_X + n_U:] = np.repeat(on, 3, axis=1).reshape(-1)
@@ -390,9 +416,8 @@ class ExpectedInformation3D:
             kc = NP * int(keep) + np.arange(NP)
             Ja[:, nt:] = np.asarray(Jfull[:, kc] @ E[int(keep)])
             free[kc] = False
-        S = sp.lil_matrix((n_full, 6))
-        for k in range(T):
-            S[NP * k: NP * k + NP, :] = E[k]
+        S = sp.csr_matrix((E.reshape(-1), (np.repeat(np.arange(NP * T), 6), np.tile(np.arange(6), NP * T))),
+                          shape=(n_full, 6))  # the twist maps stacked: rows of the poses, zeros below
         idx = np.nonzero(free)[0]
         terms_stage, terms_start = self.row_terms
         term = np.concatenate([np.tile(terms_stage, M), terms_start])
@@ -408,17 +433,25 @@ class ExpectedInformation3D:
 
     def _residual_at(self, pt, idx, n_X, n_U, dx) -> np.ndarray:
         """(R,) residuals at the nuisance variables (poses, ground and finger impulses)
-        moved by dx (n_x,)."""
-        full = np.zeros(n_X + n_U + pt.LF.size)
-        full[idx] = dx
-        X = pt.X + full[:n_X].reshape(-1, NP).T
-        U = pt.U + full[n_X: n_X + n_U].reshape(-1, pt.U.shape[0]).T
-        LF = pt.LF + full[n_X + n_U:].reshape(-1, pt.LF.shape[0]).T
-        q = _PointArgs(X, U, LF, pt.theta, pt.D, pt.g, pt.w)
-        M = X.shape[1] - 2
-        (r,) = self._call("res", M, *q.stage())
-        (r0,) = self._call("res0", 1, *q.start())
-        return np.concatenate([r.T.reshape(-1), r0.reshape(-1)])
+        moved by dx (n_x,); or (R, n) at each column of dx (n_x, n), in one mapped call."""
+        dx = np.asarray(dx, float)
+        cols = dx.reshape(len(idx), -1)
+        n = cols.shape[1]
+        full = np.zeros((n_X + n_U + pt.LF.size, n))
+        full[idx] = cols
+        stage, start = [], []
+        for i in range(n):
+            X = pt.X + full[:n_X, i].reshape(-1, NP).T
+            U = pt.U + full[n_X: n_X + n_U, i].reshape(-1, pt.U.shape[0]).T
+            LF = pt.LF + full[n_X + n_U:, i].reshape(-1, pt.LF.shape[0]).T
+            q = _PointArgs(X, U, LF, pt.theta, pt.D, pt.g, pt.w)
+            stage.append(q.stage())
+            start.append(q.start())
+        M = pt.X.shape[1] - 2
+        (r,) = self._call("res", M * n, *[np.concatenate(a, axis=1) for a in zip(*stage)])
+        (r0,) = self._call("res0", n, *[np.stack(a, axis=1) for a in zip(*start)])
+        out = np.concatenate([r.reshape(r.shape[0], n, M).transpose(2, 0, 1).reshape(-1, n), r0.reshape(-1, n)])
+        return out[:, 0] if dx.ndim == 1 else out
 
     # -- physical units ---------------------------------------------------------------
     def to_physical(self, I_scaled, model: ModelState3) -> np.ndarray:

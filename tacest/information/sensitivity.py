@@ -91,7 +91,8 @@ class Linearized:
     sparse, ∂x/∂s of the identity approximation (poses follow s, the rest 0);
     x_prior : (n_x,) square-root precision of the transition's weak prior on each
     nuisance variable (0: none); residual_at : callable(dx (n_x,)) -> (R,) the exact
-    residuals at x̄ + dx (None: the linearization, J_x dx, is used).
+    residuals at x̄ + dx, and (n_x, n) -> (R, n) column by column (None: the
+    linearization, J_x dx, is used).
     """
 
     Ja: np.ndarray
@@ -209,7 +210,7 @@ def marginal_information(lin: Linearized, samples: int = MARGINAL_SAMPLES, draws
             d = np.asarray(sp.csr_matrix(lin.Jx)[m_rows] @ eps)
         else:
             r0 = np.asarray(lin.r, float)[m_rows]
-            d = np.stack([np.asarray(lin.residual_at(eps[:, i]), float)[m_rows] - r0 for i in range(eps.shape[1])], 1)
+            d = np.asarray(lin.residual_at(eps), float)[m_rows] - r0[:, None]
         return np.where(np.isfinite(d), d, 0.0)
 
     dR = deviations(tr.sample(int(samples), rng))  # (R_m, N): the state samples x^i

@@ -287,6 +287,30 @@ def split_action(action: dict) -> list:
     return out
 
 
+def describe_action(action: dict, detailed: bool = False) -> str:
+    """An action {name: value} (a plan's chosen_dict) in words, its fingers' pokes joined
+    by ``+`` (3-D) — short: ``approach 35 deg`` (2-D), ``finger 1 from azimuth 40 deg,
+    elevation 30 deg`` (3-D); ``detailed``: each poke's finger, approach to 0.1 deg,
+    target (m), depth (mm) and speed (mm/s)."""
+    parts = []
+    for x in split_action(action):
+        if "approach_angle" in x:
+            towards = f"approach {math.degrees(x['approach_angle']):.{1 if detailed else 0}f} deg"
+        elif detailed:
+            towards = (f"approach azimuth {math.degrees(x['approach_azimuth']):.1f} deg, elevation "
+                       f"{math.degrees(x['approach_elevation']):.1f} deg")
+        else:
+            towards = (f"from azimuth {math.degrees(x['approach_azimuth']):.0f} deg, elevation "
+                       f"{math.degrees(x['approach_elevation']):.0f} deg")
+        if not detailed:
+            parts.append(towards if "approach_angle" in x else f"finger {int(x['finger'])} {towards}")
+            continue
+        target = ", ".join(f"{x[k]:.4f}" for k in ("target_x", "target_y", "target_z") if k in x)
+        parts.append(f"finger {int(x['finger'])}, {towards} toward ({target}) m, depth {1e3 * x['depth']:.0f} mm, "
+                     f"speed {1e3 * x['speed']:.0f} mm/s")
+    return ("; " if detailed else " + ").join(parts)
+
+
 def object_height(model) -> float:
     """m: the estimated object's extent along the ground normal now (a planning
     ModelState or ModelState3: vertices in the body frame, pose, up)."""

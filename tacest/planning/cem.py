@@ -28,12 +28,13 @@ class CEMResult:
 
 
 def cem_maximize(fun, lo, hi, rng: np.random.Generator, iterations: int = 4, population: int = 12,
-                 elite: int = 4, min_std: float = 0.03, smoothing: float = 0.8) -> CEMResult:
+                 elite: int = 4, min_std: float = 0.03, smoothing: float = 0.8, many=None) -> CEMResult:
     """Maximize ``fun(x) -> float`` over lo <= x <= hi (arrays of d) with CEM.
 
     iterations × population evaluations in all.  ``smoothing`` weights the new
     elite statistics against the previous ones (1: no memory).  A NaN score counts as
-    the worst.
+    the worst.  ``many(X) -> (n,)`` scores the rows of one iteration's X (n, d) at once
+    in place of ``fun`` row by row (e.g. in parallel; it must give what ``fun`` gives).
     """
     lo = np.asarray(lo, float).reshape(-1)
     hi = np.asarray(hi, float).reshape(-1)
@@ -46,9 +47,10 @@ def cem_maximize(fun, lo, hi, rng: np.random.Generator, iterations: int = 4, pop
     for it in range(iterations):
         if it > 0:
             X = np.clip(mean + std * rng.standard_normal((population, d)), lo, hi)
-        for x in X:
+        Y = [fun(x) for x in X] if many is None else many(X)
+        for x, y in zip(X, Y):
             xs.append(x.copy())
-            y = float(fun(x))
+            y = float(y)
             ys.append(y if np.isfinite(y) else -np.inf)
         order = np.argsort(-np.asarray(ys))[:elite]
         E = np.asarray(xs)[order]

@@ -152,6 +152,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
     from tacest.io.estimate import read_estimate, write_estimate
     from tacest.io.plan import write_plan
     from tacest.io.run import read_run, write_run
+    from tacest.planning.actions import describe_action
     from tacest.planning.planner import plan_next
     from tacest.sim.record import SimOptions
 
@@ -230,7 +231,7 @@ def explore(opts: ExploreOptions, out_dir, progress=None) -> dict:
             step["plan_score"] = float(plan.scores[np.argmax(np.all(plan.candidates == plan.chosen, 1))])
             step["next_action"] = plan.chosen_dict()
             msg += f"; plan {opts.policy} from the {step['planned_from']} ({step['plan_time']:.1f} s): " \
-                   + describe_approach(plan.chosen_dict())
+                   + describe_action(plan.chosen_dict())
             t1 = time.perf_counter()
             write_run(record_sim(sim, plan_path=plan_path, append_to=run_path), run_path)
             t_record = time.perf_counter() - t1
@@ -267,18 +268,6 @@ def _check_object(object_spec: str, dim: int) -> None:
     else:
         from tacest.sim.objects import make_shape as sim_object
     sim_object(object_spec, np.random.default_rng(0))
-
-
-def describe_approach(action: dict) -> str:
-    """``approach 35 deg`` (2-D) or ``finger 1 from azimuth 40 deg, elevation 30 deg`` (3-D;
-    the other fingers of an action joined by ``+``)."""
-    if "approach_angle" in action:
-        return f"approach {math.degrees(action['approach_angle']):.0f} deg"
-    from tacest.planning.actions import split_action
-
-    parts = [f"finger {int(x['finger'])} from azimuth {math.degrees(x['approach_azimuth']):.0f} deg, elevation "
-             f"{math.degrees(x['approach_elevation']):.0f} deg" for x in split_action(action)]
-    return " + ".join(parts)
 
 
 def _views_3d(out: Path, run_path: Path, N: int, what: str) -> dict:

@@ -62,7 +62,10 @@ class PlanSettings:
     information : schur | identity | diffsim | marginal (tacest.information.sensitivity;
     None: :data:`DEFAULT_INFORMATION` of the estimate's dimension; the ``identity``
     method always uses ``identity``); fingers_per_action : fingers moving together in one
-    action (3-D only; tacest.planning.actions.ActionSpace3).
+    action (3-D only; tacest.planning.actions.ActionSpace3); workers : processes that
+    score a 3-D search's candidates (forked copies of this one,
+    tacest.parallel.fork_processes; 0: one per core, 1: this process only; the plan is
+    the same for any number).
     """
 
     method: str = "eig"
@@ -77,6 +80,7 @@ class PlanSettings:
     information: str | None = None
     poke_style: str = "gentle"
     fingers_per_action: int = 1
+    workers: int = 0
 
     def validate(self) -> "PlanSettings":
         if self.method not in METHODS:
@@ -93,6 +97,8 @@ class PlanSettings:
             raise TacestError(f"unknown poke style {self.poke_style!r}: use {', '.join(ACTION_STYLES)}")
         if self.information is not None and self.information not in INFORMATION_METHODS:
             raise TacestError(f"unknown information {self.information!r}: use {', '.join(INFORMATION_METHODS)}")
+        if int(self.workers) < 0:
+            raise TacestError(f"planner workers must be >= 0 (0: one per core), got {self.workers}")
         if int(self.fingers_per_action) < 1:
             raise TacestError(f"--fingers-per-action must be >= 1, got {self.fingers_per_action}")
         if self.method == "identity" and self.information not in (None, "identity"):
@@ -158,6 +164,21 @@ class Scorer3(Scorer):
 
         pred = predict_poke_3d(self.model, action, substeps=self.substeps)
         return self.info.information(self.model, pred, method=self.approximation, seed=self.seed)
+
+    def many(self, actions, workers: int = 1) -> list:
+        """[score(a) for a in actions], by ``workers`` forked copies of this process
+        (tacest.parallel.fork_map; each candidate's score does not depend on where or in
+        which order it is computed: common random numbers ``seed``)."""
+        from tacest.information.expected3d import SETTLE_TIME, settled_world
+        from tacest.parallel import fork_map, fork_processes
+
+        processes = fork_processes(int(workers), len(actions))
+        if processes < 2:
+            return [self(a) for a in actions]
+        settled_world(self.model, self.model.dt / int(self.substeps), SETTLE_TIME)  # once, inherited
+        out = fork_map(lambda k: self(actions[k]), len(actions), processes)
+        self.evaluations += len(actions)
+        return out
 
 
 _INFO3_CACHE: dict = {}
@@ -232,9 +253,12 @@ def plan_next(est, runs, settings: PlanSettings | None = None) -> Plan:
     else:
         lo, hi = space.bounds()
         for f in space.searched_fingers():
+            many = None
+            if isinstance(scorer, Scorer3):
+                many = lambda U: scorer.many([space.action(f, u, target) for u in U], settings.workers)  # noqa: E731
             res = cem_maximize(lambda u: scorer(space.action(f, u, target)), lo, hi, rng,
                                iterations=settings.iterations, population=settings.population,
-                               elite=settings.elite or max(1, settings.population // 3))
+                               elite=settings.elite or max(1, settings.population // 3), many=many)
             cands += [space.action(f, u, target) for u in res.samples]
             scores += list(res.scores)
             log.info(f"finger {'nearest' if f is None else f}: best {settings.score} {np.max(res.scores):.4g} of "

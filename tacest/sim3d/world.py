@@ -355,6 +355,25 @@ class World3:
         self._p_ctl[int(f)] = np.asarray(p__world, float).reshape(3)
         self._mj.mj_forward(self.model, self.data)
 
+    def snapshot(self):
+        """The whole state (MuJoCo data, the commands, the penetration records, the
+        ground friction face_friction sets) for :meth:`restore`: a world returned to it
+        steps exactly as it did from here."""
+        d = self._mj.MjData(self.model)
+        self._mj.mj_copyData(d, self.model, self.data)
+        return (d, self._p_ctl.copy(), self._h, self.max_penetration_ground, self.max_penetration_finger,
+                np.array(self.model.pair_friction))
+
+    def restore(self, snap) -> None:
+        """Return to a :meth:`snapshot` of this world (what the fingers felt since is dropped)."""
+        d, p_ctl, h, pen_ground, pen_finger, pair_friction = snap
+        self._mj.mj_copyData(self.data, self.model, d)  # into the same buffers: the views stay valid
+        self.model.pair_friction[:] = pair_friction
+        self._p_ctl = p_ctl.copy()
+        self.model.opt.timestep = self._h = h
+        self.max_penetration_ground, self.max_penetration_finger = pen_ground, pen_finger
+        self._reset_accumulators()
+
     # -- stepping --------------------------------------------------------------------
     def _ground_mu(self) -> float:
         # the face that faces the ground most: the most negative world z of its normal
