@@ -49,6 +49,14 @@ forked processes), in turn, and print the median and maximum wall time per count
 ratio, and whether the plans agree (they must: the same candidates and scores).  Run it
 with nothing else running.
 
+``--report-only --loops DIR`` reports the loops in DIR (a cache's ``code_<digest>/<style>``
+folder, e.g. of an earlier code version) instead of this code version's.
+
+``--calibration``: also score every estimate of the loops (each against its run cut
+to the estimate's samples: tacest.evaluation.metrics.evaluate) and print, per case,
+how many were marked consistent, how many of those have a body Chamfer within 3
+reported shape std (issue target: 90 %), and how many fits above 5 mm the mark caught.
+
 Exit status 0 whether or not the targets are met (1 only for bad arguments).
 """
 
@@ -170,6 +178,43 @@ def extra_report(results: dict, cases, policies, seeds, pokes: int, bp) -> dict:
     return out
 
 
+def calibration(cache: Path, cases, policies, seeds) -> dict:
+    """Every loop estimate's body Chamfer against its reported shape std, and whether
+    the fit was marked consistent: {case: [(loop, pokes, consistent, chamfer_body m,
+    sigmas), ...]} (see --calibration)."""
+    from tacest.diagnosis.slicing import slice_run
+    from tacest.evaluation.metrics import evaluate
+    from tacest.io.estimate import read_estimate
+    from tacest.io.run import read_run
+
+    out = {}
+    for case in cases:
+        rows = []
+        for seed in seeds:
+            for pol in policies:
+                folder = cache / f"{case}-{seed}-{pol.replace(':', '_').replace('@', '_k')}"
+                if not (folder / "run.h5").exists():
+                    continue
+                run = read_run(folder / "run.h5")
+                for path in sorted(folder.glob("estimate_*.h5"), key=lambda q: int(q.stem.split("_")[1])):
+                    est = read_estimate(path)
+                    r = evaluate(est, slice_run(run, 0, len(est.runs[0].pose)), max_frames=20)
+                    rows.append((folder.name, int(path.stem.split("_")[1]), bool(est.consistent),
+                                 float(r["chamfer_body"]), r["chamfer_body_sigmas"]))
+        out[case] = rows
+        marked = [x for x in rows if x[2]]
+        within = [x for x in marked if x[4] is not None and x[4] <= 3.0]
+        wrong = [x for x in rows if x[3] > 5e-3]
+        print(f"{case}: {len(marked)} of {len(rows)} estimates marked consistent; body Chamfer within 3 reported "
+              f"std in {len(within)} of them ({100 * len(within) / max(1, len(marked)):.0f} %; target 90 %); "
+              f"of {len(wrong)} fits above 5 mm the mark caught {sum(not x[2] for x in wrong)}")
+        for x in rows:
+            if (x[2] and x[4] is not None and x[4] > 3.0) or not x[2]:
+                print(f"  {x[0]} after {x[1]} pokes: {'consistent' if x[2] else 'NOT consistent'}, body Chamfer "
+                      f"{1e3 * x[3]:.1f} mm" + (f", {x[4]:.1f} std" if x[4] is not None else ""))
+    return out
+
+
 def retime(loops: Path, cases, seeds, pokes: int, workers) -> dict:
     """Wall times (s) of EIG plans from the loops' estimates, per workers count:
     {case: {workers: [seconds, ...]}} (see --retime)."""
@@ -232,6 +277,7 @@ def main(argv=None):
     ap.add_argument("--retime", type=int, default=0, metavar="N")
     ap.add_argument("--loops", default=None, metavar="DIR")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--calibration", action="store_true")
     args = ap.parse_args(argv)
     cases = [c for c in args.cases.split(",") if c]
     policies = [p for p in args.policies.split(",") if p]
@@ -255,6 +301,8 @@ def main(argv=None):
     cache.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     print(f"load average {os.getloadavg()[0]:.2f}; cache {cache}", file=sys.stderr)
+    if args.report_only and args.loops:  # the loops of another code version (a cache's code_<digest>/<style>)
+        cache = Path(args.loops)
     if args.retime > 0:
         try:
             workers = [int(w) for w in args.workers.split(",")]
@@ -275,6 +323,8 @@ def main(argv=None):
                     results[(case, seed, pol)] = res
     summary = bp.report(results, cases, policies, args.pokes, seeds)
     extra = extra_report(results, cases, policies, seeds, args.pokes, bp)
+    if args.calibration:
+        calibration(cache, cases, policies, seeds)
     if args.plot:
         from tacest.planning.explore import plot_learning_curve
 
