@@ -178,14 +178,11 @@ def extra_report(results: dict, cases, policies, seeds, pokes: int, bp) -> dict:
     return out
 
 
-def calibration(cache: Path, cases, policies, seeds) -> dict:
+def calibration(cache: Path, cases, policies, seeds, pokes: int, bp) -> dict:
     """Every loop estimate's body Chamfer against its reported shape std, and whether
     the fit was marked consistent: {case: [(loop, pokes, consistent, chamfer_body m,
     sigmas), ...]} (see --calibration)."""
-    from tacest.diagnosis.slicing import slice_run
     from tacest.evaluation.metrics import evaluate
-    from tacest.io.estimate import read_estimate
-    from tacest.io.run import read_run
 
     out = {}
     for case in cases:
@@ -193,14 +190,10 @@ def calibration(cache: Path, cases, policies, seeds) -> dict:
         for seed in seeds:
             for pol in policies:
                 folder = cache / f"{case}-{seed}-{pol.replace(':', '_').replace('@', '_k')}"
-                if not (folder / "run.h5").exists():
-                    continue
-                run = read_run(folder / "run.h5")
-                for path in sorted(folder.glob("estimate_*.h5"), key=lambda q: int(q.stem.split("_")[1])):
-                    est = read_estimate(path)
-                    r = evaluate(est, slice_run(run, 0, len(est.runs[0].pose)), max_frames=20)
-                    rows.append((folder.name, int(path.stem.split("_")[1]), bool(est.consistent),
-                                 float(r["chamfer_body"]), r["chamfer_body_sigmas"]))
+                for n, est, piece in bp.loop_estimates(folder, pokes):
+                    r = evaluate(est, piece, max_frames=20)
+                    rows.append((folder.name, n, bool(est.consistent), float(r["chamfer_body"]),
+                                 r["chamfer_body_sigmas"]))
         out[case] = rows
         marked = [x for x in rows if x[2]]
         within = [x for x in marked if x[4] is not None and x[4] <= 3.0]
@@ -215,12 +208,9 @@ def calibration(cache: Path, cases, policies, seeds) -> dict:
     return out
 
 
-def retime(loops: Path, cases, seeds, pokes: int, workers) -> dict:
+def retime(loops: Path, cases, seeds, pokes: int, workers, bp) -> dict:
     """Wall times (s) of EIG plans from the loops' estimates, per workers count:
     {case: {workers: [seconds, ...]}} (see --retime)."""
-    from tacest.diagnosis.slicing import slice_run
-    from tacest.io.estimate import read_estimate
-    from tacest.io.run import read_run
     from tacest.planning.explore import plan_seed
     from tacest.planning.planner import PlanSettings, plan_next
 
@@ -228,16 +218,7 @@ def retime(loops: Path, cases, seeds, pokes: int, workers) -> dict:
     for case in cases:
         times, differ = {w: [] for w in workers}, 0
         for seed in seeds:
-            folder = loops / f"{case}-{seed}-eig"
-            if not (folder / "run.h5").exists():
-                continue
-            run = read_run(folder / "run.h5")
-            for n in range(1, pokes):
-                path = folder / f"estimate_{n}.h5"
-                if not path.exists():
-                    continue
-                est = read_estimate(path)
-                piece = slice_run(run, 0, len(est.runs[0].pose))
+            for n, est, piece in bp.loop_estimates(loops / f"{case}-{seed}-eig", pokes - 1):
                 plans = []
                 for w in workers:
                     t0 = time.perf_counter()
@@ -308,7 +289,7 @@ def main(argv=None):
             workers = [int(w) for w in args.workers.split(",")]
         except ValueError:
             ap.error("--workers takes a comma-separated list of integers")
-        retime(Path(args.loops) if args.loops else cache, cases, seeds[: args.retime], args.pokes, workers)
+        retime(Path(args.loops) if args.loops else cache, cases, seeds[: args.retime], args.pokes, workers, bp)
         return 0
     results = {}
     for seed in seeds:  # seed by seed, so that a partial benchmark compares like with like
@@ -324,7 +305,7 @@ def main(argv=None):
     summary = bp.report(results, cases, policies, args.pokes, seeds)
     extra = extra_report(results, cases, policies, seeds, args.pokes, bp)
     if args.calibration:
-        calibration(cache, cases, policies, seeds)
+        calibration(cache, cases, policies, seeds, args.pokes, bp)
     if args.plot:
         from tacest.planning.explore import plot_learning_curve
 

@@ -291,12 +291,26 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
     return summary
 
 
-def retime(cache: Path, cases, seeds, pokes: int) -> dict:
-    """Wall times (s) of EIG plans from the cached EIG loops' estimates, one at a time:
-    {case: [seconds, ...]} (see --retime)."""
+def loop_estimates(folder: Path, last: int):
+    """(n, estimate, the loop's run cut to the estimate's samples) for every
+    ``estimate_<n>.h5`` of a loop folder, n = 1 .. last, that exists (none without run.h5)."""
     from tacest.diagnosis.slicing import slice_run
     from tacest.io.estimate import read_estimate
     from tacest.io.run import read_run
+
+    if not (folder / "run.h5").exists():
+        return
+    run = read_run(folder / "run.h5")
+    for n in range(1, last + 1):
+        path = folder / f"estimate_{n}.h5"
+        if path.exists():
+            est = read_estimate(path)
+            yield n, est, slice_run(run, 0, len(est.runs[0].pose))
+
+
+def retime(cache: Path, cases, seeds, pokes: int) -> dict:
+    """Wall times (s) of EIG plans from the cached EIG loops' estimates, one at a time:
+    {case: [seconds, ...]} (see --retime)."""
     from tacest.planning.explore import plan_seed
     from tacest.planning.planner import PlanSettings, plan_next
 
@@ -304,16 +318,7 @@ def retime(cache: Path, cases, seeds, pokes: int) -> dict:
     for case in cases:
         times = []
         for seed in seeds:
-            folder = cache / f"{case}-{seed}-eig"
-            if not (folder / "run.h5").exists():
-                continue
-            run = read_run(folder / "run.h5")
-            for n in range(1, pokes):
-                path = folder / f"estimate_{n}.h5"
-                if not path.exists():
-                    continue
-                est = read_estimate(path)
-                piece = slice_run(run, 0, len(est.runs[0].pose))
+            for n, est, piece in loop_estimates(cache / f"{case}-{seed}-eig", pokes - 1):
                 t0 = time.perf_counter()
                 plan_next(est, [piece], PlanSettings(method="eig", seed=plan_seed(seed, n)))
                 times.append(time.perf_counter() - t0)

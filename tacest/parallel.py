@@ -602,6 +602,18 @@ def fork_map(job, n: int, processes: int, returned: tuple = ()) -> list:
     return out
 
 
+def forked_map(fun, items, workers: int = 0) -> list:
+    """[fun(x) for x in items]: by :func:`fork_processes` (``workers``, 0: one per core)
+    forked copies of this process where that is safe, else here.  ``fun`` must give the
+    same for an item wherever it runs (the forked copies' changes to their own state
+    are lost)."""
+    items = list(items)
+    processes = fork_processes(int(workers), len(items))
+    if processes < 2:
+        return [fun(x) for x in items]
+    return fork_map(lambda k: fun(items[k]), len(items), processes)
+
+
 def _kill_workers(pool) -> None:
     """Kill a ProcessPoolExecutor's workers now (Python 3.11 has no public way) and let
     it go without waiting for their jobs."""

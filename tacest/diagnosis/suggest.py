@@ -182,7 +182,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     diagnosis' EstimatorConfig (3-D; None: the defaults)."""
     from tacest.io.plan import Plan
     from tacest.planning.actions import action_space_for
-    from tacest.parallel import fork_map, fork_processes
+    from tacest.parallel import forked_map
     from tacest.planning.cem import cem_maximize
 
     if n < 1:
@@ -226,8 +226,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
 
     lo, hi = space.bounds()
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
-    processes = fork_processes(0, population)
-    if processes > 1 and dim == 3:  # every model's settled world once, inherited by the workers
+    if dim == 3:  # every model's settled world once, inherited by the workers
         from tacest.information.expected import PREDICT_SUBSTEPS
         from tacest.information.expected3d import SETTLE_TIME, settled_world
 
@@ -236,11 +235,10 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     cands, scores = [], []
     for f in space.searched_fingers():
         # each candidate's score is deterministic: forked copies of this process score
-        # an iteration's candidates (tacest.parallel.fork_map), with the same result
-        many = None if processes < 2 else (
-            lambda U: fork_map(lambda k: score(space.action(f, U[k], target)), len(U), processes))  # noqa: E731
+        # an iteration's candidates (tacest.parallel.forked_map), with the same result
         res = cem_maximize(lambda u: score(space.action(f, u, target)), lo, hi, rng, iterations=iterations,
-                           population=population, elite=max(1, population // 3), many=many)
+                           population=population, elite=max(1, population // 3),
+                           many=lambda U: forked_map(lambda u: score(space.action(f, u, target)), U))
         cands += [space.action(f, u, target) for u in res.samples]
         scores += list(res.scores)
     cands = np.asarray(cands, float)

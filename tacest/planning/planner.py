@@ -170,14 +170,12 @@ class Scorer3(Scorer):
         (tacest.parallel.fork_map; each candidate's score does not depend on where or in
         which order it is computed: common random numbers ``seed``)."""
         from tacest.information.expected3d import SETTLE_TIME, settled_world
-        from tacest.parallel import fork_map, fork_processes
+        from tacest.parallel import forked_map
 
-        processes = fork_processes(int(workers), len(actions))
-        if processes < 2:
-            return [self(a) for a in actions]
-        settled_world(self.model, self.model.dt / int(self.substeps), SETTLE_TIME)  # once, inherited
-        out = fork_map(lambda k: self(actions[k]), len(actions), processes)
-        self.evaluations += len(actions)
+        settled_world(self.model, self.model.dt / int(self.substeps), SETTLE_TIME)  # once, inherited by the workers
+        counted = self.evaluations + len(actions)  # the workers' counts stay in the workers
+        out = forked_map(self, actions, workers)
+        self.evaluations = counted
         return out
 
 
