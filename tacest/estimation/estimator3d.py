@@ -531,9 +531,10 @@ class Estimator3D:
         return out
 
     def sampled_start(self, tracked: Start3D) -> Start3D | None:
-        """The sampler's start (:func:`sampled_start_3d`), or None where it does not apply
-        (off, or a polytope: the sampler's hypotheses are boxes)."""
-        if not self.config.solver3d.sampler_particles or self.shape.name != "box":
+        """The sampler's start (:func:`sampled_start_3d`), or None where it is off.  Its
+        hypotheses are boxes: another shape starts as its ``initial`` of the lineage's
+        extents, on the lineage's poses."""
+        if not self.config.solver3d.sampler_particles:
             return None
         return sampled_start_3d(self.runs, self.scales, tracked, self.config)
 
