@@ -121,3 +121,36 @@ def test_the_chi_square_functions_are_scipy_stats_own():
     np.testing.assert_allclose(chi2_pvalue(S, n), chi2.sf(S, n), rtol=1e-12)
     np.testing.assert_allclose(chi2_pvalue(S, n, mu=2.0, phi=1.5), chi2.sf(S / (2.0 * 2.25), n / 2.25), rtol=1e-12)
     assert chi2_pvalue(np.array([0.0, 1.0]), np.array([0.0, 0.0])).tolist() == [1.0, 0.0]
+
+
+def test_shape_parameters_at_a_hard_bound_are_named():
+    """A box extent within AT_BOUND_TOLERANCE (scaled) of its smallest size (5 % of the
+    size bound) or of the size bound is named with its side; interior ones are not."""
+    from tacest.estimation.result import AT_BOUND_TOLERANCE, shape_params_at_bound
+    from tacest.geometry.shapes import make_shape
+    from tacest.geometry.shapes3d import make_shape_3d
+
+    box3, bound = make_shape_3d("box"), 3.0  # scaled: size bound 3 L, smallest extent 0.15 L
+    assert shape_params_at_bound(box3, [1.0, 0.8, 0.6], bound) == ()
+    assert shape_params_at_bound(box3, [0.15, 0.8, 3.0], bound) == ("extent_x (lower)", "extent_z (upper)")
+    assert shape_params_at_bound(box3, [0.15 + 2 * AT_BOUND_TOLERANCE, 0.8, 0.6], bound) == ()
+    assert shape_params_at_bound(make_shape("box"), [0.5, 3.0], bound, names=["width", "height"]) == (
+        "height (upper)",)
+
+
+def test_a_shape_held_by_its_bound_is_marked_and_said_so():
+    """The pushed box (10 cm wide, and 24 samples of one push that tell its height only
+    through the dynamics) under a size bound of 8 cm: its height ends at the bound, so
+    the fit is marked not valid whatever its residuals, and the one line says why; under
+    the size bound of 30 cm nothing is at a bound and the fit is consistent."""
+    from tacest.dims import estimate_runs
+    from tacest.estimation.fitquality import quality_summary
+
+    free = estimate_runs([pushed_box_run()], "box")
+    assert free.success and free.consistent and "shape_at_bound" not in free.fit_quality
+    run = pushed_box_run()
+    held = estimate_runs([run.replace(prior={"size_bound": 0.08})], "box")
+    assert held.success and held.consistent is False
+    assert held.fit_quality["shape_at_bound"] and all(n.endswith("(upper)") for n in held.fit_quality["shape_at_bound"])
+    assert np.ptp(held.vertices, axis=0).max() == pytest.approx(0.08, rel=1e-3)
+    assert quality_summary(held.fit_quality).startswith("NOT a valid fit: the shape ended at a hard bound")

@@ -28,7 +28,7 @@ from tacest.estimation.data import (Scales, choose_scales, force_in_contact, par
 from tacest.estimation.initial import continued_trajectory, initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen
 from tacest.estimation.smc2d import SMCSettings, smc_start
 from tacest.estimation.solver import (BuiltSolver, SolverCache, map_in_processes, plan_stages, pin, run_stages,
                                       solve_from_starts, SolveOutcome)
@@ -451,7 +451,10 @@ class ImplicitEstimator:
                       "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
                       "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)},
             effect_sigma=self.effect_prior_sigmas(z), effects=pr.effects, held=held_all,
-            shape_seen=shape_seen(self.runs), shape_names=tuple(information_names_2d(pr)[: pr.n_shape]))
+            shape_seen=shape_seen(self.runs), shape_names=tuple(information_names_2d(pr)[: pr.n_shape]),
+            shape_at_bound=shape_params_at_bound(self.shape, np.asarray(z, float)[: pr.n_shape],
+                                                 self.size_bound / self.scales.L,
+                                                 names=information_names_2d(pr)[: pr.n_shape]))
         return assemble(2, self.shape.name, V, params, self.run_estimates(z), out, wall_time, info, facts,
                         self.config.to_dict(), "implicit",
                         extra={"length_scale": self.scales.L, "mass_scale": self.scales.m0, "gravity": self.scales.g},

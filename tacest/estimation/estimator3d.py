@@ -37,7 +37,7 @@ from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_seen
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen
 from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, map_in_processes, pin,
                                       plan_stages, run_stages, solve_from_starts)
 from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobian
@@ -725,7 +725,9 @@ class Estimator3D:
                                    "friction_ground": ended_at_bound(mu_g, FRICTION_BOUNDS),
                                    "friction_finger": ended_at_bound(mu_f, FRICTION_BOUNDS)},
                          effect_sigma=effect_sigma, effects=pr.effects, held=self.fixed_theta is not None,
-                         shape_seen=shape_seen(self.runs), shape_names=tuple(self.shape.param_names))
+                         shape_seen=shape_seen(self.runs), shape_names=tuple(self.shape.param_names),
+                         shape_at_bound=shape_params_at_bound(self.shape, th[: pr.n_shape],
+                                                              self.size_bound / sc.L))
         notes = []
         if not self.has_force:
             notes.append("no force measured in contact: mass is not identifiable (held at the prior "

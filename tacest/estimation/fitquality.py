@@ -80,11 +80,17 @@ def quality_summary(quality: dict) -> str:
     consistent, or where it is not."""
     if quality.get("consistent"):
         return f"consistent with the noise floor ({quality['n_tests']} tests at {quality['alpha']:g})"
+    bound = quality.get("shape_at_bound") or []
+    if bound and not quality.get("worst") and not quality.get("terms"):
+        return ("NOT a valid fit: the shape ended at a hard bound (" + ", ".join(bound) + "): the object collapsed "
+                "to the smallest size allowed or grew to the largest (a wrong basin, or a size bound that does not "
+                "fit the object: /prior size_bound); its error bars are not to be trusted")
     where = "; ".join(f"{w['term']} in run {w['run']} samples {w['start']}-{w['stop']} (p {w['p']:.1e})"
                       for w in quality.get("worst", [])[:3])
     terms = ", ".join(f"{t['term']} (p {t['p']:.1e})" for t in quality.get("terms", [])[:3])
     return ("NOT consistent with the noise floor: " + (where or "")
             + (f"; term totals {terms}" if terms else "")
+            + (f"; the shape at a hard bound ({', '.join(bound)})" if bound else "")
             + ": the fit does not explain these data within the stated noise (a wrong basin, an unmodelled "
               "effect, or noise levels set too low); its error bars are not to be trusted")
 

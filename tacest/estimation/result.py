@@ -73,7 +73,8 @@ class FitFacts:
     {information row name: prior sigma in physical units} of the effect parameters;
     effects : the modelled effects' names; held : every parameter was held fixed;
     shape_seen : some fingertip touched (a contact flag 1) or some pose was observed;
-    shape_names : the information rows of the shape's parameters."""
+    shape_names : the information rows of the shape's parameters; shape_at_bound : the
+    shape parameters that ended at a hard bound (:func:`shape_params_at_bound`)."""
 
     has_force: bool
     has_fingers: bool
@@ -83,6 +84,7 @@ class FitFacts:
     held: bool = False
     shape_seen: bool = True
     shape_names: tuple = ()
+    shape_at_bound: tuple = ()
 
 
 def shape_seen(runs: list) -> bool:
@@ -100,6 +102,20 @@ def shape_seen(runs: list) -> bool:
 def ended_at_bound(u: float, bounds) -> bool:
     """Whether a scaled value u sits within AT_BOUND_TOLERANCE of either of its bounds."""
     return not bounds[0] + AT_BOUND_TOLERANCE < u < bounds[1] - AT_BOUND_TOLERANCE
+
+
+def shape_params_at_bound(shape, s, size_bound_scaled: float, names=None) -> tuple:
+    """Names ("<parameter> (lower|upper)", ``names`` or the shape's param_names) of the
+    shape parameters s (scaled, units of the length scale L) that ended within
+    AT_BOUND_TOLERANCE of their hard bounds ``shape.bounds(size_bound_scaled)`` (2-D or
+    3-D Shape): a box extent at the smallest size allowed (5 % of the size bound) or at
+    the size bound itself."""
+    lo, hi = (np.asarray(b, float) for b in shape.bounds(size_bound_scaled))
+    s = np.asarray(s, float).reshape(-1)[: len(lo)]
+    names = list(names or getattr(shape, "param_names", None) or []) or [f"s{k}" for k in range(len(lo))]
+    out = [f"{n} (lower)" for n, u, b in zip(names, s, lo) if u < b + AT_BOUND_TOLERANCE]
+    out += [f"{n} (upper)" for n, u, b in zip(names, s, hi) if u > b - AT_BOUND_TOLERANCE]
+    return tuple(out)
 
 
 def identifiability(params: dict, info: Optional[Information], facts: FitFacts) -> dict:
@@ -208,6 +224,11 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         weights = (config or {}).get("weights", {})
         q = goodness_of_fit([r.residuals for r in runs], data, len(np.asarray(vertices)), weights=weights)
         quality = q.to_json()
+        if facts.shape_at_bound and not facts.held:
+            # not an interior optimum: the bound, not the data, holds the shape, and a
+            # Laplace std says nothing there (docs/estimation.md, "Goodness of fit")
+            quality["consistent"] = False
+            quality["shape_at_bound"] = list(facts.shape_at_bound)
         scale = 1.0
         if not q.consistent:
             # information here: a diagnosis fits models that misfit on purpose; the
