@@ -186,3 +186,20 @@ def test_contact_and_normal_alone_follow_a_3d_topple(toppled_no_force):
     assert rep["chamfer"] < 5e-3 and rep["chamfer_body"] < 3e-3, (rep["chamfer"], rep["chamfer_body"])
     assert est.consistent is True, est.fit_quality
     assert rep["chamfer_body"] <= 3.0 * est.std["shape"]
+
+
+def test_a_polytope_estimate_gets_the_sampled_start_too(toppled_no_force, monkeypatch):
+    """The sampler's hypotheses are boxes; a polytope:K estimate is offered its lineage
+    too (it had the push-tracked starts alone, which never tip), started as the
+    polytope of the lineage's box extents on the lineage's tipping poses."""
+    monkeypatch.setenv("TACEST_NO_COMPILE", "1")
+    from tacest.estimation.estimator3d import Estimator3D
+    from tacest.estimation.initial3d import start_candidates_3d
+
+    est = Estimator3D([toppled_no_force], "polytope:8")  # the default sampler: 3 runs of 256
+    tracked = start_candidates_3d(est.runs, est.scales.L, np.ones(3), 1)[0]
+    sampled = est.sampled_start(tracked)
+    assert sampled is not None and sampled.label == "sampler"
+    assert sampled.extra["max_tilt_deg"] > 30.0
+    assert sampled.shape_params is None  # solved from est.shape.initial(extents): the polytope of the box
+    assert len(est.shape.initial(sampled.extents)) == 8
