@@ -166,9 +166,11 @@ def test_the_3d_sampling_start_is_reproducible_from_its_seed(toppled_no_force):
 @pytest.mark.slow
 def test_contact_and_normal_alone_follow_a_3d_topple(toppled_no_force):
     """Tactile-only known answer in 3-D: three fingertips, contact flags and normals, no
-    force, no pose; the box topples 96 degrees.  The sampler's lineage tips (so it is
-    the first start), and the estimate places the box within 5 mm (Chamfer of the
-    placed shapes: 3.5 mm seen, body 2.0 mm) and says it is consistent.  Tolerances:
+    force, no pose; the box topples 96 degrees.  The sampler's lineage tips (so it goes
+    before the push-tracked starts, after the growing horizon's start from the first
+    poke's estimate: solver3d.growing_horizon), and the estimate places the box within
+    5 mm (Chamfer of the placed shapes: 3.5 mm seen, body 2.0 mm) and says it is
+    consistent.  Tolerances:
     the pokes touch the y faces only at the edge the finger rides over, so that extent
     is loosely held (120 mm for 109 seen); the mass is not identifiable without force.
     Before the sampler the same run gave no fit from any of 3 starts."""
@@ -178,11 +180,13 @@ def test_contact_and_normal_alone_follow_a_3d_topple(toppled_no_force):
     run = toppled_no_force
     est = estimate_runs([run], "box")
     rep = evaluate(est, run, 0)
-    first = est.extra_attrs["starts"]
     import json
 
-    first = json.loads(first)[0]
-    assert first["start"] == "sampler" and first["max_tilt_deg"] > 60.0, first
+    starts = json.loads(est.extra_attrs["starts"])
+    assert [a["start"] for a in starts[:2]] == ["previous estimate", "sampler"], starts
+    assert starts[1]["max_tilt_deg"] > 60.0, starts[1]
+    horizon = json.loads(est.extra_attrs["horizon"])  # one step: the first poke alone
+    assert len(horizon) == 1 and horizon[0]["samples"] < run.n_samples, horizon
     assert rep["chamfer"] < 5e-3 and rep["chamfer_body"] < 3e-3, (rep["chamfer"], rep["chamfer_body"])
     assert est.consistent is True, est.fit_quality
     assert rep["chamfer_body"] <= 3.0 * est.std["shape"]
@@ -203,3 +207,20 @@ def test_a_polytope_estimate_gets_the_sampled_start_too(toppled_no_force, monkey
     assert sampled.extra["max_tilt_deg"] > 30.0
     assert sampled.shape_params is None  # solved from est.shape.initial(extents): the polytope of the box
     assert len(est.shape.initial(sampled.extents)) == 8
+
+
+def test_the_growing_horizon_applies_to_one_poked_run_of_several_actions_only(toppled_no_force):
+    """grow_horizon returns (None, []) without solving anything for two runs, for a run
+    with pose observations, and for a run of one action (there is nothing to grow)."""
+    from tacest.diagnosis.slicing import action_ranges, slice_run
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.estimation.estimator3d import grow_horizon
+
+    run = toppled_no_force
+    cfg = EstimatorConfig()
+    assert len(action_ranges(run)) == 2
+    assert grow_horizon([run, run], "box", cfg) == (None, [])
+    observed = run.replace(pose_obs=np.asarray(run.truth.pose, float).copy())
+    assert grow_horizon([observed], "box", cfg) == (None, [])
+    first = slice_run(run, 0, action_ranges(run)[0][1])
+    assert grow_horizon([first], "box", cfg) == (None, [])

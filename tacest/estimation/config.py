@@ -256,6 +256,13 @@ class Solver3D:
     #: degrees: a sampled lineage that tilts further than this goes first (the push
     #: tracker never tips the box); a flatter one is the first restart
     sampler_tip_deg: float = 20.0
+    #: runs without pose observations, one run of several actions, no earlier estimate
+    #: given: build the estimate up action by action, each step started from the last
+    #: step's estimate too (as --start-from), the last step the estimate (estimator3d.
+    #: grow_horizon).  Fresh fits of fast pokes missed the basin the chain finds (a 6-poke
+    #: dynamic recording: objective 767, 12.6 mm fresh; 127, 1.4 mm chained), at about 3x
+    #: the wall time (docs/estimation3d.md, "Growing horizon")
+    growing_horizon: bool = True
 
     def __post_init__(self):
         _check_sampler(self, "solver3d", "sampler_runs")

@@ -19,6 +19,7 @@ is identified only relative to that mass (I / m).
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 
@@ -887,11 +888,51 @@ def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfi
     more start where the runs have no pose observations (:func:`previous_start`).  See
     the module docstring."""
     t_start = time.perf_counter()
+    config = config or EstimatorConfig()
+    horizon = []
+    if previous is None and config.solver3d.growing_horizon:
+        previous, horizon = grow_horizon(runs, shape_spec, config, effects)
     est = Estimator3D(runs, shape_spec, config, effects=effects, previous=previous)
     pr = est.problem
     log.info(f"built 3-D NLP: {pr.n_z} variables, {pr.g.shape[0]} constraints ({est.build_time:.1f} s)")
     out = est.solve()
-    return est.result(out, time.perf_counter() - t_start)
+    result = est.result(out, time.perf_counter() - t_start)
+    if horizon:
+        result.extra_attrs["horizon"] = json.dumps(horizon)
+    return result
+
+
+def grow_horizon(runs: list[Run], shape_spec: str, config: EstimatorConfig, effects=()) -> tuple:
+    """(the estimate of all but the last action, or None; the steps [{samples, status,
+    objective, wall_time}]): the growing horizon of ``solver3d.growing_horizon``.  It
+    applies to one run of at least two actions (diagnosis.slicing.action_ranges),
+    without pose observations, with a fingertip; elsewhere it returns (None, []).  Step k
+    estimates the run's samples up to the end of action k, started from step k-1's
+    estimate too (Estimator3D's ``previous``: compared with its own starts); a step that
+    fails ends the chain with the last estimate it had."""
+    from tacest.diagnosis.slicing import action_ranges, slice_run
+
+    if len(runs) != 1 or runs[0].pose_obs is not None or not runs[0].n_fingers:
+        return None, []
+    ranges = action_ranges(runs[0])
+    previous, steps = None, []
+    for k, (_, stop) in enumerate(ranges[:-1]):
+        sub = slice_run(runs[0], 0, stop)
+        if not np.any(touching(sub)):
+            continue  # nothing touched yet: no shape to carry on
+        t0 = time.perf_counter()
+        try:
+            step = Estimator3D([sub], shape_spec, config, effects=effects, previous=previous)
+            previous = step.result(step.solve(), time.perf_counter() - t0)
+        except SolveFailedError as exc:
+            log.info(f"growing horizon: step {k + 1} ({stop} samples) failed ({exc}); the chain ends there")
+            steps.append({"samples": int(stop), "status": "failed"})
+            break
+        steps.append({"samples": int(stop), "status": previous.solver_status, "objective": float(previous.objective),
+                      "wall_time": round(time.perf_counter() - t0, 2)})
+        log.info(f"growing horizon: step {k + 1} of {len(ranges)} ({stop} of {runs[0].n_samples} samples), "
+                 f"objective {previous.objective:.1f} ({time.perf_counter() - t0:.1f} s)")
+    return previous, steps
 
 
 def inertia_parameters(inertia, mass, L) -> np.ndarray:
