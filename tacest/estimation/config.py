@@ -259,10 +259,11 @@ class Solver3D:
     #: runs without pose observations, one run of several actions, no earlier estimate
     #: given: build the estimate up action by action, each step started from the last
     #: step's estimate too (as --start-from), the last step the estimate (estimator3d.
-    #: grow_horizon).  Fresh fits of fast pokes missed the basin the chain finds (a 6-poke
-    #: dynamic recording: objective 767, 12.6 mm fresh; 127, 1.4 mm chained), at about 3x
-    #: the wall time (docs/estimation3d.md, "Growing horizon")
-    growing_horizon: bool = True
+    #: grow_horizon).  Off by default: it found basins fresh fits missed on some dynamic
+    #: recordings (12.6 -> 1.4 mm) and lost others (12.4 -> 24.9 mm); over six held-out
+    #: dynamic recordings the median stayed 7.4 mm at 4-7x the wall time
+    #: (docs/estimation3d.md, "Growing horizon")
+    growing_horizon: bool = False
 
     def __post_init__(self):
         _check_sampler(self, "solver3d", "sampler_runs")
