@@ -25,7 +25,7 @@ Designs:
     truth's mass times exp(REL N(0, 1)), seeded per recording, as the mass prior of log
     sigma REL; 0: not weighed).
 ``--design pokes``: one run of ``--pokes`` pokes of ``--poke-style`` (default
-    ``dynamic``), cut at its pokes into sub-runs (tacest.diagnosis.slicing.split_at_actions).
+    ``dynamic``), cut at its pokes into sub-runs (tacest.io.slicing.split_at_actions).
     With ``--touch-alone`` the pose is not observed (a tactile-exploration user's data;
     the 3-D diagnosis from touch alone, docs/estimation3d.md).  Each diagnosis runs in its own subprocess
 (this script with ``--worker``) under a time limit.  Results are cached per recording in
@@ -79,7 +79,7 @@ def worker(job: dict) -> dict:
     """Record and diagnose one recording (in this process); a JSON-able dict.  job: effect,
     seed, design, runs, pokes, style, known_mass."""
     from tacest.diagnosis.diagnose3d import diagnose_3d
-    from tacest.diagnosis.slicing import split_at_actions
+    from tacest.io.slicing import split_at_actions
     from tacest.dims import record_sim
     from tacest.estimation.config import EstimatorConfig
     from tacest.sim.record import SimOptions

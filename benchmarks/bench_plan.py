@@ -294,7 +294,7 @@ def report(all_results: dict, cases, policies, pokes: int, seeds) -> dict:
 def loop_estimates(folder: Path, last: int):
     """(n, estimate, the loop's run cut to the estimate's samples) for every
     ``estimate_<n>.h5`` of a loop folder, n = 1 .. last, that exists (none without run.h5)."""
-    from tacest.diagnosis.slicing import slice_run
+    from tacest.io.slicing import slice_run
     from tacest.io.estimate import read_estimate
     from tacest.io.run import read_run
 

@@ -26,7 +26,7 @@ from tacest.diagnosis.fitting import FitResult, occam_objective
 from tacest.estimation.floor import (TERMS, contact_windows, fit_floor, flagged_windows,
                                     residual_dof, window_tests)
 from tacest.diagnosis.heldout import make_folds, make_pieces
-from tacest.diagnosis.slicing import join_runs, slice_run, slice_run_estimate, split_at_actions
+from tacest.io.slicing import join_runs, slice_run, slice_run_estimate, split_at_actions
 from tacest.diagnosis.transforms import undo_latency, undo_time_scale
 from tacest.errors import TacestError
 from tacest.estimation.config import EstimatorConfig

@@ -523,7 +523,7 @@ def test_diagnose_3d_from_touch_alone_finds_a_force_bias():
     to 0.02 N (the force noise is 0.02 N per sample and the bias is seen on every one of
     hundreds of samples: a few mN is its standard error); the verdict names it."""
     from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d
-    from tacest.diagnosis.slicing import split_at_actions
+    from tacest.io.slicing import split_at_actions
     from tacest.dims import record_sim
     from tacest.sim.record import SimOptions
 

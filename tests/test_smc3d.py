@@ -213,7 +213,7 @@ def test_a_polytope_estimate_gets_the_sampled_start_too(toppled_no_force, monkey
 def test_the_growing_horizon_applies_to_one_poked_run_of_several_actions_only(toppled_no_force):
     """grow_horizon returns (None, []) without solving anything for two runs, for a run
     with pose observations, and for a run of one action (there is nothing to grow)."""
-    from tacest.diagnosis.slicing import action_ranges, slice_run
+    from tacest.io.slicing import action_ranges, slice_run
     from tacest.estimation.config import EstimatorConfig
     from tacest.estimation.estimator3d import grow_horizon
 

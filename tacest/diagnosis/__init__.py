@@ -3,7 +3,6 @@
 Modules, in the order of the method::
 
     floor       residuals against the noise floor: degrees of freedom, windows, tests, shares
-    slicing     cut runs and estimated trajectories into pieces (and join them back)
     heldout     pieces and folds of the held-out comparison
     transforms  the sensor-timing candidates as data transforms (latency, time_scale)
     candidates  one candidate per SPEC effect, parameter counts, screening signatures

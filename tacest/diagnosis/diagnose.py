@@ -56,7 +56,7 @@ from tacest.estimation.floor import TERMS as FLOOR_TERMS
 from tacest.estimation.floor import (ALPHA, MODES, WINDOW, FloorModel, breakdown, contact_state, excess_summary,
                                     fit_floor, flagged_windows, residual_dof, window_tests)
 from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_folds, make_pieces
-from tacest.diagnosis.slicing import MIN_SUBRUN_SAMPLES
+from tacest.io.slicing import MIN_SUBRUN_SAMPLES
 from tacest.diagnosis.transforms import apply_transform
 from tacest.constants import STANDARD_GRAVITY
 from tacest.errors import SolveFailedError, TacestError

@@ -212,7 +212,7 @@ def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
         return diag, [blind], {c.name: {"reduction": _num(c.reduction), "score": _num(c.score), "status": c.status}
                                for c in diag.effects}
     from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
-    from tacest.diagnosis.slicing import split_at_actions
+    from tacest.io.slicing import split_at_actions
 
     parts = [p.replace(filename=f"part{i}") for i, p in enumerate(split_at_actions(blind))]
     diag = diagnose_3d(parts, "box", config=config,

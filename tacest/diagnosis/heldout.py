@@ -1,7 +1,7 @@
 """Held-out data for comparing models: pieces of the recordings, and folds.
 
 Pieces.  With several runs, every run is a piece.  With one run, the run is cut at its
-action (poke) boundaries (tacest.diagnosis.slicing.action_ranges) and every poke is a
+action (poke) boundaries (tacest.io.slicing.action_ranges) and every poke is a
 piece.  A fold holds out some pieces and trains on the others; with P pieces there are
 K = min(P, max_folds) folds, fold j holding out pieces j, j + K, j + 2K, ... so that
 every piece is held out exactly once.
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from tacest.diagnosis.slicing import action_ranges, slice_run, slice_run_estimate
+from tacest.io.slicing import action_ranges, slice_run, slice_run_estimate
 
 #: default largest number of folds (each fold costs one training and one held-out fit
 #: per candidate)

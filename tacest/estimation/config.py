@@ -260,9 +260,9 @@ class Solver3D:
     #: given: build the estimate up action by action, each step started from the last
     #: step's estimate too (as --start-from), the last step the estimate (estimator3d.
     #: grow_horizon).  Off by default: it found basins fresh fits missed on some dynamic
-    #: recordings (12.6 -> 1.4 mm) and lost others (12.4 -> 24.9 mm); over six held-out
-    #: dynamic recordings the median stayed 7.4 mm at 4-7x the wall time
-    #: (docs/estimation3d.md, "Growing horizon")
+    #: recordings (12.6 -> 1.4 mm) and lost others (9.3 -> 24.9 mm); over six held-out
+    #: dynamic recordings the median went 7.9 -> 7.4 mm at 3-5x the wall time, and one
+    #: gentle recording 0.67 -> 4.59 mm (docs/estimation3d.md, "Growing horizon")
     growing_horizon: bool = False
 
     def __post_init__(self):

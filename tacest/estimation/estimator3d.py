@@ -905,12 +905,12 @@ def estimate_3d(runs: list[Run], shape_spec: str = "box", config: EstimatorConfi
 def grow_horizon(runs: list[Run], shape_spec: str, config: EstimatorConfig, effects=()) -> tuple:
     """(the estimate of all but the last action, or None; the steps [{samples, status,
     objective, wall_time}]): the growing horizon of ``solver3d.growing_horizon``.  It
-    applies to one run of at least two actions (diagnosis.slicing.action_ranges),
+    applies to one run of at least two actions (tacest.io.slicing.action_ranges),
     without pose observations, with a fingertip; elsewhere it returns (None, []).  Step k
     estimates the run's samples up to the end of action k, started from step k-1's
     estimate too (Estimator3D's ``previous``: compared with its own starts); a step that
     fails ends the chain with the last estimate it had."""
-    from tacest.diagnosis.slicing import action_ranges, slice_run
+    from tacest.io.slicing import action_ranges, slice_run
 
     if len(runs) != 1 or runs[0].pose_obs is not None or not runs[0].n_fingers:
         return None, []
