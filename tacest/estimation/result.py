@@ -113,9 +113,8 @@ def shape_params_at_bound(shape, s, size_bound_scaled: float, names=None) -> tup
     lo, hi = (np.asarray(b, float) for b in shape.bounds(size_bound_scaled))
     s = np.asarray(s, float).reshape(-1)[: len(lo)]
     names = list(names or getattr(shape, "param_names", None) or []) or [f"s{k}" for k in range(len(lo))]
-    out = [f"{n} (lower)" for n, u, b in zip(names, s, lo) if u < b + AT_BOUND_TOLERANCE]
-    out += [f"{n} (upper)" for n, u, b in zip(names, s, hi) if u > b - AT_BOUND_TOLERANCE]
-    return tuple(out)
+    return tuple(f"{n} ({'lower' if u - a < b - u else 'upper'})"
+                  for n, u, a, b in zip(names, s, lo, hi) if ended_at_bound(u, (a, b)))
 
 
 def identifiability(params: dict, info: Optional[Information], facts: FitFacts) -> dict:
