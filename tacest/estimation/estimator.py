@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.estimation.sensor_noise import with_measured_noise
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, force_in_contact, parameter_vector, previous_trajectories,
@@ -88,7 +89,9 @@ class ImplicitEstimator:
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
         self.runs = runs
-        self.config = config or EstimatorConfig()
+        #: the settings of the fit: ``config`` with the sensors' noise levels raised to
+        #: what the runs show (sensor_noise.py), and the report of that (attr sensor_noise)
+        self.config, self.sensor_noise = with_measured_noise(runs, config or EstimatorConfig())
         self.shape = make_shape(shape_spec, dim=2)
         # a mismatched earlier estimate is an error before the NLP is built
         before = None if previous is None else previous_trajectories(previous, 2, self.shape.name, runs)
@@ -458,7 +461,7 @@ class ImplicitEstimator:
         return assemble(2, self.shape.name, V, params, self.run_estimates(z), out, wall_time, info, facts,
                         self.config.to_dict(), "implicit",
                         extra={"length_scale": self.scales.L, "mass_scale": self.scales.m0, "gravity": self.scales.g},
-                        attempts=self.attempts, notes=notes, data=self.runs,
+                        attempts=self.attempts, notes=notes, data=self.runs, sensor_noise=self.sensor_noise,
                         vertex_jacobian=vertex_jacobian(lambda p_: numeric_vertices(self.shape, p_ / self.scales.L,
                                                                                     self.scales.L),
                                                         np.asarray(z[: pr.n_shape], float) * self.scales.L))

@@ -29,6 +29,7 @@ import numpy as np
 from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
+from tacest.estimation.sensor_noise import with_measured_noise
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, force_in_contact,
@@ -259,7 +260,9 @@ class Estimator3D:
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
         self.runs = runs
-        self.config = config or EstimatorConfig()
+        #: the settings of the fit: ``config`` with the sensors' noise levels raised to
+        #: what the runs show (sensor_noise.py), and the report of that (attr sensor_noise)
+        self.config, self.sensor_noise = with_measured_noise(runs, config or EstimatorConfig())
         self.shape = make_shape_3d(shape_spec)
         self.scales: Scales = choose_scales(runs, self.config)
         self.F = max(r.n_fingers for r in runs)
@@ -736,7 +739,7 @@ class Estimator3D:
         return assemble(3, self.shape.name, V, params, run_ests, out, wall_time, info, facts, self.config.to_dict(),
                         "implicit", extra={"length_scale": sc.L, "mass_scale": sc.m0,
                                            "shape_params": np.asarray(out.z[: pr.n_shape] * sc.L, float)},
-                        attempts=self.attempts, notes=notes, data=self.runs,
+                        attempts=self.attempts, notes=notes, data=self.runs, sensor_noise=self.sensor_noise,
                         vertex_jacobian=vertex_jacobian(lambda p_: numeric_vertices_3d(self.shape, p_ / sc.L, sc.L),
                                                         np.asarray(out.z[: pr.n_shape], float) * sc.L))
 

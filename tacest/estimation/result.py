@@ -38,6 +38,7 @@ error bar either: the mark says so.
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from typing import Optional
@@ -204,11 +205,14 @@ def basin_spread(attempts: list, objective: float, vertices, params: dict) -> di
 
 def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: SolveOutcome, wall_time: float,
              info: Optional[Information], facts: FitFacts, config: dict, method: str, extra: dict = None,
-             attempts: list = None, notes: list = (), data: list = None, vertex_jacobian=None) -> Estimate:
+             attempts: list = None, notes: list = (), data: list = None, vertex_jacobian=None,
+             sensor_noise: dict = None) -> Estimate:
     """The Estimate of a fit (see the module docstring); ``data``: the runs fitted (for
     the goodness-of-fit test; without them the estimate is untested); vertex_jacobian
     (K·dim, n_shape): the vertices' derivative by the shape parameters, the first
-    n_shape rows of the information (for std["shape"], uncertainty.shape_std)."""
+    n_shape rows of the information (for std["shape"], uncertainty.shape_std);
+    sensor_noise: the report of tacest.estimation.sensor_noise.with_measured_noise (attr
+    ``sensor_noise``, JSON)."""
     quality = None
     std = {} if info is None else dict(info.std)
     if info is not None and info.cov is not None and vertex_jacobian is not None:
@@ -243,6 +247,8 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         extra["starts"] = attempts_json(attempts)
     if notes:
         extra["notes"] = "; ".join(notes)
+    if sensor_noise:
+        extra["sensor_noise"] = json.dumps(sensor_noise)
     return Estimate(
         dim=dim, shape=shape, vertices=np.asarray(vertices, float), params=params, runs=runs,
         model=list(facts.effects), solver_status=outcome.status, success=outcome.success,

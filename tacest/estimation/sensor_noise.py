@@ -1,0 +1,120 @@
+"""The sensors' noise levels as the data show them, against the configured ones.
+
+The estimator whitens each measured stream by a configured noise level ([noise] force,
+normal, contact_gap).  SPEC's run files do not carry their sensors' noise, and a rig or a
+simulator may be noisier than the defaults assume; whitened by too small a sigma, a right
+fit fails its goodness-of-fit test and reports error bars too small by the same factor.
+
+So before a fit the noise of each stream is measured from the data alone, where the
+signal is smooth at the sample rate: with x_t = s_t + e_t (e white, sigma per component)
+the second difference x_{t+1} - 2 x_t + x_{t-1} is the noise's, of variance 6 sigma²,
+plus the signal's s'' dt², small at 100 Hz but for the few samples of an impact or of a
+finger crossing an edge.  A median (robust to those) of the squared second differences
+gives sigma:
+
+    sigma² = median(|d2|²) / (6 · median χ²(k))
+
+with k the components per difference: 1 for each force and position component, D - 1
+for a unit normal (its second difference projected off the middle sample's normal: the
+angles, D = 2 or 3).  Only consecutive triples where the stream is there count: forces
+and normals in contact, positions where the finger is not missing.  On tacest's own
+simulator (force 0.02 N, normal 0.02 rad, position 0.1 mm) this gives 0.025-0.027 N,
+0.020-0.021 rad and 0.10-0.11 mm; with 0.2 N and 0.08 rad, 0.21 N and 0.085 rad.
+
+The estimator then uses the larger of the configured and the measured level
+(:func:`with_measured_noise`): the configured levels are deliberately generous, and a
+stream that is quieter than its setting is left at it (the settings also carry model
+error); one that is noisier is whitened by what it shows.  The fingertip position's
+noise is the floor of the contact gap's sigma (the gap is measured through that
+position).  What was measured and used is the estimate's attr ``sensor_noise``
+(docs/formats.md); ``noise.from_data = false`` keeps the configured levels.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: fewest second differences a level is measured from (fewer: not measured)
+MIN_DIFFERENCES = 20
+#: the configured setting (noise.<key>) that each measured stream can raise, with its unit
+STREAMS = {"force": ("force", "N"), "normal": ("normal", "rad"), "position": ("contact_gap", "m")}
+
+
+def _consecutive(valid: np.ndarray) -> np.ndarray:
+    """(T - 2,) bool: the triples (t - 1, t, t + 1) valid at all three samples."""
+    return valid[:-2] & valid[1:-1] & valid[2:]
+
+
+def _second_differences(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(n, C) second differences of the rows of x (T, C) over the valid triples."""
+    if len(x) < 3:
+        return np.zeros((0, x.shape[1]))
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return d2[_consecutive(valid)]
+
+
+def _sigma(squares: np.ndarray, dof: int):
+    """sigma from squared second-difference norms of ``dof`` components each, or None
+    when there are fewer than MIN_DIFFERENCES of them."""
+    from scipy.special import chdtri  # chi2.ppf(q, k) = chdtri(k, 1 - q)
+
+    squares = squares[np.isfinite(squares)]
+    if squares.size < MIN_DIFFERENCES:
+        return None
+    return float(np.sqrt(np.median(squares) / (6.0 * float(chdtri(dof, 0.5)))))
+
+
+def measured_noise(runs: list) -> dict:
+    """{"force" N, "normal" rad, "position" m: sigma per component (per angle for
+    normals) or None}, pooled over the runs' fingers and samples (module doc)."""
+    pooled = {"force": [], "normal": [], "position": []}
+    for run in runs:
+        if not run.n_fingers:
+            continue
+        ok = ~np.asarray(run.finger_missing_mask, bool)  # (T, F)
+        on = np.asarray(run.contact, bool) & ok
+        for f in range(run.n_fingers):
+            pooled["position"].append(_second_differences(run.finger_position[:, f], ok[:, f]).reshape(-1) ** 2)
+            if run.force is not None:
+                pooled["force"].append(_second_differences(run.force[:, f], on[:, f]).reshape(-1) ** 2)
+            n = run.normal[:, f]
+            valid = on[:, f] & np.all(np.isfinite(n), axis=1)
+            d2 = _second_differences(np.where(valid[:, None], n, 0.0), valid)
+            mid = n[1:-1][_consecutive(valid)]
+            tangent = d2 - np.sum(d2 * mid, axis=1, keepdims=True) * mid
+            pooled["normal"].append(np.sum(tangent ** 2, axis=1))
+    dims = {int(r.dim) for r in runs}
+    dof_normal = (max(dims) if dims else 2) - 1
+    out = {}
+    for key, parts in pooled.items():
+        squares = np.concatenate(parts) if parts else np.zeros(0)
+        out[key] = _sigma(squares, dof_normal if key == "normal" else 1)
+    return out
+
+
+def with_measured_noise(runs: list, config):
+    """(config, report): ``config`` with noise.force, noise.normal and noise.contact_gap
+    raised to the levels the runs show where those are larger (module doc), and the
+    report {stream: {"setting", "configured", "measured", "used"}} (the estimate's attr
+    ``sensor_noise``).  With ``noise.from_data`` false, or nothing measured, the config
+    is returned unchanged (the report then says so)."""
+    if not config.noise.from_data:
+        return config, {}
+    measured = measured_noise(runs)
+    report, raised = {}, {}
+    for stream, (setting, unit) in STREAMS.items():
+        configured = float(getattr(config.noise, setting))
+        m = measured[stream]
+        used = configured if m is None else max(configured, m)
+        report[stream] = {"setting": f"noise.{setting}", "configured": configured, "measured": m, "used": used}
+        if used > configured:
+            raised[setting] = used
+            log.info(f"the {stream} readings are noisier than noise.{setting} = {configured:.3g} {unit}: "
+                     f"{used:.3g} {unit} measured sample to sample; the fit whitens them by that")
+    if raised:
+        config = config.updated({"noise": raised})
+    return config, report
