@@ -45,6 +45,9 @@ failed.  The exit status is 0 whether or not the targets are met (1 only for bad
 arguments).  ``--config`` runs every estimate with the settings of a TOML file (as
 ``tacest estimate --config``), to compare settings on the same recordings (``--cache``
 keeps them between invocations).
+``--sensor-noise FORCE,NORMAL`` records with other sensor noise (force N, normal rad;
+default 0.02,0.02): sensors noisier than the estimator's configured levels (0.05, 0.05),
+as a rig or another simulator may have (docs/estimation.md, "Sensor noise from the data").
 ``--reach M`` sets the estimator's ``noise.complementarity_reach`` (m, 0: off) for
 every estimate (the shooting method has no complementarity residual and ignores it), to
 compare the estimator with and without it on the same recordings.
@@ -187,15 +190,17 @@ def run_job(run_path: Path, shape: str, method: str, timeout: float, reach: floa
 # recordings
 
 
-def record(case: str, seed: int, directory: Path, style: str = "gentle") -> tuple[Path, str]:
-    """Record the case's run for ``seed`` with pokes of ``style`` (tacest.sim.pokes) into
-    directory, unless it is already there (a --cache folder); returns (path, estimation
-    shape)."""
+def record(case: str, seed: int, directory: Path, style: str = "gentle",
+           sensor_noise: tuple = (0.02, 0.02)) -> tuple[Path, str]:
+    """Record the case's run for ``seed`` with pokes of ``style`` (tacest.sim.pokes) and
+    the sensor noise (force N, normal rad) into directory, unless it is already there (a
+    --cache folder); returns (path, estimation shape)."""
     from tacest.dims import record_sim
     from tacest.io.run import write_run
     from tacest.sim.record import SimOptions
 
-    common = dict(pokes=6, noise_force=0.02, seed=seed, poke_style=style)
+    common = dict(pokes=6, noise_force=float(sensor_noise[0]), noise_normal=float(sensor_noise[1]), seed=seed,
+                  poke_style=style)
     if case == "box":
         opts, shape = SimOptions(object_spec="box", **common), "box"
     elif case == "polygon":
@@ -206,7 +211,8 @@ def record(case: str, seed: int, directory: Path, style: str = "gentle") -> tupl
         opts, shape = SimOptions(dim=3, object_spec="box", fingers=3, force_stream=False, **common), "box"
     else:
         raise ValueError(case)
-    path = directory / f"{case}_{style}_{seed}.h5"
+    noisy = "" if tuple(sensor_noise) == (0.02, 0.02) else f"_noise{sensor_noise[0]:g}_{sensor_noise[1]:g}"
+    path = directory / f"{case}_{style}_{seed}{noisy}.h5"
     if not path.exists():
         write_run(record_sim(opts), path)
     return path, shape
@@ -421,6 +427,9 @@ def main(argv=None) -> int:
                    help="poke styles, comma-separated (default gentle,dynamic; any of tacest.sim.pokes.POKE_MIXES)")
     p.add_argument("--config", dest="config_path", default=None, metavar="TOML",
                    help="estimator settings for every estimate (default: the shipped defaults)")
+    p.add_argument("--sensor-noise", default="0.02,0.02", metavar="FORCE,NORMAL",
+                   help="the recordings' force (N) and normal (rad) noise, one sigma (default 0.02,0.02, the "
+                        "simulator's; e.g. 0.2,0.08: sensors noisier than the estimator's configured levels)")
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="keep the recordings in DIR/code_<digest> and reuse them with the same code "
                         "(default: a temporary folder)")
@@ -438,6 +447,12 @@ def main(argv=None) -> int:
         + [x for x in styles if x not in POKE_MIXES]
     if bad or a.seeds < 1 or a.first_seed < 0:
         p.error(f"unknown case, method or style: {', '.join(bad)}" if bad else "--seeds must be >= 1 and --first-seed >= 0")
+    try:
+        sensor_noise = tuple(float(x) for x in a.sensor_noise.split(","))
+    except ValueError:
+        sensor_noise = ()
+    if len(sensor_noise) != 2 or not all(math.isfinite(x) and x >= 0 for x in sensor_noise):
+        p.error(f"--sensor-noise must be FORCE,NORMAL (two numbers >= 0), got {a.sensor_noise!r}")
     if a.reach is not None and not a.reach >= 0:
         p.error(f"--reach must be >= 0 (m), got {a.reach}")
 
@@ -464,7 +479,7 @@ def main(argv=None) -> int:
                 key = f"{case}/{style}"
                 results[key] = {m: {"jobs": []} for m in methods if case != "box3d" or m == "implicit"}
                 for seed in range(a.first_seed, a.first_seed + a.seeds):
-                    path, shape = record(case, seed, tmp, style)
+                    path, shape = record(case, seed, tmp, style, sensor_noise)
                     for m in results[key]:
                         j = run_job(path, shape, m, a.timeout, a.reach, a.config_path)
                         j.update(seed=seed, shape=shape, style=style)
@@ -497,6 +512,7 @@ def main(argv=None) -> int:
         print_scaling(scaling)
     if a.json_out:
         doc = {"seeds": list(range(a.first_seed, a.first_seed + a.seeds)), "tuning_seeds": TUNING_SEEDS_TEXT, "timeout": a.timeout, "reach": a.reach, "styles": styles, "config": a.config_path,
+               "sensor_noise": list(sensor_noise),
                "cases": results, "scaling": scaling, "calibration": calibration_target(results) if results else None}
         from tacest.evaluation.metrics import to_jsonable
 

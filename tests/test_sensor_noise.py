@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from tacest.estimation.config import EstimatorConfig
-from tacest.estimation.sensor_noise import MIN_DIFFERENCES, measured_noise, with_measured_noise
+from tacest.estimation.sensor_noise import (MIN_DIFFERENCES, judged_config, judged_params, measured_noise, noise_report,
+                                            rejudged)
 from tacest.io.run import Run
 
 
@@ -70,29 +71,39 @@ def test_known_noise_levels_are_measured(dim):
 
 
 def test_smooth_data_measure_far_below_the_defaults_and_change_nothing():
-    """Noise-free smooth signals measure (nearly) zero noise: the configured levels stay,
-    the config object is the very same, and the report says what was measured."""
+    """Noise-free smooth signals measure (nearly) zero noise: the configured levels are
+    used, the residuals are judged as they are and the stds are not scaled."""
     run = smooth_run(2)
     m = measured_noise([run])
     cfg = EstimatorConfig()
     assert m["force"] < 0.01 * cfg.noise.force and m["normal"] < 0.01 * cfg.noise.normal
-    out, report = with_measured_noise([run], cfg)
-    assert out is cfg
+    report = noise_report([run], cfg)
     assert report["force"]["used"] == cfg.noise.force and report["position"]["setting"] == "noise.contact_gap"
+    residuals = [{"force": np.ones(5), "dynamics": np.ones(5)}]
+    assert rejudged(residuals, report) is residuals and judged_config(cfg, report) is cfg
 
 
-def test_noisier_data_raise_the_levels_and_only_those():
-    """Force noise 0.2 N and normal noise 0.08 rad above the defaults (0.05 each) are
-    raised to what was measured; a position noise below contact_gap leaves it."""
+def test_noisier_data_judge_the_fit_by_their_levels_and_only_those():
+    """Force noise 0.2 N and normal noise 0.08 rad above the defaults (0.05 each): the
+    force and normal terms are whitened by the measured levels (their squared residuals
+    scaled by (0.05 / used)²), the contact term (position noise below contact_gap) and
+    the model-error terms are left, and the judging config raises those two alone."""
     run = smooth_run(3, sig_force=0.2, sig_normal=0.08, sig_pos=1e-4)
     cfg = EstimatorConfig()
-    out, report = with_measured_noise([run], cfg)
-    assert out.noise.force == pytest.approx(0.2, rel=0.1) and out.noise.force == report["force"]["used"]
-    assert out.noise.normal == pytest.approx(0.08, rel=0.1)
-    assert out.noise.contact_gap == cfg.noise.contact_gap
-    assert out.noise.process == cfg.noise.process  # model-error settings are not touched
-    off, report_off = with_measured_noise([run], cfg.updated({"noise": {"from_data": False}}))
-    assert off.noise.force == cfg.noise.force and report_off == {}
+    report = noise_report([run], cfg)
+    assert report["force"]["used"] == pytest.approx(0.2, rel=0.1)
+    assert report["normal"]["used"] == pytest.approx(0.08, rel=0.1)
+    assert report["position"]["used"] == cfg.noise.contact_gap
+    residuals = [{"force": np.full(4, 2.0), "normal": np.full(4, 3.0), "contact": np.ones(4), "dynamics": np.ones(4)}]
+    out = rejudged(residuals, report)
+    np.testing.assert_allclose(out[0]["force"], 2.0 * (0.05 / report["force"]["used"]) ** 2, rtol=1e-12)
+    np.testing.assert_allclose(out[0]["normal"], 3.0 * (0.05 / report["normal"]["used"]) ** 2, rtol=1e-12)
+    assert out[0]["contact"] is residuals[0]["contact"] and out[0]["dynamics"] is residuals[0]["dynamics"]
+    assert residuals[0]["force"][0] == 2.0  # the fit's own residuals are not changed
+    judged = judged_config(cfg, report)
+    assert (judged.noise.force, judged.noise.normal) == (report["force"]["used"], report["normal"]["used"])
+    assert judged.noise.contact_gap == cfg.noise.contact_gap and judged.noise.process == cfg.noise.process
+    assert noise_report([run], cfg.updated({"noise": {"from_data": False}})) == {}
 
 
 def test_rescaling_the_force_rescales_its_measured_noise():
@@ -109,9 +120,8 @@ def test_too_few_samples_or_no_stream_measure_nothing():
     short = smooth_run(2, T=MIN_DIFFERENCES // 4 + 1, sig_force=1.0, sig_normal=1.0, sig_pos=1.0)
     m = measured_noise([short])
     assert m == {"force": None, "normal": None, "position": None}
-    cfg = EstimatorConfig()
-    out, report = with_measured_noise([short], cfg)
-    assert out is cfg and report["force"]["measured"] is None
+    report = noise_report([short], EstimatorConfig())
+    assert report["force"]["measured"] is None and report["force"]["used"] == EstimatorConfig().noise.force
     assert measured_noise([smooth_run(2, force=False)])["force"] is None
 
 
@@ -130,3 +140,36 @@ def test_missing_finger_samples_do_not_count():
     m = measured_noise([bad])
     assert m["position"] == pytest.approx(clean["position"], rel=0.1)
     assert m["force"] == pytest.approx(clean["force"], rel=0.1)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_information_weighs_each_stream_by_the_noise_its_data_show(dim):
+    """A simulated run with force noise 0.2 N and normal noise 0.08 rad: the parameter
+    vector the observed information is computed with (judged_params) differs from the
+    fit's only in the force and normal sigmas, which are the measured levels; a run at
+    the simulator's default noise (below the configured levels) uses the fit's own.
+    Tolerance 25 %: two pokes give only ~100 contact samples (the measured sigmas of
+    1-3 pokes scatter by about 10 %)."""
+    from tacest.dims import record_sim
+    from tacest.estimation.estimator import ImplicitEstimator
+    from tacest.estimation.estimator3d import Estimator3D
+    from tacest.sim.record import SimOptions
+
+    make = ImplicitEstimator if dim == 2 else Estimator3D
+    noisy = record_sim(SimOptions(dim=dim, seed=1, pokes=2, noise_force=0.2, noise_normal=0.08))
+    est = make([noisy], "box")
+    est.p_final = est.stage_params(est.stages()[-1])  # as after a solve
+    p = np.asarray(judged_params(est), float)
+    fit = np.asarray(est.p_final, float)
+    changed = p != fit
+    assert changed.any()
+    cfg = EstimatorConfig()
+    assert set(fit[changed]) <= {cfg.noise.force, cfg.noise.normal}
+    used = {est.sensor_noise["force"]["used"], est.sensor_noise["normal"]["used"]}
+    assert set(p[changed]) <= used and est.sensor_noise["normal"]["used"] == pytest.approx(0.08, rel=0.25)
+    if dim == 2:  # the 2-D simulator's forces are impulse / dt plus the noise: measured as drawn
+        assert est.sensor_noise["force"]["used"] == pytest.approx(0.2, rel=0.25)
+    quiet = make([record_sim(SimOptions(dim=2, seed=1, pokes=1))], "box") if dim == 2 else None
+    if quiet is not None:
+        quiet.p_final = quiet.stage_params(quiet.stages()[-1])
+        assert judged_params(quiet) is quiet.p_final

@@ -21,7 +21,7 @@ import casadi as ca
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.estimation.sensor_noise import with_measured_noise
+from tacest.estimation.sensor_noise import judged_params, noise_report
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, force_in_contact, parameter_vector, previous_trajectories,
@@ -89,9 +89,9 @@ class ImplicitEstimator:
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
         self.runs = runs
-        #: the settings of the fit: ``config`` with the sensors' noise levels raised to
-        #: what the runs show (sensor_noise.py), and the report of that (attr sensor_noise)
-        self.config, self.sensor_noise = with_measured_noise(runs, config or EstimatorConfig())
+        self.config = config or EstimatorConfig()
+        #: the sensors' noise as the runs show it, which judges the fit (sensor_noise.py)
+        self.sensor_noise = noise_report(runs, self.config)
         self.shape = make_shape(shape_spec, dim=2)
         # a mismatched earlier estimate is an error before the NLP is built
         before = None if previous is None else previous_trajectories(previous, 2, self.shape.name, runs)
@@ -468,9 +468,10 @@ class ImplicitEstimator:
 
     def information(self, z, penalty_shift=False):
         """The observed information of the fit at z (uncertainty.observed_information_2d)
-        with the final stage's parameters and bounds."""
+        with the final stage's parameters (the sensors' noise levels as the data show
+        them where larger: sensor_noise.judged_params) and bounds."""
         bounds = self.bounds_final if self.bounds_final is not None else self.variable_bounds(z)
-        return observed_information_2d(self.problem, z, self.p_final, *bounds, self.scales, self.physical(z)[1],
+        return observed_information_2d(self.problem, z, judged_params(self), *bounds, self.scales, self.physical(z)[1],
                                        penalty_shift=penalty_shift)
 
     def effect_prior_sigmas(self, z) -> dict:

@@ -29,7 +29,7 @@ import numpy as np
 from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
-from tacest.estimation.sensor_noise import with_measured_noise
+from tacest.estimation.sensor_noise import judged_params, noise_report
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, force_in_contact,
@@ -260,9 +260,9 @@ class Estimator3D:
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
         self.runs = runs
-        #: the settings of the fit: ``config`` with the sensors' noise levels raised to
-        #: what the runs show (sensor_noise.py), and the report of that (attr sensor_noise)
-        self.config, self.sensor_noise = with_measured_noise(runs, config or EstimatorConfig())
+        self.config = config or EstimatorConfig()
+        #: the sensors' noise as the runs show it, which judges the fit (sensor_noise.py)
+        self.sensor_noise = noise_report(runs, self.config)
         self.shape = make_shape_3d(shape_spec)
         self.scales: Scales = choose_scales(runs, self.config)
         self.F = max(r.n_fingers for r in runs)
@@ -716,7 +716,7 @@ class Estimator3D:
                                         source_sha256=run_sha256(run)))
         params = {"mass": mass, "inertia": inertia, "friction_ground": mu_g, "friction_finger": mu_f}
         params.update(self.effect_params(out.z))
-        info = (observed_information_3d(pr, out.z, self.p_final, *self.bounds_final, sc, mass)
+        info = (observed_information_3d(pr, out.z, judged_params(self), *self.bounds_final, sc, mass)
                 if information else None)
         th = np.asarray(out.z, float)
         a = pr.n_shape + len(PHYS_NAMES_3D)

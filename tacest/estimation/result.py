@@ -46,6 +46,7 @@ from typing import Optional
 import numpy as np
 
 from tacest.estimation.fitquality import goodness_of_fit
+from tacest.estimation.sensor_noise import rejudged
 from tacest.estimation.solver import SolveOutcome, attempts_json
 from tacest.estimation.uncertainty import Information, shape_std
 from tacest.io.estimate import Estimate
@@ -211,8 +212,10 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
     the goodness-of-fit test; without them the estimate is untested); vertex_jacobian
     (K·dim, n_shape): the vertices' derivative by the shape parameters, the first
     n_shape rows of the information (for std["shape"], uncertainty.shape_std);
-    sensor_noise: the report of tacest.estimation.sensor_noise.with_measured_noise (attr
-    ``sensor_noise``, JSON)."""
+    sensor_noise: the report of tacest.estimation.sensor_noise.noise_report (attr
+    ``sensor_noise``, JSON): streams noisier than configured are judged by the test at
+    their measured level (the information ``info`` already weighs them so:
+    sensor_noise.judged_params)."""
     quality = None
     std = {} if info is None else dict(info.std)
     if info is not None and info.cov is not None and vertex_jacobian is not None:
@@ -225,7 +228,8 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
             std[k] = float(np.hypot(std[k], d))
     if data is not None:
         weights = (config or {}).get("weights", {})
-        q = goodness_of_fit([r.residuals for r in runs], data, len(np.asarray(vertices)), weights=weights)
+        q = goodness_of_fit(rejudged([r.residuals for r in runs], sensor_noise or {}), data,
+                            len(np.asarray(vertices)), weights=weights)
         quality = q.to_json()
         if facts.shape_at_bound and not facts.held:
             # not an interior optimum: the bound, not the data, holds the shape, and a

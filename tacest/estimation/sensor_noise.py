@@ -21,17 +21,28 @@ and normals in contact, positions where the finger is not missing.  On tacest's 
 simulator (force 0.02 N, normal 0.02 rad, position 0.1 mm) this gives 0.025-0.027 N,
 0.020-0.021 rad and 0.10-0.11 mm; with 0.2 N and 0.08 rad, 0.21 N and 0.085 rad.
 
-The estimator then uses the larger of the configured and the measured level
-(:func:`with_measured_noise`): the configured levels are deliberately generous, and a
-stream that is quieter than its setting is left at it (the settings also carry model
-error); one that is noisier is whitened by what it shows.  The fingertip position's
-noise is the floor of the contact gap's sigma (the gap is measured through that
-position).  What was measured and used is the estimate's attr ``sensor_noise``
-(docs/formats.md); ``noise.from_data = false`` keeps the configured levels.
+The fit itself whitens by the configured levels (they are generous on purpose and also
+carry model error; raising them inside the fit changed which basin misspecified fits
+reach, and one pose-observed 3-D fit of a box with an unmodelled centre-of-mass offset
+stopped converging).  What the data show changes how the fit is judged
+(:func:`noise_report`, used by tacest.estimation.result.assemble):
+
+- the goodness-of-fit test whitens each stream by the larger of its configured and
+  measured level (:func:`rejudged`: the force, normal and contact terms are linear in
+  1/sigma, so their squared residuals scale exactly by (configured / used)²);
+- the observed information (and so every reported std) is computed at the fit with
+  those levels (:func:`judged_params`): each stream's share of the information falls
+  by its ratio used / configured squared.
+
+A stream quieter than its setting changes nothing.  The fingertip position's noise is
+the floor of the contact gap's sigma (the gap is measured through that position).  What
+was measured and used is the estimate's attr ``sensor_noise`` (docs/formats.md);
+``noise.from_data = false`` keeps the configured levels.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import numpy as np
@@ -42,6 +53,8 @@ log = logging.getLogger(__name__)
 MIN_DIFFERENCES = 20
 #: the configured setting (noise.<key>) that each measured stream can raise, with its unit
 STREAMS = {"force": ("force", "N"), "normal": ("normal", "rad"), "position": ("contact_gap", "m")}
+#: the loss term each stream's level whitens (tacest.estimation.floor.TERMS)
+TERM_OF = {"force": "force", "normal": "normal", "position": "contact"}
 
 
 def _consecutive(valid: np.ndarray) -> np.ndarray:
@@ -96,25 +109,52 @@ def measured_noise(runs: list) -> dict:
     return out
 
 
-def with_measured_noise(runs: list, config):
-    """(config, report): ``config`` with noise.force, noise.normal and noise.contact_gap
-    raised to the levels the runs show where those are larger (module doc), and the
-    report {stream: {"setting", "configured", "measured", "used"}} (the estimate's attr
-    ``sensor_noise``).  With ``noise.from_data`` false, or nothing measured, the config
-    is returned unchanged (the report then says so)."""
+def noise_report(runs: list, config) -> dict:
+    """{stream: {"setting", "term", "configured", "measured", "used"}}: per stream of
+    STREAMS the configured level, the measured one (None: too few samples) and the
+    larger, which judges the fit (module doc); {} with ``noise.from_data`` false."""
     if not config.noise.from_data:
-        return config, {}
+        return {}
     measured = measured_noise(runs)
-    report, raised = {}, {}
+    report = {}
     for stream, (setting, unit) in STREAMS.items():
         configured = float(getattr(config.noise, setting))
         m = measured[stream]
         used = configured if m is None else max(configured, m)
-        report[stream] = {"setting": f"noise.{setting}", "configured": configured, "measured": m, "used": used}
+        report[stream] = {"setting": f"noise.{setting}", "term": TERM_OF[stream], "configured": configured,
+                          "measured": m, "used": used}
         if used > configured:
-            raised[setting] = used
             log.info(f"the {stream} readings are noisier than noise.{setting} = {configured:.3g} {unit}: "
-                     f"{used:.3g} {unit} measured sample to sample; the fit whitens them by that")
-    if raised:
-        config = config.updated({"noise": raised})
-    return config, report
+                     f"{used:.3g} {unit} measured sample to sample; the fit is judged by that")
+    return report
+
+
+def rejudged(residuals: list, report: dict) -> list:
+    """Per run {term: (T,) 0.5·‖r‖²} with the force, normal and contact terms whitened by
+    the report's ``used`` levels instead of the configured ones (copies; the other terms
+    as they are)."""
+    scale = {v["term"]: (v["configured"] / v["used"]) ** 2 for v in report.values() if v["used"] > v["configured"]}
+    if not scale:
+        return residuals
+    return [{t: (np.asarray(r, float) * scale[t] if t in scale else r) for t, r in res.items()} for res in residuals]
+
+
+def judged_config(config, report: dict):
+    """``config`` with noise.force, noise.normal and noise.contact_gap at the report's
+    ``used`` levels where those are larger (the config itself where none is)."""
+    raised = {v["setting"].split(".", 1)[1]: v["used"] for v in report.values() if v["used"] > v["configured"]}
+    return config.updated({"noise": raised}) if raised else config
+
+
+def judged_params(est) -> np.ndarray:
+    """The NLP parameter vector of the final stage of estimator ``est`` (2-D
+    ImplicitEstimator or Estimator3D, after its solve) with the noise levels that judge
+    the fit: its observed information then weighs each stream by the noise its data
+    show.  ``est.p_final`` where nothing is raised.  (Where contact_gap is raised, the
+    smoothing of max(phi, 0), in contact-gap sigmas, widens with it too.)"""
+    cfg = judged_config(est.config, est.sensor_noise)
+    if cfg is est.config:
+        return est.p_final
+    clone = copy.copy(est)
+    clone.config = cfg
+    return clone.stage_params(clone.stages()[-1])
