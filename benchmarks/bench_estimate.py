@@ -149,6 +149,10 @@ def worker(run_path: str, shape: str, method: str, reach: str = "", config_path:
     out["identifiable"] = {k: bool(v) for k, v in est.identifiable.items()}
     out["sigmas"] = {k: p.get("sigmas") for k, p in rep["params"].items()}
     out["consistent"] = est.consistent
+    q = est.fit_quality or {}
+    # the loss terms the goodness-of-fit test flagged (its worst windows and term totals)
+    out["flagged_terms"] = sorted({w["term"] for w in q.get("worst", [])} | {t["term"] for t in q.get("terms", [])})
+    out["sensor_noise"] = json.loads(est.extra_attrs.get("sensor_noise", "{}"))
     out["tilt_deg"] = max_tilt_deg(run)
     return out
 

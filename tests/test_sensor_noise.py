@@ -173,3 +173,33 @@ def test_the_information_weighs_each_stream_by_the_noise_its_data_show(dim):
     if quiet is not None:
         quiet.p_final = quiet.stage_params(quiet.stages()[-1])
         assert judged_params(quiet) is quiet.p_final
+
+
+def test_the_estimate_file_keeps_the_report_and_planning_weighs_by_its_levels(tmp_path):
+    """The attr sensor_noise survives writing and reading; the planner's settings
+    (config_of_estimate) take its used levels; a malformed report is one clear error."""
+    import json
+
+    import h5py
+
+    from tacest.errors import TacestError
+    from tacest.information.expected import config_of_estimate
+    from tacest.io.estimate import read_estimate
+    from reliability_files import make_run, truth_estimate
+
+    run = make_run(tmp_path / "r.h5", pokes=1)
+    path = truth_estimate([run], tmp_path / "e.h5")
+    report = {"force": {"setting": "noise.force", "term": "force", "configured": 0.05, "measured": 0.2, "used": 0.2},
+              "normal": {"setting": "noise.normal", "term": "normal", "configured": 0.05, "measured": 0.01,
+                         "used": 0.05}}
+    with h5py.File(path, "a") as f:
+        f.attrs["sensor_noise"] = json.dumps(report)
+        f.attrs["config"] = json.dumps(EstimatorConfig().to_dict())
+    est = read_estimate(path)
+    assert json.loads(est.extra_attrs["sensor_noise"]) == report
+    cfg = config_of_estimate(est)
+    assert cfg.noise.force == 0.2 and cfg.noise.normal == 0.05
+    with h5py.File(path, "a") as f:
+        f.attrs["sensor_noise"] = json.dumps({"force": {"setting": "noise.force", "configured": 0.05, "used": -1}})
+    with pytest.raises(TacestError, match="sensor_noise"):
+        read_estimate(path)

@@ -752,15 +752,20 @@ def past_information(est, model: ModelState, config: EstimatorConfig, L: float, 
 
 
 def config_of_estimate(est) -> EstimatorConfig:
-    """The estimator settings an estimate was made with (its ``config`` attr), else defaults."""
+    """The estimator settings an estimate was made with (its ``config`` attr), else
+    defaults; with the sensors' noise levels that judged it (its attr ``sensor_noise``:
+    tacest.estimation.sensor_noise.judged_config), so that the information of a planned
+    poke weighs each stream as the estimate's own information does."""
     from tacest.estimation.config import load_config
+    from tacest.estimation.sensor_noise import judged_config
 
     if not est.config:
         return EstimatorConfig()
     try:
-        return load_config(None, overrides=json.loads(json.dumps(est.config)))
-    except TacestError as exc:
-        raise TacestError(f"{est.filename or 'estimate'}: attrs config: {exc}") from None
+        config = load_config(None, overrides=json.loads(json.dumps(est.config)))
+        return judged_config(config, json.loads(est.extra_attrs.get("sensor_noise", "{}")))
+    except (TacestError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise TacestError(f"{est.filename or 'estimate'}: attrs config or sensor_noise: {exc}") from None
 
 
 def expected_information(info: ExpectedInformation, model: ModelState, pred: PredictedPoke,

@@ -280,6 +280,16 @@ def read_estimate(path) -> Estimate:
             fit_quality = _json_attr(r, "attrs fit_quality", f.attrs["fit_quality"], dict)
             if not isinstance(fit_quality.get("consistent"), bool):
                 r.fail("attrs fit_quality", "expected a JSON object with a boolean 'consistent'")
+        extra = {}
+        if "sensor_noise" in f.attrs:  # the sensors' noise that judged the fit (docs/formats.md)
+            noise = _json_attr(r, "attrs sensor_noise", f.attrs["sensor_noise"], dict)
+            for k, v in noise.items():
+                ok = isinstance(v, dict) and isinstance(v.get("setting"), str) and v["setting"].startswith("noise.") \
+                    and all(isinstance(v.get(n), (int, float)) and not isinstance(v.get(n), bool)
+                            and np.isfinite(v[n]) and v[n] > 0 for n in ("configured", "used"))
+                if not ok:
+                    r.fail("attrs sensor_noise", f"{k}: expected setting, configured and used (> 0), got {v!r}")
+            extra["sensor_noise"] = json.dumps(noise)
         success = r.attr("/", "success", False)
         if np.asarray(success).shape != () or np.asarray(success).dtype.kind not in "biu":
             r.fail("attrs success", f"expected true or false, got {success!r}")
@@ -291,7 +301,7 @@ def read_estimate(path) -> Estimate:
             information=info, info_names=names, std=std, identifiable=identifiable,
             config=_json_attr(r, "attrs config", r.attr("/", "config", "{}"), dict),
             method=attr_str(r.attr("/", "method", "implicit")),
-            filename=str(path), fit_quality=fit_quality,
+            filename=str(path), fit_quality=fit_quality, extra_attrs=extra,
         )
     return est
 
