@@ -13,6 +13,7 @@ import importlib
 from dataclasses import dataclass, field
 
 from tacest.errors import TacestError
+from tacest.io.resample import coarsening_factor
 
 
 def _lazy(path: str):
@@ -111,6 +112,9 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
         raise TacestError("effects= are offered by the implicit estimators only")
     if previous is not None and method != "implicit":
         raise TacestError("starting from an earlier estimate is offered by the implicit estimators only")
+    ks = [coarsening_factor(r.dt, getattr(getattr(config, "solver", None), "sample_period", 0.01)) for r in runs]
+    if method == "implicit" and fixed is None and max(ks) > 1:
+        return _estimate_coarsened(runs, ks, shape_spec, config, effects, previous)
     kwargs = {}
     if previous is not None:
         kwargs["previous"] = previous
@@ -119,6 +123,41 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
     if fixed is not None:
         kwargs.update(fixed=fixed, refit_shape=refit_shape)
     return dim.estimator(method)(runs, shape_spec, config, **kwargs)
+
+
+def _estimate_coarsened(runs, ks, shape_spec, config, effects, previous):
+    """estimate_runs on runs sampled faster than solver.sample_period: each run i fitted
+    at ks[i] times its period, the estimate's trajectories brought back to every sample
+    (tacest.io.resample); its attr ``fitted_every`` lists ks."""
+    import dataclasses
+    import json
+    import logging
+
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.io.resample import coarsen_run, coarsen_run_estimate, refine_run_estimate
+
+    config = config or EstimatorConfig()
+    logging.getLogger(__name__).info(
+        "fitting " + ", ".join(f"run {i} ({r.dt * 1e3:.3g} ms) every {k} samples" for i, (r, k) in
+                               enumerate(zip(runs, ks)) if k > 1) + " (solver.sample_period; docs/estimation.md)")
+    coarse = [coarsen_run(r, k) for r, k in zip(runs, ks)]
+    if previous is not None and len(previous.runs) == len(runs):
+        previous = dataclasses.replace(previous, runs=[coarsen_run_estimate(re, k)
+                                                       for re, k in zip(previous.runs, ks)])
+    est = estimate_runs(coarse, shape_spec, dataclasses.replace(config, solver=dataclasses.replace(
+        config.solver, sample_period=0.0)), "implicit", effects=effects, previous=previous)
+    est.runs = [refine_run_estimate(re, r, k) for re, r, k in zip(est.runs, runs, ks)]
+    est.extra_attrs["fitted_every"] = json.dumps([int(k) for k in ks])
+    if est.fit_quality:  # its windows in the run's own samples (coarse sample j stands at sample j·k)
+        q = est.fit_quality
+        for w in q.get("worst", []):
+            k = ks[int(w["run"])]
+            w["start"], w["stop"] = int(w["start"]) * k, min(int(w["stop"]) * k, runs[int(w["run"])].n_samples)
+        n_full, n_coarse = sum(r.n_samples for r in runs), max(int(q.get("n_samples", 0)), 1)
+        q["flagged_samples"] = int(round(int(q.get("flagged_samples", 0)) * n_full / n_coarse))
+        q["n_samples"] = int(n_full)
+    est.config = config.to_dict()
+    return est
 
 
 def record_sim(opts, **kwargs):

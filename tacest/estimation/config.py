@@ -165,8 +165,16 @@ class Solver:
     #: objective, after 30 5x, after 100 3x: solver.ABANDON_RULE); its fit could not be
     #: kept.  false: every start runs to its end
     abandon_hopeless: bool = True
+    #: s: runs sampled at a period of at most half this are fitted on blocks of
+    #: samples lasting at most this period and their trajectories brought back to every sample
+    #: (tacest/io/resample.py; ``tacest estimate`` and what is built on it, not the
+    #: diagnosis); 0: every run at its own rate
+    sample_period: float = 0.01
 
     def __post_init__(self):
+        if not (isinstance(self.sample_period, (int, float)) and not isinstance(self.sample_period, bool)
+                and math.isfinite(self.sample_period) and self.sample_period >= 0):
+            raise _InvalidSetting(f"solver.sample_period must be a number of seconds >= 0, got {self.sample_period!r}")
         if isinstance(self.start_workers, bool) or not isinstance(self.start_workers, int) \
                 or self.start_workers < 0:
             raise _InvalidSetting(f"solver.start_workers must be an integer >= 0, got {self.start_workers!r}")
