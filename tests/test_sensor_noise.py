@@ -143,34 +143,45 @@ def test_missing_finger_samples_do_not_count():
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_the_information_weighs_each_stream_by_the_noise_its_data_show(dim):
-    """A simulated run with force noise 0.2 N and normal noise 0.08 rad: the parameter
-    vector the observed information is computed with (judged_params) differs from the
-    fit's only in the force and normal sigmas, which are the measured levels; a run at
-    the simulator's default noise (below the configured levels) uses the fit's own.
-    Tolerance 25 %: two pokes give only ~100 contact samples (the measured sigmas of
-    1-3 pokes scatter by about 10 %)."""
+def test_touch_alone_fits_whiten_by_the_measured_noise_pose_observed_fits_are_judged_by_it(dim):
+    """Simulated runs with force noise 0.2 N and normal noise 0.08 rad.  Touch alone: the
+    fit's own settings hold the measured levels (the report's ``fitted``), and its
+    information uses the fit's parameters.  Pose observed: the fit keeps the configured
+    levels, and the parameter vector of its information (judged_params) differs from the
+    fit's only in the force and normal sigmas, which are the measured levels.  A run at
+    the simulator's default noise (below the configured levels) changes nothing.
+    Tolerance 25 %: two pokes give only ~100 contact samples (the measured sigmas of 1-3
+    pokes scatter by about 10 %)."""
     from tacest.dims import record_sim
     from tacest.estimation.estimator import ImplicitEstimator
     from tacest.estimation.estimator3d import Estimator3D
     from tacest.sim.record import SimOptions
 
     make = ImplicitEstimator if dim == 2 else Estimator3D
-    noisy = record_sim(SimOptions(dim=dim, seed=1, pokes=2, noise_force=0.2, noise_normal=0.08))
-    est = make([noisy], "box")
-    est.p_final = est.stage_params(est.stages()[-1])  # as after a solve
-    p = np.asarray(judged_params(est), float)
-    fit = np.asarray(est.p_final, float)
+    cfg = EstimatorConfig()
+    touch = make([record_sim(SimOptions(dim=dim, seed=1, pokes=2, noise_force=0.2, noise_normal=0.08))], "box")
+    rep = touch.sensor_noise
+    assert rep["normal"]["used"] == pytest.approx(0.08, rel=0.25)
+    assert (touch.config.noise.force, touch.config.noise.normal) == (rep["force"]["used"], rep["normal"]["used"])
+    assert rep["force"]["fitted"] == rep["force"]["used"] > cfg.noise.force
+    touch.p_final = touch.stage_params(touch.stages()[-1])  # as after a solve
+    assert judged_params(touch) is touch.p_final
+    if dim == 2:  # the 2-D simulator's forces are impulse / dt plus the noise: measured as drawn
+        assert rep["force"]["used"] == pytest.approx(0.2, rel=0.25)
+
+    seen = make([record_sim(SimOptions(dim=dim, seed=1, pokes=2, noise_force=0.2, noise_normal=0.08,
+                                       observe_pose=0.0005))], "box")
+    assert seen.config.noise == cfg.noise and seen.sensor_noise["force"]["fitted"] == cfg.noise.force
+    seen.p_final = seen.stage_params(seen.stages()[-1])
+    p, fit = np.asarray(judged_params(seen), float), np.asarray(seen.p_final, float)
     changed = p != fit
     assert changed.any()
-    cfg = EstimatorConfig()
     assert set(fit[changed]) <= {cfg.noise.force, cfg.noise.normal}
-    used = {est.sensor_noise["force"]["used"], est.sensor_noise["normal"]["used"]}
-    assert set(p[changed]) <= used and est.sensor_noise["normal"]["used"] == pytest.approx(0.08, rel=0.25)
-    if dim == 2:  # the 2-D simulator's forces are impulse / dt plus the noise: measured as drawn
-        assert est.sensor_noise["force"]["used"] == pytest.approx(0.2, rel=0.25)
-    quiet = make([record_sim(SimOptions(dim=2, seed=1, pokes=1))], "box") if dim == 2 else None
-    if quiet is not None:
+    assert set(p[changed]) <= {seen.sensor_noise["force"]["used"], seen.sensor_noise["normal"]["used"]}
+
+    if dim == 2:
+        quiet = make([record_sim(SimOptions(dim=2, seed=1, pokes=1))], "box")
+        assert quiet.config.noise == cfg.noise
         quiet.p_final = quiet.stage_params(quiet.stages()[-1])
         assert judged_params(quiet) is quiet.p_final
 
@@ -189,7 +200,8 @@ def test_the_estimate_file_keeps_the_report_and_planning_weighs_by_its_levels(tm
 
     run = make_run(tmp_path / "r.h5", pokes=1)
     path = truth_estimate([run], tmp_path / "e.h5")
-    report = {"force": {"setting": "noise.force", "term": "force", "configured": 0.05, "measured": 0.2, "used": 0.2},
+    report = {"force": {"setting": "noise.force", "term": "force", "configured": 0.05, "measured": 0.2, "used": 0.2,
+                        "fitted": 0.05},
               "normal": {"setting": "noise.normal", "term": "normal", "configured": 0.05, "measured": 0.01,
                          "used": 0.05}}
     with h5py.File(path, "a") as f:

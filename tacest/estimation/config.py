@@ -45,10 +45,10 @@ class Noise:
     #: complementarity in proportion to the height over it, on top of the saturating
     #: lambda_n·psi(phi); 0 (the default) leaves the saturating law alone
     complementarity_reach: float = 0.0
-    #: judge each fit (goodness-of-fit test, information, stds) with force, normal and
-    #: contact_gap at the levels the runs' own readings show where those are larger
-    #: (tacest/estimation/sensor_noise.py; the estimate's attr ``sensor_noise``); the
-    #: fit itself whitens by the levels above; false: the configured levels alone
+    #: force, normal and contact_gap at the levels the runs' own readings show where those
+    #: are larger: the fit whitens by them (touch alone) or is judged by them (pose
+    #: observed: goodness-of-fit test, information, stds) (tacest/estimation/
+    #: sensor_noise.py; the estimate's attr ``sensor_noise``); false: the levels above
     from_data: bool = True
 
     def __post_init__(self):

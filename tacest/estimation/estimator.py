@@ -21,7 +21,7 @@ import casadi as ca
 import numpy as np
 
 from tacest.errors import TacestError
-from tacest.estimation.sensor_noise import judged_params, noise_report
+from tacest.estimation.sensor_noise import judged_params, settings_for
 from tacest.estimation.bounds import FRICTION_BOUNDS, LOG_INERTIA_BOUNDS, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, force_in_contact, parameter_vector, previous_trajectories,
@@ -89,9 +89,9 @@ class ImplicitEstimator:
         if pin not in PIN_MODES:
             raise TacestError(f"internal: pin must be one of {PIN_MODES}, got {pin!r}")
         self.runs = runs
-        self.config = config or EstimatorConfig()
-        #: the sensors' noise as the runs show it, which judges the fit (sensor_noise.py)
-        self.sensor_noise = noise_report(runs, self.config)
+        #: the fit's settings (touch alone: the sensors' noise levels as the runs show
+        #: them where larger) and the report of those levels (sensor_noise.py)
+        self.config, self.sensor_noise = settings_for(runs, config or EstimatorConfig())
         self.shape = make_shape(shape_spec, dim=2)
         # a mismatched earlier estimate is an error before the NLP is built
         before = None if previous is None else previous_trajectories(previous, 2, self.shape.name, runs)

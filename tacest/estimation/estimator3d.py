@@ -29,7 +29,7 @@ import numpy as np
 from tacest.dynamics.rigid3d import (align_quaternion_signs, cholesky_from_inertia, inertia_numeric,
                                      quat_log_rate)
 from tacest.errors import SolveFailedError, TacestError
-from tacest.estimation.sensor_noise import judged_params, noise_report
+from tacest.estimation.sensor_noise import judged_params, settings_for
 from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERTIA_OFFDIAG_BOUND, LOG_MASS_BOUNDS
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, force_in_contact,
@@ -260,9 +260,9 @@ class Estimator3D:
         #: held-out evaluation of a model), or None
         self.fixed_theta = None if fixed_theta is None else np.asarray(fixed_theta, float).copy()
         self.runs = runs
-        self.config = config or EstimatorConfig()
-        #: the sensors' noise as the runs show it, which judges the fit (sensor_noise.py)
-        self.sensor_noise = noise_report(runs, self.config)
+        #: the fit's settings (touch alone: the sensors' noise levels as the runs show
+        #: them where larger) and the report of those levels (sensor_noise.py)
+        self.config, self.sensor_noise = settings_for(runs, config or EstimatorConfig())
         self.shape = make_shape_3d(shape_spec)
         self.scales: Scales = choose_scales(runs, self.config)
         self.F = max(r.n_fingers for r in runs)

@@ -21,18 +21,22 @@ and normals in contact, positions where the finger is not missing.  On tacest's 
 simulator (force 0.02 N, normal 0.02 rad, position 0.1 mm) this gives 0.025-0.027 N,
 0.020-0.021 rad and 0.10-0.11 mm; with 0.2 N and 0.08 rad, 0.21 N and 0.085 rad.
 
-The fit itself whitens by the configured levels (they are generous on purpose and also
-carry model error; raising them inside the fit changed which basin misspecified fits
-reach, and one pose-observed 3-D fit of a box with an unmodelled centre-of-mass offset
-stopped converging).  What the data show changes how the fit is judged
-(:func:`noise_report`, used by tacest.estimation.result.assemble):
+Where a stream is noisier than its setting, the larger level is used
+(:func:`settings_for`):
 
-- the goodness-of-fit test whitens each stream by the larger of its configured and
-  measured level (:func:`rejudged`: the force, normal and contact terms are linear in
-  1/sigma, so their squared residuals scale exactly by (configured / used)²);
-- the observed information (and so every reported std) is computed at the fit with
-  those levels (:func:`judged_params`): each stream's share of the information falls
-  by its ratio used / configured squared.
+- in runs without pose observations (touch alone: the streams are the data), the fit
+  itself whitens by it: on 2-D dynamic pokes with force noise 0.2 N (seed 14) the fit
+  whitened by 0.05 N fell into a light-object basin (22 mm, mass 92 % low, marked
+  consistent), whitened by the measured 0.2 N it found the box (4.5 mm, mass exact);
+- in runs with pose observations (motion capture anchors the fit), the fit keeps the
+  configured levels, whose balance against the pose terms was tuned: raised inside the
+  fit (force 0.05 -> 0.08 N on a MuJoCo recording), the plain fit of a box with an
+  unmodelled centre-of-mass offset no longer converged in 1000 iterations, where it had
+  in 247.  There the larger level judges the fit instead: the goodness-of-fit test
+  whitens the term by it (:func:`rejudged`: the force, normal and contact terms are
+  linear in 1/sigma, so their squared residuals scale exactly by (fitted / used)²), and
+  the observed information, so every reported std, is computed at the fit with it
+  (:func:`judged_params`).
 
 A stream quieter than its setting changes nothing.  The fingertip position's noise is
 the floor of the contact gap's sigma (the gap is measured through that position).  What
@@ -122,18 +126,33 @@ def noise_report(runs: list, config) -> dict:
         m = measured[stream]
         used = configured if m is None else max(configured, m)
         report[stream] = {"setting": f"noise.{setting}", "term": TERM_OF[stream], "configured": configured,
-                          "measured": m, "used": used}
-        if used > configured:
-            log.info(f"the {stream} readings are noisier than noise.{setting} = {configured:.3g} {unit}: "
-                     f"{used:.3g} {unit} measured sample to sample; the fit is judged by that")
+                          "measured": m, "used": used, "fitted": configured}
     return report
+
+
+def settings_for(runs: list, config) -> tuple:
+    """(the settings the fit of ``runs`` uses, the noise report): without pose
+    observations the used levels whiten the fit itself, with them only the judging
+    (module doc); the report's ``fitted`` says which level the fit whitened by."""
+    report = noise_report(runs, config)
+    in_fit = not any(r.pose_obs is not None for r in runs)
+    for stream, v in report.items():
+        if v["used"] > v["configured"]:
+            if in_fit:
+                v["fitted"] = v["used"]
+            unit = STREAMS[stream][1]
+            log.info(f"the {stream} readings are noisier than {v['setting']} = {v['configured']:.3g} {unit}: "
+                     f"{v['used']:.3g} {unit} measured sample to sample; "
+                     + ("the fit whitens them by that" if in_fit else "the fit is judged by that"))
+    return (judged_config(config, report) if in_fit else config), report
 
 
 def rejudged(residuals: list, report: dict) -> list:
     """Per run {term: (T,) 0.5·‖r‖²} with the force, normal and contact terms whitened by
-    the report's ``used`` levels instead of the configured ones (copies; the other terms
-    as they are)."""
-    scale = {v["term"]: (v["configured"] / v["used"]) ** 2 for v in report.values() if v["used"] > v["configured"]}
+    the report's ``used`` levels instead of those the fit used (``fitted``; copies; the
+    other terms, and terms the fit already whitened so, as they are)."""
+    scale = {v["term"]: (v.get("fitted", v["configured"]) / v["used"]) ** 2 for v in report.values()
+             if v["used"] > v.get("fitted", v["configured"])}
     if not scale:
         return residuals
     return [{t: (np.asarray(r, float) * scale[t] if t in scale else r) for t, r in res.items()} for res in residuals]
@@ -141,8 +160,13 @@ def rejudged(residuals: list, report: dict) -> list:
 
 def judged_config(config, report: dict):
     """``config`` with noise.force, noise.normal and noise.contact_gap at the report's
-    ``used`` levels where those are larger (the config itself where none is)."""
-    raised = {v["setting"].split(".", 1)[1]: v["used"] for v in report.values() if v["used"] > v["configured"]}
+    ``used`` levels where those are larger than its own (the config itself where none
+    is)."""
+    raised = {}
+    for v in report.values():
+        name = v["setting"].split(".", 1)[1]
+        if v["used"] > float(getattr(config.noise, name)):
+            raised[name] = v["used"]
     return config.updated({"noise": raised}) if raised else config
 
 
