@@ -156,7 +156,7 @@ def _estimate_coarsened(runs, ks, shape_spec, config, effects, previous):
         n_full, n_coarse = sum(r.n_samples for r in runs), max(int(q.get("n_samples", 0)), 1)
         q["flagged_samples"] = int(round(int(q.get("flagged_samples", 0)) * n_full / n_coarse))
         q["n_samples"] = int(n_full)
-    est.config = config.to_dict()
+    est.config["solver"]["sample_period"] = config.solver.sample_period  # as given (the inner fit's: 0)
     return est
 
 
