@@ -13,7 +13,6 @@ import importlib
 from dataclasses import dataclass, field
 
 from tacest.errors import TacestError
-from tacest.io.resample import coarsening_factor
 
 
 def _lazy(path: str):
@@ -112,9 +111,14 @@ def estimate_runs(runs, shape_spec: str = "box", config=None, method: str = "imp
         raise TacestError("effects= are offered by the implicit estimators only")
     if previous is not None and method != "implicit":
         raise TacestError("starting from an earlier estimate is offered by the implicit estimators only")
-    ks = [coarsening_factor(r.dt, getattr(getattr(config, "solver", None), "sample_period", 0.01)) for r in runs]
-    if method == "implicit" and fixed is None and max(ks) > 1:
-        return _estimate_coarsened(runs, ks, shape_spec, config, effects, previous)
+    if method == "implicit" and fixed is None:
+        from tacest.estimation.config import EstimatorConfig
+        from tacest.io.resample import coarsening_factor
+
+        config = config or EstimatorConfig()
+        ks = [coarsening_factor(r.dt, config.solver.sample_period) for r in runs]
+        if max(ks) > 1:
+            return _estimate_coarsened(runs, ks, shape_spec, config, effects, previous)
     kwargs = {}
     if previous is not None:
         kwargs["previous"] = previous
@@ -133,10 +137,8 @@ def _estimate_coarsened(runs, ks, shape_spec, config, effects, previous):
     import json
     import logging
 
-    from tacest.estimation.config import EstimatorConfig
     from tacest.io.resample import coarsen_run, coarsen_run_estimate, refine_run_estimate
 
-    config = config or EstimatorConfig()
     logging.getLogger(__name__).info(
         "fitting " + ", ".join(f"run {i} ({r.dt * 1e3:.3g} ms) every {k} samples" for i, (r, k) in
                                enumerate(zip(runs, ks)) if k > 1) + " (solver.sample_period; docs/estimation.md)")

@@ -114,14 +114,16 @@ def measured_noise(runs: list) -> dict:
 
 
 def noise_report(runs: list, config) -> dict:
-    """{stream: {"setting", "term", "configured", "measured", "used"}}: per stream of
-    STREAMS the configured level, the measured one (None: too few samples) and the
-    larger, which judges the fit (module doc); {} with ``noise.from_data`` false."""
+    """{stream: {"setting", "term", "configured", "measured", "used", "fitted"}}: per
+    stream of STREAMS the configured level, the measured one (None: too few samples),
+    the larger, which judges the fit, and the one the fit whitens by (here the
+    configured; :func:`settings_for` sets it) (module doc); {} with ``noise.from_data``
+    false."""
     if not config.noise.from_data:
         return {}
     measured = measured_noise(runs)
     report = {}
-    for stream, (setting, unit) in STREAMS.items():
+    for stream, (setting, _) in STREAMS.items():
         configured = float(getattr(config.noise, setting))
         m = measured[stream]
         used = configured if m is None else max(configured, m)
@@ -151,8 +153,7 @@ def rejudged(residuals: list, report: dict) -> list:
     """Per run {term: (T,) 0.5·‖r‖²} with the force, normal and contact terms whitened by
     the report's ``used`` levels instead of those the fit used (``fitted``; copies; the
     other terms, and terms the fit already whitened so, as they are)."""
-    scale = {v["term"]: (v.get("fitted", v["configured"]) / v["used"]) ** 2 for v in report.values()
-             if v["used"] > v.get("fitted", v["configured"])}
+    scale = {v["term"]: (v["fitted"] / v["used"]) ** 2 for v in report.values() if v["used"] > v["fitted"]}
     if not scale:
         return residuals
     return [{t: (np.asarray(r, float) * scale[t] if t in scale else r) for t, r in res.items()} for res in residuals]
