@@ -113,12 +113,15 @@ def main(argv=None):
     Set TACEST_DEBUG=1 to see the Python traceback of an unexpected error.
     """
     from tacest.errors import TacestError
+    from tacest.interrupt import interrupt_latch, raise_if_noted
     from tacest.provenance import set_command_line
 
     args = list(sys.argv[1:] if argv is None else argv)
     set_command_line(args)
     try:
-        rv = cli.main(args=args, prog_name="tacest", standalone_mode=False)
+        with interrupt_latch():  # a Ctrl-C that a C library swallowed still ends the command
+            rv = cli.main(args=args, prog_name="tacest", standalone_mode=False)
+            raise_if_noted()
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo("tacest: interrupted", err=True)
         sys.exit(EXIT_INTERRUPTED)

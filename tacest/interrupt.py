@@ -25,6 +25,13 @@ inside :func:`deferred_interrupts`, where a SIGINT is only noted, and call
     with deferred_interrupts():
         for ...:
             world.step(...)        # World.step ends with check_interrupt()
+
+Behind both, the command line runs every command inside :func:`interrupt_latch`: its
+SIGINT handler notes the signal process-wide before raising, and every other handler
+here chains to it.  Whatever catches a KeyboardInterrupt on the way (a Ctrl-C seen in a
+diagnosis ran on to its end once, exit 0), the next solve
+(:func:`raise_if_interrupted`), the commit of any output (tacest.io.outputs) and the
+end of the command raise it again (:func:`raise_if_noted`).
 """
 
 from __future__ import annotations
@@ -109,11 +116,68 @@ def watch_interrupts():
         signal.signal(signal.SIGINT, previous)
 
 
+class _Latch:
+    """The state of :func:`interrupt_latch`: whether a SIGINT reached this process
+    while it was on."""
+
+    def __init__(self):
+        self.noted = False
+
+
+_LATCH = _Latch()
+
+
+@contextlib.contextmanager
+def interrupt_latch():
+    """For the command line, around a command: every SIGINT is also noted in a
+    process-wide latch, which :func:`raise_if_noted` reads.
+
+    The handler raises KeyboardInterrupt as Python's default does, and every handler of
+    this module chains to it, so a SIGINT is noted wherever it lands.  A KeyboardInterrupt
+    can still be lost after that: a C library that runs Python code (CasADi's
+    evaluations, cffi's callbacks) may catch it and go on.  The latch keeps the command
+    from ending as if nothing happened: every output is committed only after
+    :func:`raise_if_noted` (tacest.io.outputs), and so is every solve's result
+    (:func:`raise_if_interrupted`).  At the end of the block the previous handler is back
+    and the latch cleared.  Only in the main thread (elsewhere it does nothing); a
+    handler that ignores SIGINT keeps it ignored.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN or previous is None:
+        yield
+        return
+
+    def latch(signum, frame):
+        _LATCH.noted = True
+        raise KeyboardInterrupt
+
+    _LATCH.noted = False
+    signal.signal(signal.SIGINT, latch)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _LATCH.noted = False
+
+
+def raise_if_noted() -> None:
+    """Raise KeyboardInterrupt if the latch (:func:`interrupt_latch`) noted a
+    SIGINT: whatever caught its KeyboardInterrupt meanwhile, the command ends as
+    interrupted.  Nothing without a latch."""
+    if _LATCH.noted:
+        raise KeyboardInterrupt
+
+
 def raise_if_interrupted(status: str, watch: InterruptWatch | None = None) -> None:
     """Raise KeyboardInterrupt if IPOPT's return ``status`` says the user stopped the
-    solve or ``watch`` saw a SIGINT during it."""
+    solve, ``watch`` saw a SIGINT during it, or the latch noted one
+    (:func:`raise_if_noted`)."""
     if status in INTERRUPT_STATUSES or (watch is not None and watch.interrupted):
         raise KeyboardInterrupt
+    raise_if_noted()
 
 
 class _Deferral:
@@ -174,6 +238,7 @@ def check_interrupt() -> None:
     Python's default handler); nothing otherwise.  Cheap: called every physics substep."""
     d = _DEFERRAL
     if d.pending is None:
+        raise_if_noted()
         return
     signum, frame = d.pending
     d.pending = None

@@ -179,3 +179,52 @@ def test_an_interrupt_inside_a_c_extension_call_is_an_interrupt():
     except SystemError as exc:
         assert _caused_by_interrupt(exc)
     assert not _caused_by_interrupt(ValueError("a bug"))
+
+
+def test_a_swallowed_interrupt_still_ends_the_command_before_its_output(tmp_path):
+    """Under the command line's latch, a SIGINT whose KeyboardInterrupt something caught
+    (a C library running Python code) still ends the command: the next solve's result
+    and the output's commit raise it, and the earlier output stays as it was."""
+    from tacest.interrupt import interrupt_latch, raise_if_noted
+    from tacest.io.outputs import atomic_dir, atomic_file
+
+    out = tmp_path / "est.h5"
+    out.write_text("the previous estimate")
+    with interrupt_latch():
+        raise_if_interrupted("Solve_Succeeded")  # nothing noted yet
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+        except KeyboardInterrupt:
+            pass  # swallowed, as CasADi or cffi would
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_interrupted("Solve_Succeeded")
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_file(out) as tmp:
+                tmp.write_text("a new estimate")
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_dir(tmp_path / "report") as folder:
+                (folder / "report.md").write_text("a report")
+    assert out.read_text() == "the previous estimate"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["est.h5"]  # no temporary left
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored ...
+    raise_if_noted()  # ... and the latch cleared
+
+
+def test_the_latch_chains_under_the_other_handlers():
+    """A SIGINT noted by a solve's watch or a deferred block reaches the latch too."""
+    from tacest.interrupt import _LATCH, interrupt_latch
+
+    with interrupt_latch():
+        with pytest.raises(KeyboardInterrupt):
+            with deferred_interrupts():
+                os.kill(os.getpid(), signal.SIGINT)
+                sum(range(1000))
+        assert _LATCH.noted
+    assert not _LATCH.noted
+    with interrupt_latch():
+        with watch_interrupts():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+            except KeyboardInterrupt:
+                pass
+        assert _LATCH.noted

@@ -31,6 +31,7 @@ import tempfile
 from pathlib import Path
 
 from tacest.errors import TacestError
+from tacest.interrupt import raise_if_noted
 
 
 def _folder_of(path: Path) -> Path:
@@ -129,6 +130,7 @@ def atomic_file(path):
     os.close(fd)
     try:
         yield Path(tmp)
+        raise_if_noted()  # a Ctrl-C that something caught meanwhile (tacest.interrupt)
         _finish_mode(Path(tmp), 0o666)
         check_output(path, probe=False)  # nothing replaced it with a link or a folder meanwhile
         os.replace(tmp, path)
@@ -155,6 +157,7 @@ def atomic_dir(path, marker: str = "report.md"):
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=parent))
     try:
         yield tmp
+        raise_if_noted()
         _finish_mode(tmp, 0o777)
         if path.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=parent))
@@ -194,6 +197,7 @@ def replacing_files(path, names=()):
         for old in ours():
             os.replace(old, aside / old.name)
         yield path
+        raise_if_noted()
     except KeyboardInterrupt:
         for new in ours():
             new.unlink()
