@@ -171,6 +171,14 @@ def raise_if_noted() -> None:
         raise KeyboardInterrupt
 
 
+def accept_interrupt() -> None:
+    """For code whose Ctrl-C means "stop here and keep what you have" (a live
+    recording, tacest.sensors.serial_rig), having caught its KeyboardInterrupt: the
+    latch forgets that SIGINT, so the command goes on to write its output.  A later
+    SIGINT is noted again."""
+    _LATCH.noted = False
+
+
 def raise_if_interrupted(status: str, watch: InterruptWatch | None = None) -> None:
     """Raise KeyboardInterrupt if IPOPT's return ``status`` says the user stopped the
     solve, ``watch`` saw a SIGINT during it, or the latch noted one

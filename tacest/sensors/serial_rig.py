@@ -55,6 +55,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.interrupt import accept_interrupt
 from tacest.sensors.serial_protocol import (
     DROP_REASONS,
     NORMAL_NORM_TOL,
@@ -608,6 +609,7 @@ def record_stream(stream, output, duration: Optional[float] = None, name: str = 
                         written_version = asm.version
                 next_snapshot = now + max(snapshot_interval, SNAPSHOT_DUTY * writer.last_cost)
     except KeyboardInterrupt:
+        accept_interrupt()  # Ctrl-C ends the recording; what arrived is kept (tacest.interrupt)
         reason = "interrupted (Ctrl-C)"
     except (serial.SerialException, OSError, EOFError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
