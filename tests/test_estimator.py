@@ -258,7 +258,7 @@ def test_horizontal_shift_of_the_scene_shifts_the_estimate(tmp_path):
     and the trajectory moved by 0.25 m."""
     from tacest.sim.record import SimOptions, record_sim
 
-    run = record_sim(SimOptions(object_spec="box", seed=1, pokes=6))
+    run = record_sim(SimOptions(object_spec="box", seed=1, pokes=3))
     shift = np.array([0.25, 0.0])
     moved = run.replace(finger_position=run.finger_position + shift)
     a = estimate_runs([run], "box")

@@ -316,7 +316,7 @@ def _strip(obj):
 
 @pytest.mark.slow
 def test_a_cluster_of_separate_processes_gives_the_in_process_results(dask_cluster, tmp_path):
-    run = make_run(tmp_path / "diag.h5", seed=3, pokes=3, effects=["latency:samples=2"])
+    run = make_run(tmp_path / "diag.h5", seed=3, pokes=2, effects=["latency:samples=2"])
     diag = ["diagnose", run, "--effects", "latency", "--fit-iterations", "30", "--json"]
     remote = _run(*diag, "-o", tmp_path / "remote", "--scheduler", dask_cluster)
     assert remote.returncode == 0, remote.stderr[-2000:]
