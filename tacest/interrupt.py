@@ -166,8 +166,11 @@ def interrupt_latch():
 def raise_if_noted() -> None:
     """Raise KeyboardInterrupt if the latch (:func:`interrupt_latch`) noted a
     SIGINT: whatever caught its KeyboardInterrupt meanwhile, the command ends as
-    interrupted.  Nothing without a latch."""
-    if _LATCH.noted:
+    interrupted.  Nothing without a latch, and nothing outside the main thread (Python
+    delivers a SIGINT to the main thread, which decides: a live recording's snapshot
+    writer, for one, must not end on a Ctrl-C that the recording takes as "stop and
+    keep")."""
+    if _LATCH.noted and threading.current_thread() is threading.main_thread():
         raise KeyboardInterrupt
 
 

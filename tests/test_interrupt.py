@@ -228,3 +228,32 @@ def test_the_latch_chains_under_the_other_handlers():
             except KeyboardInterrupt:
                 pass
         assert _LATCH.noted
+
+
+def test_the_latch_is_the_main_threads_to_act_on(tmp_path):
+    """A file written by another thread (a live recording's snapshot) is not stopped by a
+    noted SIGINT: the main thread decides what a Ctrl-C means."""
+    import threading
+
+    from tacest.interrupt import interrupt_latch
+    from tacest.io.outputs import atomic_file
+
+    out = tmp_path / "snapshot.h5"
+    errors = []
+
+    def write():
+        try:
+            with atomic_file(out) as tmp:
+                tmp.write_text("a snapshot")
+        except BaseException as exc:  # what the thread saw
+            errors.append(exc)
+
+    with interrupt_latch():
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+        except KeyboardInterrupt:
+            pass
+        t = threading.Thread(target=write)
+        t.start()
+        t.join()
+    assert not errors and out.read_text() == "a snapshot"
