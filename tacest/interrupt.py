@@ -135,7 +135,10 @@ def interrupt_latch():
     The handler raises KeyboardInterrupt as Python's default does, and every handler of
     this module chains to it, so a SIGINT is noted wherever it lands.  A KeyboardInterrupt
     can still be lost after that: a C library that runs Python code (CasADi's
-    evaluations, cffi's callbacks) may catch it and go on.  The latch keeps the command
+    evaluations, cffi's callbacks) may catch it and go on, and one raised in a weakref
+    callback or a ``__del__`` that the garbage collector runs is only printed ("Exception
+    ignored in ...": seen in a loop's estimate, and the likely way a diagnosis once ran
+    on to exit 0); inside the latch nothing is printed for it.  The latch keeps the command
     from ending as if nothing happened: every output is committed only after
     :func:`raise_if_noted` (tacest.io.outputs), and so is every solve's result
     (:func:`raise_if_interrupted`).  At the end of the block the previous handler is back
@@ -154,11 +157,23 @@ def interrupt_latch():
         _LATCH.noted = True
         raise KeyboardInterrupt
 
+    unraisable = sys.unraisablehook
+
+    def quiet_when_noted(info):
+        # a KeyboardInterrupt raised where Python cannot raise it (a weakref callback or
+        # a __del__ run by the garbage collector, a cffi callback) would be printed as
+        # "Exception ignored in ..." with a traceback, and lost: the latch has it
+        if issubclass(info.exc_type, KeyboardInterrupt) and _LATCH.noted:
+            return
+        unraisable(info)
+
     _LATCH.noted = False
     signal.signal(signal.SIGINT, latch)
+    sys.unraisablehook = quiet_when_noted
     try:
         yield
     finally:
+        sys.unraisablehook = unraisable
         signal.signal(signal.SIGINT, previous)
         _LATCH.noted = False
 

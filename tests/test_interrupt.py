@@ -257,3 +257,24 @@ def test_the_latch_is_the_main_threads_to_act_on(tmp_path):
         t.start()
         t.join()
     assert not errors and out.read_text() == "a snapshot"
+
+
+def test_an_interrupt_in_a_finalizer_is_neither_printed_nor_lost(capfd):
+    """A SIGINT whose KeyboardInterrupt lands in a __del__ (or a weakref callback) run by
+    the garbage collector: Python can only print it ("Exception ignored in ...", with a
+    traceback: seen mid-estimate in an explore loop).  Under the latch nothing is
+    printed, and the interrupt is raised at the next check."""
+    from tacest.interrupt import interrupt_latch, raise_if_noted
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs inside __del__
+            sum(range(1000))
+
+    with interrupt_latch():
+        obj = Finalized()
+        del obj  # __del__ raises KeyboardInterrupt, which Python cannot raise here
+        with pytest.raises(KeyboardInterrupt):
+            raise_if_noted()
+    err = capfd.readouterr().err
+    assert "Exception ignored" not in err and "Traceback" not in err, err
