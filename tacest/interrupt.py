@@ -116,6 +116,16 @@ def watch_interrupts():
         signal.signal(signal.SIGINT, previous)
 
 
+def _handler_to_replace():
+    """The SIGINT handler a block of this module may replace, or None where it must not:
+    outside the main thread (no handler can be set there), under a handler that ignores
+    SIGINT (it stays ignored), or one installed outside Python."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGINT)
+    return None if previous is signal.SIG_IGN else previous
+
+
 class _Latch:
     """The state of :func:`interrupt_latch`: whether a SIGINT reached this process
     while it was on."""
@@ -145,11 +155,8 @@ def interrupt_latch():
     and the latch cleared.  Only in the main thread (elsewhere it does nothing); a
     handler that ignores SIGINT keeps it ignored.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.getsignal(signal.SIGINT)
-    if previous is signal.SIG_IGN or previous is None:
+    previous = _handler_to_replace()
+    if previous is None:
         yield
         return
 
@@ -238,11 +245,8 @@ def deferred_interrupts():
         finally:
             d.depth -= 1
         return
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.getsignal(signal.SIGINT)
-    if previous is signal.SIG_IGN or previous is None:
+    previous = _handler_to_replace()
+    if previous is None:
         yield
         return
 
