@@ -167,3 +167,44 @@ def test_run_stages_raises_start_abandoned_only_from_the_final_stage():
     assert out.success and out.stages[0].iterations > 20
     with pytest.raises(StartAbandoned, match="abandoned in stage 'last' after 20 iterations"):
         run_stages(built, np.array([-5.0, 10.0]), stages[1:], params, bounds, abandon_above=1.0)
+
+
+def test_a_stalled_final_stage_is_stopped_and_kept_only_where_budget_fits_are(monkeypatch):
+    """The stall rule (solver.STALL_RULE) on the Rosenbrock problem: with a rule that any
+    stage meets (a gain of 1000 % of the objective over 3 iterations, from iteration 5)
+    a final stage that keeps budget fits stops at iteration 5 with STALLED_STATUS and its
+    last iterate, which counts as a budget fit (not a success); without accept_budget,
+    or in a stage that is not final, the rule does not act and the stage converges."""
+    import tacest.estimation.solver as S
+
+    built = _rosenbrock_solver()
+    free = -np.inf * np.ones(2), np.inf * np.ones(2)
+    bounds = lambda stage, z: (free[0].copy(), free[1].copy())  # noqa: E731
+    params = lambda stage, retry=False: np.zeros(0)  # noqa: E731
+    first, last = [S.Stage(label, 1.0, 1.0, 1.0, impulses_only=False, hessian="exact", max_iter=400, final=final)
+                   for label, final in (("first", False), ("last", True))]
+    z0 = np.array([-5.0, 10.0])
+    whole = S.run_stages(built, z0, [last], params, bounds, accept_budget=True, stop_stalled=True)
+    assert whole.success and whole.iterations > 20  # the real rule: no stall in a converging solve
+    monkeypatch.setattr(S, "STALL_RULE", (5, 3, 10.0))
+    out = S.run_stages(built, z0, [last], params, bounds, accept_budget=True, stop_stalled=True)
+    assert out.status == S.STALLED_STATUS and out.status in S.BUDGET_STATUSES and not out.success
+    assert out.iterations == 5 and np.all(np.isfinite(out.z)) and not np.allclose(out.z, z0)
+    assert S._restart_reason({"status": out.status, "physics_per_sample": 0.0}, 0.1).startswith("stalled")
+    for kwargs in ({"accept_budget": False, "stop_stalled": True}, {"accept_budget": True, "stop_stalled": False}):
+        out = S.run_stages(built, z0, [last], params, bounds, **kwargs)
+        assert out.success and out.iterations == whole.iterations, kwargs
+    out = S.run_stages(built, z0, [first, last], params, bounds, accept_budget=True, stop_stalled=True)
+    assert out.stages[0].status in S.SUCCESS_STATUSES and out.stages[0].iterations == whole.iterations
+    assert out.stages[1].status == S.STALLED_STATUS  # the final stage, at the minimum, stalls there
+
+
+def test_the_stall_rule_reads_the_lowest_objective_over_its_window():
+    from tacest.estimation.solver import STALL_RULE, stalled
+
+    start, window, gain = STALL_RULE
+    flat = [100.0] * (start + 1)
+    assert stalled(flat) and not stalled(flat[:-1])  # not before iteration `start`
+    falling = list(100.0 * (1.0 - 2 * gain / window) ** np.arange(start + 1))  # ~2 % per window
+    assert not stalled(falling)
+    assert not stalled([np.inf] * (start - window + 1) + [5.0] * window)  # no finite value a window ago

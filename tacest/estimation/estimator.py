@@ -235,11 +235,13 @@ class ImplicitEstimator:
         """One staged solve (solver.run_stages) from z0 (scaled): impulses alone, then
         every homotopy stage, or only the last one (``last_only``: z0 is already a
         solution of a nearby problem).  ``accept_budget``: a final stage that uses up its
-        budget keeps its last iterate (success False); ``abandon_above``: the best fit's
-        objective so far, far above which the final stage stops (StartAbandoned)."""
+        budget, or stalls (solver.STALL_RULE, with ``solver.stop_stalled``), keeps its
+        last iterate (success False); ``abandon_above``: the best fit's objective so far,
+        far above which the final stage stops (StartAbandoned)."""
         stages = self.stages(last_only)
         out = run_stages(self.built, z0, stages, self.stage_params, self.stage_bounds, prepare=self._prepare,
-                         accept_budget=accept_budget, abandon_above=abandon_above)
+                         accept_budget=accept_budget, abandon_above=abandon_above,
+                         stop_stalled=self.config.solver.stop_stalled)
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(out.z)
