@@ -208,3 +208,61 @@ def test_the_stall_rule_reads_the_lowest_objective_over_its_window():
     falling = list(100.0 * (1.0 - 2 * gain / window) ** np.arange(start + 1))  # ~2 % per window
     assert not stalled(falling)
     assert not stalled([np.inf] * (start - window + 1) + [5.0] * window)  # no finite value a window ago
+
+
+def _solve_status(start, abandon_above=float("inf")):
+    """start = (objective, status) -> a fit with that final status, physics 0.01, local."""
+    obj, status = start
+    stage = StageInfo(name="homotopy 1/1", status=status, iterations=150, wall_time=0.0, objective=obj)
+    out = SolveOutcome(z=np.full(2, obj), lam_g=np.zeros(0), lam_x=None, status=status,
+                       success=status == "Solve_Succeeded", iterations=150, wall_time=0.0, objective=obj, stages=[stage])
+    return out, 0.01, ("saved", obj), True, {}
+
+
+@pytest.mark.parametrize("resumed_to", ["Solve_Succeeded", "Maximum_Iterations_Exceeded", "failed"])
+def test_a_stalled_fit_is_set_aside_and_resumed_only_if_it_is_kept(resumed_to):
+    """A stalled fit (solver.STALLED_STATUS) never ends the search; kept at its end (the
+    lowest objective), it is resumed from its last iterate and the resumed fit replaces
+    it (attempt marked resumed); one that a converged fit beats is not resumed.  Without
+    a resume it is kept as the budget fit it is, and alone it is a failure."""
+    from tacest.errors import SolveFailedError
+    from tacest.estimation.solver import STALLED_STATUS
+
+    calls = []
+
+    def resume(out, saved):
+        calls.append((out.objective, saved))
+        if resumed_to == "failed":
+            raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1' (resumed)")
+        return _solve_status((out.objective - 1.0, resumed_to))
+
+    def search(fits, **kw):
+        attempts = []
+        out, saved = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate(fits)], _solve_status,
+                                       RESTART_PHYSICS, attempts, **kw)
+        return out, saved, attempts
+
+    # stalled at 10, then a good converged fit at 20 ends the search; 10 is kept and resumed
+    out, saved, attempts = search([(10.0, STALLED_STATUS), (20.0, "Solve_Succeeded"), (5.0, "Solve_Succeeded")],
+                                  resume=resume)
+    assert len(attempts) == 2 and calls == [(10.0, ("saved", 10.0))]
+    if resumed_to == "failed":
+        assert out.status == STALLED_STATUS and out.objective == 10.0 and "resume_error" in attempts[0]
+    else:
+        assert out.status == resumed_to and out.objective == 9.0 and saved == ("saved", 9.0)
+        assert attempts[0]["resumed"] and attempts[0]["status"] == resumed_to and attempts[0]["objective"] == 9.0
+    # beaten by a converged fit: not resumed
+    calls.clear()
+    out, _, _ = search([(30.0, STALLED_STATUS), (20.0, "Solve_Succeeded")], resume=resume)
+    assert out.objective == 20.0 and calls == []
+    # no resume: the stalled fit is a budget fit; kept beside a converged one, alone a failure
+    out, _, _ = search([(10.0, STALLED_STATUS), (20.0, "Solve_Succeeded")])
+    assert out.status == STALLED_STATUS
+    with pytest.raises(SolveFailedError):
+        search([(10.0, STALLED_STATUS)])
+    # alone, with a resume: a converged resumed fit is an estimate, a failed resume is not
+    if resumed_to == "Solve_Succeeded":
+        assert search([(10.0, STALLED_STATUS)], resume=resume)[0].objective == 9.0
+    else:
+        with pytest.raises(SolveFailedError):
+            search([(10.0, STALLED_STATUS)], resume=resume)

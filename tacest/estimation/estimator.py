@@ -231,17 +231,21 @@ class ImplicitEstimator:
             pr.phys_sx(z[: pr.n_theta], self.scales.L, self.scales.m0)).reshape(-1)
         return z
 
-    def solve_from(self, z0, last_only=False, accept_budget=False, abandon_above=float("inf")) -> SolveOutcome:
+    def solve_from(self, z0, last_only=False, accept_budget=False, abandon_above=float("inf"), multipliers=None,
+                   stop_stalled=True) -> SolveOutcome:
         """One staged solve (solver.run_stages) from z0 (scaled): impulses alone, then
         every homotopy stage, or only the last one (``last_only``: z0 is already a
         solution of a nearby problem).  ``accept_budget``: a final stage that uses up its
         budget, or stalls (solver.STALL_RULE, with ``solver.stop_stalled``), keeps its
         last iterate (success False); ``abandon_above``: the best fit's objective so far,
-        far above which the final stage stops (StartAbandoned)."""
+        far above which the final stage stops (StartAbandoned); ``multipliers``:
+        (lam_x, lam_g) that warm-start the first stage that frees everything;
+        ``stop_stalled``: false turns the stall rule off (a stalled fit resumed)."""
         stages = self.stages(last_only)
+        lam_x, lam_g = multipliers if multipliers is not None else (None, None)
         out = run_stages(self.built, z0, stages, self.stage_params, self.stage_bounds, prepare=self._prepare,
-                         accept_budget=accept_budget, abandon_above=abandon_above,
-                         stop_stalled=self.config.solver.stop_stalled)
+                         accept_budget=accept_budget, abandon_above=abandon_above, lam_x0=lam_x, lam_g0=lam_g,
+                         stop_stalled=stop_stalled and self.config.solver.stop_stalled)
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(out.z)
@@ -285,18 +289,29 @@ class ImplicitEstimator:
                 z0 = self.own_start(value)
             out = self.solve_from(z0, accept_budget=True,  # solve_from_starts judges budget fits
                                   abandon_above=abandon_above)
+            return judged(out)
+
+        def judged(out):
             V, mass, _, mu_g, mu_f = self.physical(out.z)
             found = {"vertices": np.asarray(V, float),
                      "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
             return (out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final),
                     self.fit_quality(out.z).local, found)
 
+        def resume(out, saved):  # a stalled fit, kept: its final stage continued without the stall rule
+            self.s0, self.p_final, self.bounds_final = saved
+            more = self.solve_from(out.z, last_only=True, accept_budget=True, multipliers=(out.lam_x, out.lam_g),
+                                   stop_stalled=False)
+            more.stages, more.iterations = out.stages + more.stages, out.iterations + more.iterations
+            more.wall_time += out.wall_time
+            return judged(more)
+
         self.attempts = []
         pinned = self.pinned_theta is not None and self.pin in ("all", "shape")
         out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
             starts, solve_one, self.config.solver.restart_physics, self.attempts,
             min_solves=0 if pinned else n_always, workers=start_workers(self.config.solver),
-            abandon=self.config.solver.abandon_hopeless)
+            abandon=self.config.solver.abandon_hopeless, resume=resume)
         self.z = out.z
         return out
 

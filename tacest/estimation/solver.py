@@ -554,7 +554,8 @@ def _restart_reason(last: dict, restart_physics: float) -> str:
 
 
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0,
-                      accept_budget: bool = False, workers: int = 1, abandon: bool = False) -> tuple:
+                      accept_budget: bool = False, workers: int = 1, abandon: bool = False,
+                      resume=None) -> tuple:
     """Solve from each start in turn until a fit is good enough; keep the fit of lowest
     objective (the restarts of the 2-D and 3-D estimators).
 
@@ -594,7 +595,14 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         the finished fits that count (converged, or any with ``accept_budget``; a
         BestSoFar shared with the starts solved at once; ABANDON_RULE): an attempt of
         status "abandoned".  The kept fit is the same; which starts stop depends on
-        which fits end first.
+        which fits end first;
+    resume(out, saved) -> what solve_one returns, or None: continues a fit whose final
+        stage was stopped as stalled (STALLED_STATUS, :func:`stalled`) from its last
+        iterate without that rule.  A stalled fit is set aside, not dropped: it competes
+        by its objective and never ends the search; if it is still the fit of lowest
+        objective when the search ends, it is resumed and the resumed fit kept (its
+        attempt's entry then holds the resumed fit, ``resumed`` true).  Where it is
+        resumed it counts as a finished fit for ``abandon``.
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -617,7 +625,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
 
     def solve(k):  # solve start k; its fit, where it counts, is offered to the others
         result = solve_one(starts[k][1], shared)
-        if abandon and (result[0].status in SUCCESS_STATUSES or accept_budget):
+        status = result[0].status
+        if abandon and (status in SUCCESS_STATUSES or accept_budget or (resume and status == STALLED_STATUS)):
             shared.offer(result[0].objective)
         return result
 
@@ -659,7 +668,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             continue
         good = bool(physics <= restart_physics and local is not False)
         if best is None or out.objective < best[0].objective:
-            best = (out, saved, good)
+            best = (out, saved, good, len(attempts) - 1)
         counts = out.status in SUCCESS_STATUSES or accept_budget
         if counts and (converged is None or out.objective < converged[0]):
             converged = (out.objective, good)
@@ -667,12 +676,35 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         # budget fit of lower objective) violates its own physics
         if k + 1 >= min_solves and converged is not None and converged[1] and best[2]:
             break
+    if best is not None and resume is not None and best[0].status == STALLED_STATUS:
+        best, converged = _resumed(best, converged, resume, attempts, restart_physics, accept_budget)
     if best is None or (converged is None and not accept_budget):
         raise failure
     if best[0].status in BUDGET_STATUSES:
         log.info(f"kept the fit of lowest objective ({best[0].objective:.6g}), whose final stage used up its "
                  f"iteration budget: {best[0].status}")
     return best[0], best[1]
+
+
+def _resumed(best: tuple, converged, resume, attempts: list, restart_physics: float, accept_budget: bool) -> tuple:
+    """(best, converged) of :func:`solve_from_starts` after resuming its kept fit, which
+    had stalled; its attempt's entry is replaced by the resumed fit's."""
+    out, saved, _, index = best
+    log.info(f"resuming the stalled fit of lowest objective ({out.objective:.6g}) from its last iterate")
+    try:
+        out, physics, saved, local, found = resume(out, saved)
+    except SolveFailedError as exc:  # the stalled fit stays what it was: a budget fit
+        attempts[index]["resume_error"] = str(exc)
+        return best, converged
+    if not np.isfinite(out.objective):
+        return best, converged
+    good = bool(physics <= restart_physics and local is not False)
+    attempts[index].update({"status": out.status, "objective": float(out.objective), "physics_per_sample":
+                            float(physics), "misfit_local": local, "resumed": True, **found})
+    if out.status in SUCCESS_STATUSES or accept_budget:
+        if converged is None or out.objective < converged[0]:
+            converged = (out.objective, good)
+    return (out, saved, good, index), converged
 
 
 def attempts_json(attempts: list) -> str:
