@@ -167,8 +167,9 @@ class Solver:
     abandon_hopeless: bool = True
     #: stop a 2-D start's final stage that has stalled (from iteration 150 on, its lowest
     #: objective fell by less than 1 % over the last 100 iterations: solver.STALL_RULE)
-    #: and keep its last iterate as if it had used up its iteration budget (it competes
-    #: by its objective and never ends the search).  false: it runs to max_iter
+    #: and set it aside as if it had used up its iteration budget (it competes by its
+    #: objective and never ends the search; kept at the search's end, it is resumed from
+    #: its last iterate to convergence or max_iter).  false: it runs to max_iter
     stop_stalled: bool = True
     #: s: runs sampled at a period of at most half this are fitted on blocks of
     #: samples lasting at most this period and their trajectories brought back to every sample

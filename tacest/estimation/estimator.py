@@ -232,15 +232,17 @@ class ImplicitEstimator:
         return z
 
     def solve_from(self, z0, last_only=False, accept_budget=False, abandon_above=float("inf"), multipliers=None,
-                   stop_stalled=True) -> SolveOutcome:
+                   stop_stalled=False) -> SolveOutcome:
         """One staged solve (solver.run_stages) from z0 (scaled): impulses alone, then
         every homotopy stage, or only the last one (``last_only``: z0 is already a
         solution of a nearby problem).  ``accept_budget``: a final stage that uses up its
-        budget, or stalls (solver.STALL_RULE, with ``solver.stop_stalled``), keeps its
-        last iterate (success False); ``abandon_above``: the best fit's objective so far,
-        far above which the final stage stops (StartAbandoned); ``multipliers``:
+        budget, or stalls (``stop_stalled``), keeps its last iterate (success False);
+        ``abandon_above``: the best fit's objective so far, far above which the final
+        stage stops (StartAbandoned); ``multipliers``:
         (lam_x, lam_g) that warm-start the first stage that frees everything;
-        ``stop_stalled``: false turns the stall rule off (a stalled fit resumed)."""
+        ``stop_stalled``: a final stage that stalls (solver.STALL_RULE) stops, its last
+        iterate kept as a budget fit (with ``accept_budget`` and ``solver.stop_stalled``:
+        the search over starts, which resumes a stalled fit that it keeps)."""
         stages = self.stages(last_only)
         lam_x, lam_g = multipliers if multipliers is not None else (None, None)
         out = run_stages(self.built, z0, stages, self.stage_params, self.stage_bounds, prepare=self._prepare,
@@ -288,7 +290,7 @@ class ImplicitEstimator:
                 self.s0 = s_ref.copy()
                 z0 = self.own_start(value)
             out = self.solve_from(z0, accept_budget=True,  # solve_from_starts judges budget fits
-                                  abandon_above=abandon_above)
+                                  abandon_above=abandon_above, stop_stalled=True)
             return judged(out)
 
         def judged(out):
@@ -300,8 +302,7 @@ class ImplicitEstimator:
 
         def resume(out, saved):  # a stalled fit, kept: its final stage continued without the stall rule
             self.s0, self.p_final, self.bounds_final = saved
-            more = self.solve_from(out.z, last_only=True, accept_budget=True, multipliers=(out.lam_x, out.lam_g),
-                                   stop_stalled=False)
+            more = self.solve_from(out.z, last_only=True, accept_budget=True, multipliers=(out.lam_x, out.lam_g))
             more.stages, more.iterations = out.stages + more.stages, out.iterations + more.iterations
             more.wall_time += out.wall_time
             return judged(more)
