@@ -636,18 +636,9 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
     for k, (record, _) in enumerate(starts):
-        if 0 < k < min_solves:
-            log.info(f"start {k + 1} of the {min_solves} compared")
-        elif k:
-            log.info(f"restart {k}/{len(starts) - 1} from another start: the last fit "
-                     f"{_restart_reason(attempts[-1], restart_physics)}")
+        _announce(k, min_solves, len(starts), attempts, restart_physics)
         if k and k not in solved:  # a restart: with the next ones in as many processes as may run
-            batch = list(range(k, len(starts)))
-            processes = fork_processes(workers, len(batch))
-            if processes > 1:
-                batch = batch[:processes]
-                solved.update(zip(batch, fork_map(lambda j: solve(batch[j]), len(batch), processes,
-                                                  returned=(SolveFailedError,))))
+            solved.update(_solve_at_once(k, len(starts), workers, solve))
         try:
             result = solved[k] if k in solved else solve(k)
             if isinstance(result, SolveFailedError):
@@ -668,12 +659,9 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         if not np.isfinite(out.objective):
             failure = failure or SolveFailedError(f"IPOPT ended at a non-finite objective ({out.status})")
             continue
-        good = bool(physics <= restart_physics and local is not False)
+        good, converged = _judged(out, physics, local, restart_physics, accept_budget, converged)
         if best is None or out.objective < best[0].objective:
             best = (out, saved, good, len(attempts) - 1)
-        counts = out.status in SUCCESS_STATUSES or accept_budget
-        if counts and (converged is None or out.objective < converged[0]):
-            converged = (out.objective, good)
         # the search ends at a good converged fit, unless the fit that would be kept (a
         # budget fit of lower objective) violates its own physics
         if k + 1 >= min_solves and converged is not None and converged[1] and best[2]:
@@ -700,13 +688,41 @@ def _resumed(best: tuple, converged, resume, attempts: list, restart_physics: fl
         return best, converged
     if not np.isfinite(out.objective):
         return best, converged
-    good = bool(physics <= restart_physics and local is not False)
+    good, converged = _judged(out, physics, local, restart_physics, accept_budget, converged)
     attempts[index].update({"status": out.status, "objective": float(out.objective), "physics_per_sample":
                             float(physics), "misfit_local": local, "resumed": True, **found})
-    if out.status in SUCCESS_STATUSES or accept_budget:
-        if converged is None or out.objective < converged[0]:
-            converged = (out.objective, good)
     return (out, saved, good, index), converged
+
+
+def _judged(out, physics, local, restart_physics, accept_budget, converged) -> tuple:
+    """(good, converged) of :func:`solve_from_starts` after a finished fit: whether it
+    holds its physics and misfits its data at most locally, and the (objective, good)
+    of the converged fit of lowest objective (budget fits count with accept_budget)."""
+    good = bool(physics <= restart_physics and local is not False)
+    if (out.status in SUCCESS_STATUSES or accept_budget) and (converged is None or out.objective < converged[0]):
+        converged = (out.objective, good)
+    return good, converged
+
+
+def _announce(k: int, min_solves: int, n: int, attempts: list, restart_physics: float):
+    """The log line before start k of :func:`solve_from_starts` (none before the first)."""
+    if 0 < k < min_solves:
+        log.info(f"start {k + 1} of the {min_solves} compared")
+    elif k:
+        log.info(f"restart {k}/{n - 1} from another start: the last fit "
+                 f"{_restart_reason(attempts[-1], restart_physics)}")
+
+
+def _solve_at_once(k: int, n: int, workers: int, solve) -> dict:
+    """{start index: solve(index)} of the restarts from k on (of n starts) that run at
+    once in forked processes (tacest.parallel.fork_map; failures returned), or {} where
+    only one process may run (they are then solved one at a time)."""
+    batch = list(range(k, n))
+    processes = fork_processes(workers, len(batch))
+    if processes < 2:
+        return {}
+    batch = batch[:processes]
+    return dict(zip(batch, fork_map(lambda j: solve(batch[j]), len(batch), processes, returned=(SolveFailedError,))))
 
 
 def attempts_json(attempts: list) -> str:
