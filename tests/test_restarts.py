@@ -16,14 +16,19 @@ from tacest.estimation.solver import SolveOutcome, StageInfo, solve_from_starts
 RESTART_PHYSICS = 0.1
 
 
+def _outcome(obj, status="Solve_Succeeded", iterations=3):
+    """A one-stage SolveOutcome ending at objective ``obj`` with ``status``."""
+    stage = StageInfo(name="homotopy 1/1", status=status, iterations=iterations, wall_time=0.0, objective=obj)
+    return SolveOutcome(z=np.full(2, obj), lam_g=np.zeros(0), lam_x=None, status=status,
+                        success=status == "Solve_Succeeded", iterations=iterations, wall_time=0.0, objective=obj,
+                        stages=[stage])
+
+
 def _solve(start, abandon_above=float("inf")):
     """start = (objective, physics per sample, local) -> what solve_from_starts takes
     (abandon_above: not used here, see _solve_abandoning)."""
     obj, phys, local = start
-    stage = StageInfo(name="homotopy 1/1", status="Solve_Succeeded", iterations=3, wall_time=0.0, objective=obj)
-    out = SolveOutcome(z=np.full(2, obj), lam_g=np.zeros(0), lam_x=None, status="Solve_Succeeded", success=True,
-                       iterations=3, wall_time=0.0, objective=obj, stages=[stage])
-    return out, phys, ("saved", obj), local, {}
+    return _outcome(obj), phys, ("saved", obj), local, {}
 
 
 def _search(fits):
@@ -213,10 +218,7 @@ def test_the_stall_rule_reads_the_lowest_objective_over_its_window():
 def _solve_status(start, abandon_above=float("inf")):
     """start = (objective, status) -> a fit with that final status, physics 0.01, local."""
     obj, status = start
-    stage = StageInfo(name="homotopy 1/1", status=status, iterations=150, wall_time=0.0, objective=obj)
-    out = SolveOutcome(z=np.full(2, obj), lam_g=np.zeros(0), lam_x=None, status=status,
-                       success=status == "Solve_Succeeded", iterations=150, wall_time=0.0, objective=obj, stages=[stage])
-    return out, 0.01, ("saved", obj), True, {}
+    return _outcome(obj, status, iterations=150), 0.01, ("saved", obj), True, {}
 
 
 @pytest.mark.parametrize("resumed_to", ["Solve_Succeeded", "Maximum_Iterations_Exceeded", "failed"])

@@ -241,13 +241,13 @@ class ImplicitEstimator:
         stage stops (StartAbandoned); ``multipliers``:
         (lam_x, lam_g) that warm-start the first stage that frees everything;
         ``stop_stalled``: a final stage that stalls (solver.STALL_RULE) stops, its last
-        iterate kept as a budget fit (with ``accept_budget`` and ``solver.stop_stalled``:
-        the search over starts, which resumes a stalled fit that it keeps)."""
+        iterate kept as a budget fit (with ``accept_budget``: the search over starts, as
+        ``solver.stop_stalled`` says, which resumes a stalled fit that it keeps)."""
         stages = self.stages(last_only)
         lam_x, lam_g = multipliers if multipliers is not None else (None, None)
         out = run_stages(self.built, z0, stages, self.stage_params, self.stage_bounds, prepare=self._prepare,
                          accept_budget=accept_budget, abandon_above=abandon_above, lam_x0=lam_x, lam_g0=lam_g,
-                         stop_stalled=stop_stalled and self.config.solver.stop_stalled)
+                         stop_stalled=stop_stalled)
         self.z = out.z
         self.p_final = self.stage_params(stages[-1])
         self.bounds_final = self.variable_bounds(out.z)
@@ -290,7 +290,7 @@ class ImplicitEstimator:
                 self.s0 = s_ref.copy()
                 z0 = self.own_start(value)
             out = self.solve_from(z0, accept_budget=True,  # solve_from_starts judges budget fits
-                                  abandon_above=abandon_above, stop_stalled=True)
+                                  abandon_above=abandon_above, stop_stalled=self.config.solver.stop_stalled)
             return judged(out)
 
         def judged(out):
