@@ -85,16 +85,14 @@ class _DropCasadiInterruptWarning:
 def watch_interrupts():
     """Note a SIGINT that arrives inside the block (yields an :class:`InterruptWatch`).
 
-    The previous SIGINT handler still runs (Python's default raises KeyboardInterrupt);
-    a handler that ignores SIGINT keeps it ignored.  Outside the main thread, where no
-    signal handler can be set, the watch sees only what IPOPT's status tells.
+    The previous SIGINT handler still runs (Python's default raises KeyboardInterrupt).
+    Where no handler may be replaced (:func:`_handler_to_replace`: outside the main
+    thread, under a handler that ignores SIGINT or one installed outside Python, which
+    Python could not put back) the watch sees only what IPOPT's status tells.
     """
     watch = InterruptWatch()
-    if threading.current_thread() is not threading.main_thread():
-        yield watch
-        return
-    previous = signal.getsignal(signal.SIGINT)
-    if previous is signal.SIG_IGN:
+    previous = _handler_to_replace()
+    if previous is None:
         yield watch
         return
 
@@ -102,7 +100,7 @@ def watch_interrupts():
         watch.interrupted = True
         if callable(previous):
             previous(signum, frame)
-        else:  # SIG_DFL or a handler installed outside Python: end as Python's default would
+        else:  # SIG_DFL: end as Python's default would
             raise KeyboardInterrupt
 
     signal.signal(signal.SIGINT, note)

@@ -118,6 +118,21 @@ def test_watch_interrupts_notes_a_sigint_that_a_solver_swallowed():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
 
 
+@pytest.mark.parametrize("outside", [None, signal.SIG_IGN], ids=["installed-outside-python", "ignored"])
+def test_watch_interrupts_leaves_a_handler_it_could_not_put_back(monkeypatch, outside):
+    """``getsignal`` gives None for a handler installed outside Python (an embedding
+    program's): Python could not set it again, so the watch must not replace it (once it
+    did, and its end raised TypeError from ``signal.signal(SIGINT, None)``).  Under an
+    ignoring handler SIGINT stays ignored."""
+    set_to = []
+    monkeypatch.setattr(signal, "getsignal", lambda signum: outside)
+    monkeypatch.setattr(signal, "signal", lambda signum, handler: set_to.append(handler))
+    with watch_interrupts() as watch:
+        pass
+    assert set_to == [] and not watch.interrupted
+    raise_if_interrupted("Solve_Succeeded", watch)
+
+
 def _resting_ball():
     """A pymunk space with a ball resting on a static ground, and the ball, whose body
     has an arbiter (the space is returned too: the body keeps only a weak reference)."""

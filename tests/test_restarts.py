@@ -221,7 +221,7 @@ def _solve_status(start, abandon_above=float("inf")):
     return _outcome(obj, status, iterations=150), 0.01, ("saved", obj), True, {}
 
 
-@pytest.mark.parametrize("resumed_to", ["Solve_Succeeded", "Maximum_Iterations_Exceeded", "failed"])
+@pytest.mark.parametrize("resumed_to", ["Solve_Succeeded", "Maximum_Iterations_Exceeded", "failed", "nan"])
 def test_a_stalled_fit_is_set_aside_and_resumed_only_if_it_is_kept(resumed_to):
     """A stalled fit (solver.STALLED_STATUS) never ends the search; kept at its end (the
     lowest objective), it is resumed from its last iterate and the resumed fit replaces
@@ -236,6 +236,8 @@ def test_a_stalled_fit_is_set_aside_and_resumed_only_if_it_is_kept(resumed_to):
         calls.append((out.objective, saved))
         if resumed_to == "failed":
             raise SolveFailedError("IPOPT failed in stage 'homotopy 1/1' (resumed)")
+        if resumed_to == "nan":  # a resume that ends at a non-finite objective is no fit
+            return _solve_status((float("nan"), "Maximum_Iterations_Exceeded"))
         return _solve_status((out.objective - 1.0, resumed_to))
 
     def search(fits, **kw):
@@ -248,8 +250,9 @@ def test_a_stalled_fit_is_set_aside_and_resumed_only_if_it_is_kept(resumed_to):
     out, saved, attempts = search([(10.0, STALLED_STATUS), (20.0, "Solve_Succeeded"), (5.0, "Solve_Succeeded")],
                                   resume=resume)
     assert len(attempts) == 2 and calls == [(10.0, ("saved", 10.0))]
-    if resumed_to == "failed":
+    if resumed_to in ("failed", "nan"):
         assert out.status == STALLED_STATUS and out.objective == 10.0 and "resume_error" in attempts[0]
+        assert "resumed" not in attempts[0] and attempts[0]["objective"] == 10.0
     else:
         assert out.status == resumed_to and out.objective == 9.0 and saved == ("saved", 9.0)
         assert attempts[0]["resumed"] and attempts[0]["status"] == resumed_to and attempts[0]["objective"] == 9.0

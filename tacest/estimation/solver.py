@@ -686,7 +686,8 @@ def _resumed(best: tuple, converged, resume, attempts: list, restart_physics: fl
     except SolveFailedError as exc:  # the stalled fit stays what it was: a budget fit
         attempts[index]["resume_error"] = str(exc)
         return best, converged
-    if not np.isfinite(out.objective):
+    if not np.isfinite(out.objective):  # kept as it was, and the entry says why
+        attempts[index]["resume_error"] = f"the resumed fit ended at objective {out.objective} ({out.status})"
         return best, converged
     good, converged = _judged(out, physics, local, restart_physics, accept_budget, converged)
     attempts[index].update({"status": out.status, "objective": float(out.objective), "physics_per_sample":
