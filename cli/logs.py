@@ -115,14 +115,16 @@ def warn_fit_quality(est) -> None:
     """One warning line when the estimate ``est`` handed to the user is IPOPT's last
     iterate of a final stage that used up its iteration budget (kept because no start's
     converged fit reached a lower objective: solver.solve_from_starts), and one when it
-    failed its goodness-of-fit test (the fits inside a diagnosis, which misfit on
-    purpose, only log it as information: tacest.estimation.result)."""
+    failed its goodness-of-fit test; one information line for a local misfit (consistent:
+    tacest.estimation.fitquality).  The fits inside a diagnosis, which misfit on purpose,
+    are not said here."""
     from tacest.estimation.result import not_converged_note
 
     note = not_converged_note(est)
     if note:
         logging.getLogger("tacest.estimate").warning(note)
-    if est.consistent is False and est.fit_quality:
+    if est.fit_quality and (est.consistent is False or est.fit_quality.get("local_misfit")):
         from tacest.estimation.fitquality import quality_summary
 
-        logging.getLogger("tacest.estimate").warning(quality_summary(est.fit_quality))
+        say = logging.getLogger("tacest.estimate")
+        (say.warning if est.consistent is False else say.info)(quality_summary(est.fit_quality))

@@ -52,6 +52,29 @@ def test_a_misfit_stretch_is_flagged_where_it_is():
     assert "NOT consistent" in q.summary() and "contact" in q.summary()
 
 
+def test_a_local_misfit_is_consistent_said_and_its_std_widened():
+    """Dissipation residuals 40 times the noise on 4 samples of 400 (a fingertip sliding
+    off a corner at speed, the model's simplification at an instant): flagged, but local
+    (1 % of the samples, LOCAL_FRACTION 5 %), so consistent, with the window kept, the
+    std scale above 1 and the summary saying so.  The same factor on 40 samples (10 %)
+    is no local misfit: not consistent."""
+    from tacest.estimation.fitquality import LOCAL_FRACTION, quality_summary
+
+    run = pushed_box_run(T=400, k0=30)
+    rng = np.random.default_rng(2)
+    short = goodness_of_fit([_noise_residuals(run, 4, rng, ("dissipation", 200, 204, 40.0))], [run], 4)
+    assert short.consistent and short.local_misfit and short.local, short
+    assert short.worst and short.worst[0]["term"] == "dissipation" and not short.terms
+    assert short.flagged_samples <= LOCAL_FRACTION * short.n_samples and short.std_scale > 1.5
+    said = quality_summary(short.to_json())
+    assert said.startswith("consistent with the noise floor but for a local misfit") and "dissipation in run 0" in said
+    assert f"x{short.std_scale:.2f}" in said
+    long = goodness_of_fit([_noise_residuals(run, 4, rng, ("dissipation", 200, 240, 40.0))], [run], 4)
+    assert not long.consistent and not long.local_misfit and "NOT consistent" in long.summary()
+    quiet = goodness_of_fit([_noise_residuals(run, 4, np.random.default_rng(3))], [run], 4)
+    assert quiet.consistent and not quiet.local_misfit and quiet.std_scale == 1.0
+
+
 def _assert_residuals_live_where_dof_says(est, runs):
     """Every residual the estimator stores at a sample is zero where residual_dof gives
     that sample no degrees of freedom, and terms with degrees of freedom somewhere have

@@ -33,7 +33,8 @@ whose residuals exceed the stated noise floor is marked inconsistent (a warning 
 where), and its std is widened by the excess it shows there (the square root of the
 flagged windows' ‖r‖² per degree of freedom: the noise level those data show, as if it
 held everywhere; ``std_scale`` in its fit_quality).  The widened std is no calibrated
-error bar either: the mark says so.
+error bar either: the mark says so.  A local misfit (a few samples at an instant the
+model simplifies) is consistent, and its std is widened the same way.
 """
 
 from __future__ import annotations
@@ -234,13 +235,14 @@ def assemble(dim: int, shape: str, vertices, params: dict, runs: list, outcome: 
         if facts.shape_at_bound and not facts.held:
             # not an interior optimum: the bound, not the data, holds the shape, and a
             # Laplace std says nothing there (docs/estimation.md, "Goodness of fit")
-            quality["consistent"] = False
+            quality["consistent"] = quality["local_misfit"] = False
             quality["shape_at_bound"] = list(facts.shape_at_bound)
         scale = 1.0
-        if not q.consistent:
-            # information here: a diagnosis fits models that misfit on purpose; the
-            # commands that hand this estimate to a user warn (cli/estimate.py)
-            log.info(q.summary())
+        if q.worst:  # inconsistent, or a local misfit (consistent; its std widened all the same)
+            # only for the debug log here: a diagnosis fits models that misfit on
+            # purpose; the commands that hand this estimate to a user say it once
+            # (cli/logs.py, warn_fit_quality)
+            log.debug(q.summary())
             scale = q.std_scale
             std = {k: v * scale for k, v in std.items()}
         quality["std_scale"] = scale
