@@ -75,6 +75,44 @@ def test_a_local_misfit_is_consistent_said_and_its_std_widened():
     assert quiet.consistent and not quiet.local_misfit and quiet.std_scale == 1.0
 
 
+def test_a_fit_at_implausible_friction_is_marked_restarted_and_said_so(tmp_path):
+    """The pushed box (ground friction 0.4) fits at about 0.4.  With a plausible range
+    that excludes it ([prior] friction_plausible = [0.9, 1.5], as if 0.4 were the
+    signature of a wrong basin) the fit is marked NOT consistent with the friction
+    named, every start is judged not right (misfit_local false, its ``implausible``
+    listed, so the restarts are tried), and the mark survives the estimate file; with
+    the default range the same fit is consistent and nothing is listed.  A range that
+    is no range is refused."""
+    from tacest.dims import estimate_runs
+    from tacest.errors import TacestError
+    from tacest.estimation.config import load_config
+    from tacest.estimation.fitquality import quality_summary
+    from tacest.estimation.result import implausible_friction
+    from tacest.estimation.solver import _restart_reason
+    from tacest.io.estimate import read_estimate, write_estimate
+
+    run = pushed_box_run()
+    plain = estimate_runs([run], "box")
+    assert plain.consistent is True and "implausible" not in plain.fit_quality
+    assert 0.3 < plain.params["friction_ground"] < 0.5
+    narrow = load_config(None, overrides={"prior": {"friction_plausible": [0.9, 1.5]}})
+    odd = estimate_runs([run], "box", config=narrow)
+    assert odd.consistent is False
+    assert any(x.startswith("friction_ground") and x.endswith("< 0.9") for x in odd.fit_quality["implausible"])
+    said = quality_summary(odd.fit_quality)
+    assert said.startswith("NOT a plausible fit") and "friction_ground" in said
+    starts = [a for a in __import__("json").loads(odd.extra_attrs["starts"]) if "objective" in a]
+    assert starts and all(a["misfit_local"] is False and a["implausible"] for a in starts)
+    assert "implausible friction" in _restart_reason(starts[0], 0.1)
+    write_estimate(odd, tmp_path / "odd.h5")
+    assert read_estimate(tmp_path / "odd.h5").fit_quality["implausible"] == odd.fit_quality["implausible"]
+    assert implausible_friction({"friction_ground": 2.0, "friction_finger": 0.5}, {}) == ["friction_ground 2 > 1.8"]
+    assert implausible_friction({"friction_ground": 0.5, "friction_finger": 0.01}, {}) == ["friction_finger 0.01 < 0.02"]
+    for bad in ([0.5, 0.5], [1.0], [-0.1, 1.0], "0.02, 1.8"):
+        with pytest.raises(TacestError, match="friction_plausible"):
+            load_config(None, overrides={"prior": {"friction_plausible": bad}})
+
+
 def _assert_residuals_live_where_dof_says(est, runs):
     """Every residual the estimator stores at a sample is zero where residual_dof gives
     that sample no degrees of freedom, and terms with degrees of freedom somewhere have

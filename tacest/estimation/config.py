@@ -83,6 +83,11 @@ class Prior:
     #: friction_sigma instead); tacest.model.priors
     friction_log_sigma: float = 0.7
     inertia_log_sigma: float = 0.3  #: sigma of log(I / I_uniform_density)
+    #: [low, high]: the friction coefficients (ground and fingertip) a fit may end at and
+    #: still be called consistent; a fit outside is marked (fit_quality.implausible: a
+    #: wrong basin, such as a light and grippy object or a frictionless fingertip a wrong
+    #: shape drifts on; docs/estimation.md, "Goodness of fit").  [0, inf]: no check
+    friction_plausible: tuple = (0.02, 1.8)
     size: float = 0.1  #: m, starting extent when the run has no /prior size hint
     size_bound: float = 0.5  #: m, largest extent when the run has no /prior size_bound
     shape_sigma: float = 1.0  #: weak pull of the shape toward its start, in units of L
@@ -92,6 +97,12 @@ class Prior:
         if self.friction_log_sigma > 0 and not self.friction > 0:
             raise _InvalidSetting(f"prior.friction: must be > 0 with a log-normal prior (friction_log_sigma > 0), "
                                   f"got {self.friction!r}")
+        band = self.friction_plausible
+        if not (isinstance(band, (list, tuple)) and len(band) == 2
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in band)
+                and 0 <= band[0] < band[1]):
+            raise _InvalidSetting(f"prior.friction_plausible: expected [low, high] with 0 <= low < high, got {band!r}")
+        object.__setattr__(self, "friction_plausible", (float(band[0]), float(band[1])))
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from tacest.estimation.data import (Scales, choose_scales, force_in_contact, par
 from tacest.estimation.initial import continued_trajectory, initial_extents, initial_guess, start_shape_candidates
 from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen
+from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen, start_verdict
 from tacest.estimation.smc2d import SMCSettings, smc_start
 from tacest.estimation.solver import (BuiltSolver, SolverCache, map_in_processes, plan_stages, pin, run_stages,
                                       solve_from_starts, SolveOutcome)
@@ -294,11 +294,7 @@ class ImplicitEstimator:
             return judged(out)
 
         def judged(out):
-            V, mass, _, mu_g, mu_f = self.physical(out.z)
-            found = {"vertices": np.asarray(V, float),
-                     "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
-            return (out, self.physics_per_sample(out.z), (self.s0, self.p_final, self.bounds_final),
-                    self.fit_quality(out.z).local, found)
+            return start_verdict(self, out, (self.s0, self.p_final, self.bounds_final))
 
         def resume(out, saved):  # a stalled fit, kept: its final stage continued without the stall rule
             self.s0, self.p_final, self.bounds_final = saved

@@ -39,7 +39,8 @@ from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
-from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen
+from tacest.estimation.result import (FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen,
+                                      start_verdict)
 from tacest.estimation.solver import (BuiltSolver, SolveOutcome, SolverCache, StageInfo, map_in_processes, pin,
                                       plan_stages, run_stages, solve_from_starts)
 from tacest.estimation.uncertainty import observed_information_3d, vertex_jacobian
@@ -774,11 +775,7 @@ def solve_start(est: "Estimator3D", s0, tracks, abandon_above):
         out = est.solve_from_shape(s0, accept_budget=True, abandon_above=abandon_above)
     finally:
         est.start_tracks = None
-    V, mass, _, mu_g, mu_f = est.physical(out.z)
-    found = {"vertices": np.asarray(V, float),
-             "params": {"mass": float(mass), "friction_ground": float(mu_g), "friction_finger": float(mu_f)}}
-    return (out, est.physics_per_sample(out.z), (s0, est.p_final, est.bounds_final),
-            est.fit_quality(out.z).local, found)
+    return start_verdict(est, out, (s0, est.p_final, est.bounds_final))
 
 
 def solve_observed_tracks(est: "Estimator3D", s0) -> SolveOutcome:

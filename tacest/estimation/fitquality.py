@@ -104,14 +104,23 @@ def quality_summary(quality: dict) -> str:
     if quality.get("consistent"):
         return f"consistent with the noise floor ({quality['n_tests']} tests at {quality['alpha']:g})"
     bound = quality.get("shape_at_bound") or []
-    if bound and not quality.get("worst") and not quality.get("terms"):
+    odd = quality.get("implausible") or []
+    # the residual test alone passed: nothing flagged, or only a local misfit
+    residuals_pass = not quality.get("terms") and (not quality.get("worst") or quality.get("local_misfit"))
+    if bound and residuals_pass:
         return ("NOT a valid fit: the shape ended at a hard bound (" + ", ".join(bound) + "): the object collapsed "
                 "to the smallest size allowed or grew to the largest (a wrong basin, or a size bound that does not "
-                "fit the object: /prior size_bound); its error bars are not to be trusted")
+                "fit the object: /prior size_bound)" + (f"; implausible friction ({', '.join(odd)})" if odd else "")
+                + "; its error bars are not to be trusted")
+    if odd and residuals_pass:
+        return ("NOT a plausible fit: friction outside the plausible range (" + ", ".join(odd) + "), the mark of a "
+                "wrong basin (a light and grippy object, a wrong shape drifting on a frictionless fingertip), or of "
+                "an object outside that range ([prior] friction_plausible); its error bars are not to be trusted")
     terms = ", ".join(f"{t['term']} (p {t['p']:.1e})" for t in quality.get("terms", [])[:3])
     return ("NOT consistent with the noise floor: " + (where or "")
             + (f"; term totals {terms}" if terms else "")
             + (f"; the shape at a hard bound ({', '.join(bound)})" if bound else "")
+            + (f"; implausible friction ({', '.join(odd)})" if odd else "")
             + ": the fit does not explain these data within the stated noise (a wrong basin, an unmodelled "
               "effect, or noise levels set too low); its error bars are not to be trusted")
 

@@ -548,10 +548,12 @@ def _restart_reason(last: dict, restart_physics: float) -> str:
         return "stalled (solver.STALL_RULE)"
     if last["status"] in BUDGET_STATUSES:
         return "used up its iteration budget"
+    odd = last.get("implausible")
     return " and ".join(
         ([f"violates its own physics by {last['physics_per_sample']:.3g} objective units per sample"]
          if last["physics_per_sample"] > restart_physics else [])
-        + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False else [])
+        + ([f"ended at implausible friction ({', '.join(odd)})"] if odd else [])
+        + (["misfits its data beyond a local stretch"] if last.get("misfit_local") is False and not odd else [])
     ) or "is not the best fit so far"
 
 
@@ -568,11 +570,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         iterate when it uses up its budget (run_stages' ``accept_budget``) and stops
         where it stays far above ``abandon_above`` (a BestSoFar, or inf: never;
         run_stages' ``abandon_above``, raising StartAbandoned); ``saved`` is whatever the
-        caller must restore for that fit; ``local`` whether its data say it is right but
-        for a local misfit (fitquality's FitQuality.local; None: not tested); ``found`` a
-        dict of what the fit found, copied into its attempt (the ``vertices`` and
-        ``params`` that result.basin_spread compares); raises SolveFailedError when the
-        solve fails;
+        caller must restore for that fit; ``local`` whether it may be right: its data
+        misfit at most local (fitquality's FitQuality.local) and its friction plausible
+        (result.start_verdict; None: not tested); ``found`` a dict of what the fit
+        found, copied into its attempt (the ``vertices`` and ``params`` that
+        result.basin_spread compares, ``implausible`` where it is); raises
+        SolveFailedError when the solve fails;
     restart_physics : a converged fit whose physics per sample is at most this and whose
         misfit of its data is at most local (``local`` not False) ends the search; one
         that violates its physics more, or misfits its data beyond a local stretch, is
