@@ -152,7 +152,8 @@ def start_verdict(est, out, saved) -> tuple:
     odd = implausible_friction(params, est.config.to_dict().get("prior", {}))
     if odd:
         found["implausible"] = odd
-    return out, est.physics_per_sample(out.z), saved, bool(est.fit_quality(out.z).local) and not odd, found
+    local = est.fit_quality(out.z).local  # None: not tested
+    return out, est.physics_per_sample(out.z), saved, False if odd else local, found
 
 
 def identifiability(params: dict, info: Optional[Information], facts: FitFacts) -> dict:
