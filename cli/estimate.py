@@ -65,8 +65,7 @@ def estimate(runs, output, manifest, shape, method, config_path, previous_path, 
         p = est.params
 
         def fit_mark(e):  # the goodness-of-fit test and the shape's identifiability (warnings above)
-            local = e.consistent and (e.fit_quality or {}).get("local_misfit")
-            return ("; a local misfit (see above)" if local else "" if e.consistent in (True, None)
+            return ("; a local misfit (see above)" if e.local_misfit else "" if e.consistent in (True, None)
                     else "; fit NOT consistent with the data (see warning)") \
                 + ("; shape not identifiable" if e.identifiable.get("shape") is False else "")
 

@@ -123,7 +123,7 @@ def warn_fit_quality(est) -> None:
     note = not_converged_note(est)
     if note:
         logging.getLogger("tacest.estimate").warning(note)
-    if est.fit_quality and (est.consistent is False or est.fit_quality.get("local_misfit")):
+    if est.consistent is False or est.local_misfit:
         from tacest.estimation.fitquality import quality_summary
 
         say = logging.getLogger("tacest.estimate")

@@ -198,10 +198,10 @@ def test_an_estimate_that_used_up_its_budget_is_warned_in_one_line():
     stream = io.StringIO()
     setup_logging(quiet=True, stream=stream)
     warn_fit_quality(SimpleNamespace(success=True, solver_status="Solve_Succeeded", iterations=30, consistent=True,
-                                     fit_quality={}))
+                                     local_misfit=False, fit_quality={}))
     assert stream.getvalue() == ""
     warn_fit_quality(SimpleNamespace(success=False, solver_status="Maximum_Iterations_Exceeded", iterations=861,
-                                     consistent=True, fit_quality={}))
+                                     consistent=True, local_misfit=False, fit_quality={}))
     lines = stream.getvalue().strip().splitlines()
     assert len(lines) == 1 and "Maximum_Iterations_Exceeded" in lines[0] and "861 iterations" in lines[0]
     setup_logging(quiet=False)

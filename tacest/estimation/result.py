@@ -122,13 +122,15 @@ def shape_params_at_bound(shape, s, size_bound_scaled: float, names=None) -> tup
 
 def implausible_friction(params: dict, prior: dict) -> list:
     """The friction coefficients of ``params`` outside the plausible range
-    ``prior["friction_plausible"]`` ([low, high], config.Prior; absent: (0.02, 1.8)), as
+    ``prior["friction_plausible"]`` ([low, high]; absent: config.Prior's default), as
     "friction_ground 1.97 > 1.8".  Each of the 11 fits of the 2-D benchmarks (120
     recordings) that ended outside that range was in a wrong basin, 2.9-31 mm off: a
     light and grippy object (ground friction 1.8-2.0, the upper bound) or a wrong shape
     that drifts on a frictionless fingertip (0.010-0.019); the right fits stayed within
     0.04-1.3 (docs/estimation.md, "Goodness of fit")."""
-    lo, hi = (float(x) for x in prior.get("friction_plausible", (0.02, 1.8)))
+    from tacest.estimation.config import Prior
+
+    lo, hi = (float(x) for x in prior.get("friction_plausible", Prior.friction_plausible))
     out = []
     for k in ("friction_ground", "friction_finger"):
         v = float(params.get(k, np.nan))

@@ -657,8 +657,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
             continue
         if out.status not in SUCCESS_STATUSES:
             failure = failure or stage_failure(out.stages[-1])
-        attempts.append({**record, "status": out.status, "objective": float(out.objective),
-                         "physics_per_sample": float(physics), "misfit_local": local, **found})
+        attempts.append({**record, **_fit_entry(out, physics, local, found)})
         if not np.isfinite(out.objective):
             failure = failure or SolveFailedError(f"IPOPT ended at a non-finite objective ({out.status})")
             continue
@@ -693,9 +692,14 @@ def _resumed(best: tuple, converged, resume, attempts: list, restart_physics: fl
         attempts[index]["resume_error"] = f"the resumed fit ended at objective {out.objective} ({out.status})"
         return best, converged
     good, converged = _judged(out, physics, local, restart_physics, accept_budget, converged)
-    attempts[index].update({"status": out.status, "objective": float(out.objective), "physics_per_sample":
-                            float(physics), "misfit_local": local, "resumed": True, **found})
+    attempts[index].update({**_fit_entry(out, physics, local, found), "resumed": True})
     return (out, saved, good, index), converged
+
+
+def _fit_entry(out, physics, local, found) -> dict:
+    """A finished fit's fields of its attempt entry (:func:`solve_from_starts`)."""
+    return {"status": out.status, "objective": float(out.objective), "physics_per_sample": float(physics),
+            "misfit_local": local, **found}
 
 
 def _judged(out, physics, local, restart_physics, accept_budget, converged) -> tuple:

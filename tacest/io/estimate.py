@@ -82,6 +82,11 @@ class Estimate:
         """True / False: the fit passed / failed its goodness-of-fit test; None: untested."""
         return None if self.fit_quality is None else bool(self.fit_quality.get("consistent"))
 
+    @property
+    def local_misfit(self) -> bool:
+        """Consistent, but some windows were flagged locally (fit_quality.local_misfit)."""
+        return bool(self.consistent and self.fit_quality.get("local_misfit"))
+
 
 def write_estimate(est: Estimate, path) -> None:
     """Write an estimate file atomically."""
