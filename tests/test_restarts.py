@@ -99,6 +99,34 @@ def test_a_hopeless_start_is_recorded_as_abandoned_and_the_best_fit_kept(abandon
     assert SEEN == ([float("inf"), 50.0, 50.0, 50.0] if abandon else [float("inf")] * 4)
 
 
+@pytest.mark.parametrize("second", ["abandoned", "failed"])
+def test_a_compared_start_that_stops_far_above_a_good_fit_starts_no_restart(second):
+    """The search ends once the compared starts are in and the best is good, whatever
+    became of the last compared start: an abandoned one (far above the best) or a
+    failed one is no reason to restart (the restarts used to run there, and every one
+    was then abandoned: 20 s for a fit of 6 s on a gentle box)."""
+    from tacest.errors import SolveFailedError
+
+    def solve(start, abandon_above=float("inf")):
+        if start == "second":
+            if second == "failed":
+                raise SolveFailedError("IPOPT: Restoration_Failed")
+            return _solve_abandoning((900.0, 0.01, True), abandon_above)
+        return _solve(start)
+
+    fits = [(50.0, 0.01, True), "second", (40.0, 0.01, True)]
+    attempts = []
+    out, _ = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate(fits)], solve, RESTART_PHYSICS,
+                               attempts, min_solves=2, abandon=True)
+    assert out.objective == 50.0
+    assert [a["status"] for a in attempts] == ["Solve_Succeeded", second]
+    # a bad first fit still starts the restarts after the same compared start
+    attempts = []
+    out, _ = solve_from_starts([({"start": f"s{k}"}, f) for k, f in enumerate([(50.0, 0.5, True)] + fits[1:])],
+                               solve, RESTART_PHYSICS, attempts, min_solves=2, abandon=True)
+    assert out.objective == 40.0 and len(attempts) == 3
+
+
 def test_a_fit_that_used_up_its_budget_stops_no_start_unless_budget_fits_count():
     """Without accept_budget a fit that used up its budget cannot end the search alone
     (no converged fit: a failure); so it must not stop the converged start after it."""

@@ -639,6 +639,12 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
     for k, (record, _) in enumerate(starts):
+        # the search ends at a good converged fit once the compared starts are in, unless
+        # the fit that would be kept (a budget fit of lower objective) violates its own
+        # physics; checked before each further start, so that a compared start that was
+        # abandoned or failed after a good fit does not start the restarts
+        if k >= min_solves and converged is not None and converged[1] and best[2]:
+            break
         _announce(k, min_solves, len(starts), attempts, restart_physics)
         if k and k not in solved:  # a restart: with the next ones in as many processes as may run
             solved.update(_solve_at_once(k, len(starts), workers, solve))
@@ -664,10 +670,6 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         good, converged = _judged(out, physics, local, restart_physics, accept_budget, converged)
         if best is None or out.objective < best[0].objective:
             best = (out, saved, good, len(attempts) - 1)
-        # the search ends at a good converged fit, unless the fit that would be kept (a
-        # budget fit of lower objective) violates its own physics
-        if k + 1 >= min_solves and converged is not None and converged[1] and best[2]:
-            break
     if best is not None and resume is not None and best[0].status == STALLED_STATUS:
         best, converged = _resumed(best, converged, resume, attempts, restart_physics, accept_budget)
     if best is None or (converged is None and not accept_budget):
