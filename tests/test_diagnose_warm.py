@@ -386,3 +386,23 @@ def test_the_reason_names_the_other_candidates_that_count(clean_run, monkeypatch
     assert d.verdict == "angular_damping", d.reason
     assert "also counting: linear_drag (score 27)" in d.reason
     assert "force_bias" not in d.reason.split("also counting:")[1]
+
+
+@pytest.mark.parametrize("mode, nlp, transform, restitution", [
+    ("all", ("warm", "cold"), ("warm", "cold"), ("warm", "cold", "typical")),
+    ("transforms", ("warm",), ("warm", "cold"), ("warm", "typical")),
+    ("none", (None,), (None,), (None,)),
+    (True, ("warm", "cold"), ("warm", "cold"), ("warm", "cold", "typical")),  # the earlier form
+    (False, (None,), (None,), (None,)),
+])
+def test_cold_starts_says_which_candidates_also_start_from_the_estimators_own_starts(mode, nlp, transform,
+                                                                                     restitution):
+    from tacest.estimation.config import EstimatorConfig
+
+    opts = diag_mod.DiagnoseOptions(cold_starts=mode).validate()
+    ctx = diag_mod._Context([], "box", EstimatorConfig(), opts, "warm")
+    assert ctx.starts(("linear_drag",), warm=True) == nlp
+    assert ctx.starts((), warm=True) == transform  # a data transform's fits (no effect in the NLP)
+    assert ctx.starts(("restitution",), warm=True) == restitution
+    with pytest.raises(Exception, match="cold_starts must be one of"):
+        diag_mod.DiagnoseOptions(cold_starts="some").validate()

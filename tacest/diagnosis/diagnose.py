@@ -153,6 +153,12 @@ def check_heldout_data(runs: list) -> None:
                           "with two or more actions (/actions/segments)")
 
 
+#: which candidates' fits to all data are also started from the estimator's own starts
+#: (_Context.starts): every candidate's, the data transforms' only, or none (then no
+#: typical start either: the warm start alone)
+COLD_STARTS = ("all", "transforms", "none")
+
+
 @dataclass
 class DiagnoseOptions:
     """Settings of a diagnosis (see module doc).
@@ -164,7 +170,9 @@ class DiagnoseOptions:
     max_candidates : refit only this many candidates, ranked by their screening
     signature (None: all); floor : ``calibrated`` or ``nominal`` noise floor
     (tacest.estimation.floor); reach : m, noise.complementarity_reach of every fit
-    (DIAGNOSIS_REACH; 0 off; None: the configuration's).
+    (DIAGNOSIS_REACH; 0 off; None: the configuration's); cold_starts : which
+    candidates' fits to all data also start from the estimator's own starts
+    (COLD_STARTS; True and False, the earlier form, mean ``all`` and ``none``).
     """
 
     effects: Optional[tuple] = None
@@ -175,10 +183,14 @@ class DiagnoseOptions:
     fits_per_candidate: int = FITS_PER_CANDIDATE
     max_candidates: Optional[int] = None
     floor: str = "calibrated"
-    cold_starts: bool = True
+    cold_starts: str = "all"
     reach: Optional[float] = DIAGNOSIS_REACH
 
     def validate(self):
+        if isinstance(self.cold_starts, bool):  # the setting's earlier form: on or off
+            self.cold_starts = "all" if self.cold_starts else "none"
+        if self.cold_starts not in COLD_STARTS:
+            raise TacestError(f"cold_starts must be one of {', '.join(COLD_STARTS)}, got {self.cold_starts!r}")
         if self.floor not in MODES:
             raise TacestError(f"floor must be one of {', '.join(MODES)}, got {self.floor!r}")
         if not (isinstance(self.window, int) and self.window >= 1):
@@ -396,10 +408,15 @@ class _Context:
         from the plain fit, the estimator's own starts (``cold``, as the plain fit had)
         and, for the effects of cands.TYPICAL_STARTS, a start at a typical strength; the
         lowest objective is kept (:func:`best_start`; the plain model gets the chosen
-        start too: see the control in :func:`_fold_task`)."""
-        if self.backend != "warm" or not self.options.cold_starts:
+        start too: see the control in :func:`_fold_task`).  The estimator's own starts
+        as DiagnoseOptions.cold_starts says: for every candidate (``all``), for the data
+        transforms only (``transforms``: ``effects`` empty), or none (``none``: the warm
+        start alone)."""
+        mode = self.options.cold_starts
+        if self.backend != "warm" or mode == "none":
             return (None,)
-        return ("warm", "cold") + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
+        cold = ("cold",) if mode == "all" or not effects else ()  # no effects: a transform's fits
+        return ("warm",) + cold + (("typical",) if warm and effects and effects[0] in cands.TYPICAL_STARTS else ())
 
     def start_fit(self, how, runs, effects=(), warm: FitResult = None) -> tuple:
         """(weighted objective, FitResult) of one start of a fit to all ``runs``: ``warm``
