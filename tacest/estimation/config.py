@@ -162,11 +162,6 @@ class Solver:
     #: lineage can lead the NLP into a local minimum whose fit still looks consistent
     #: (docs/estimation.md, "Dynamic pokes")
     sampler_starts: int = 2
-    #: polygon:K estimates: the sampler's hypotheses are convex polygons of 3 to K
-    #: vertices, a quarter of them rectangles (smc2d.random_unit_polygons), and the best
-    #: one is the NLP's starting shape; false: boxes, as for box estimates (a box follows
-    #: a pentagon's topple to the wrong face: docs/estimation.md, "Polygon hypotheses")
-    sampler_polygons: bool = True
     #: processes that solve the compared starts at once (the sampler's, an earlier
     #: estimate's and, in 3-D without pose observations, every push-tracked one), and the
     #: samplers' seeded runs: forked copies of the process with its built NLP

@@ -321,10 +321,8 @@ class ImplicitEstimator:
         n = int(cfg.sampler_particles)
         if n < 2 or any(r.pose_obs is not None for r in self.runs) or not any(r.n_fingers for r in self.runs):
             return []
-        K = self.shape.n_vertices if self.shape.name != "box" and cfg.sampler_polygons else 0
         runs = map_in_processes(lambda k: smc_start(self.runs, self.scales.L, self.scales.m0,
-                                                    SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k,
-                                                                polygon_vertices=K)),
+                                                    SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k)),
                                 int(cfg.sampler_starts), start_workers(cfg))  # independent runs, seeded
         out = []
         for s in runs:
@@ -333,16 +331,12 @@ class ImplicitEstimator:
         return out
 
     def sampler_z(self, sampled) -> np.ndarray:
-        """Scaled z0 from the sampler's best hypothesis: its polygon (a polygon
-        sampler's, whose vertices are the polygon:K parameters) or its box (the shape's
-        own initial(w, h)) as the starting shape, its mass (held at the prior without a
-        force stream), frictions and trajectories; impulses that hold the object up
+        """Scaled z0 from the sampler's best hypothesis: its box as the starting shape
+        (the shape's own initial(w, h)), its mass (held at the prior without a force
+        stream), frictions and trajectories; impulses that hold the object up
         (initial.initial_guess)."""
         pr, sc = self.problem, self.scales
-        if sampled.vertices is not None and len(sampled.vertices) == self.shape.n_vertices and self.shape.name != "box":
-            self.s0 = np.asarray(sampled.vertices, float).reshape(-1) / sc.L  # (x0, y0, x1, y1, ...)
-        else:
-            self.s0 = np.asarray(self.shape.initial(sampled.extents[0] / sc.L, sampled.extents[1] / sc.L), float)
+        self.s0 = np.asarray(self.shape.initial(sampled.extents[0] / sc.L, sampled.extents[1] / sc.L), float)
         z = initial_guess(pr, self.runs, sc, self.s0, trajectories=sampled.poses)
         ns = pr.n_shape
         log_mass = float(np.clip(np.log(sampled.mass / sc.m0), *LOG_MASS_BOUNDS)) if self.has_force else 0.0

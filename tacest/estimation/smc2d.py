@@ -37,9 +37,7 @@ from tacest.estimation.initial import initial_extents, initial_pose_range, smoot
 from tacest.io.run import Run
 from tacest.estimation.smc import (ESS_FRACTION, JITTER, REST_OMEGA, REST_SPEED, SIGMA_GAP, SIGMA_NORMAL,
                                    ParticleParameters, fingers_near, subtract_touch_terms)
-from tacest.geometry.polygon import convex_hull_2d
-from tacest.model.forward2d import (GROUND_SINK, MAX_STEP, World2D, box_hypotheses, finger_geometry,
-                                    polygon_hypotheses)
+from tacest.model.forward2d import GROUND_SINK, MAX_STEP, World2D, box_hypotheses, finger_geometry
 
 log = logging.getLogger(__name__)
 
@@ -49,77 +47,15 @@ log = logging.getLogger(__name__)
 REFILTER_COPIES = 16
 
 
-#: a polygon sampler's hypotheses that are rectangles (a box is a common object, and
-#: the one the box sampler covers): this fraction of them
-RECTANGLE_FRACTION = 0.25
-#: log-normal sigma of a random polygon's vertex radii, and the range of its angular
-#: gaps (relative to the mean gap): irregular shapes, off any circle
-POLYGON_RADIUS_SIGMA = 0.2
-POLYGON_GAP_RANGE = (0.5, 1.5)
-
-
 @dataclass(frozen=True)
 class SMCSettings:
     """particles : hypotheses; seed : of every random draw; sigma_gap (m), sigma_normal
-    (rad) : the likelihood's sigmas; polygon_vertices : K > 0, the hypotheses are convex
-    polygons of 3 to K vertices (:func:`random_unit_polygons`; the estimate's shape
-    polygon:K), 0 boxes."""
+    (rad) : the likelihood's sigmas."""
 
     particles: int = 256
     seed: int = 0
     sigma_gap: float = SIGMA_GAP
     sigma_normal: float = SIGMA_NORMAL
-    polygon_vertices: int = 0
-
-
-def random_unit_polygons(rng: np.random.Generator, n: int, K: int) -> np.ndarray:
-    """(n, K, 2) random convex polygons, CCW, each resting on a face and spanning
-    [-1, 1] in x and y (the hypotheses' extents scale them, an affine map that keeps them
-    convex and their bottom face flat).
-
-    A RECTANGLE_FRACTION of them are rectangles; the others have 3 to K vertices at
-    random angular gaps (POLYGON_GAP_RANGE) and log-normal radii (POLYGON_RADIUS_SIGMA),
-    their convex hull turned so that its face nearest the centroid is at the bottom (the
-    face it rests on is a stable one).  Polygons of fewer than K vertices are padded to
-    K by the midpoints of their longest edges (collinear vertices: the same polygon)."""
-    out = np.empty((n, K, 2))
-    n_rect = int(round(RECTANGLE_FRACTION * n)) if K >= 4 else 0  # a triangle cannot be a rectangle
-    for i in range(n):
-        if i < n_rect:
-            P = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
-        else:
-            m = int(rng.integers(3, K + 1))
-            gaps = rng.uniform(*POLYGON_GAP_RANGE, size=m)
-            angles = rng.uniform(0, 2 * math.pi) + 2 * math.pi * np.cumsum(gaps) / np.sum(gaps)
-            radii = np.exp(rng.normal(0.0, POLYGON_RADIUS_SIGMA, size=m))
-            P = _resting_on_nearest_face(convex_hull_2d(radii[:, None] * np.stack([np.cos(angles), np.sin(angles)], 1)))
-            lo, hi = P.min(0), P.max(0)
-            P = 2.0 * (P - lo) / (hi - lo) - 1.0
-        out[i] = _padded(P, K)
-    return out
-
-
-def _resting_on_nearest_face(P: np.ndarray) -> np.ndarray:
-    """The CCW polygon P (k, 2) turned so that the face nearest its centroid lies flat
-    at the bottom (outward normal -y); the first vertex starts that face."""
-    from tacest.geometry.polygon import polygon_centroid
-
-    c = polygon_centroid(P)
-    E = np.roll(P, -1, axis=0) - P
-    normals = np.stack([E[:, 1], -E[:, 0]], 1) / np.linalg.norm(E, axis=1)[:, None]  # outward (CCW)
-    j = int(np.argmin(np.einsum("ij,ij->i", P - c, normals)))
-    a = -math.pi / 2 - math.atan2(normals[j, 1], normals[j, 0])
-    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    return np.roll(P @ R.T, -j, axis=0)
-
-
-def _padded(P: np.ndarray, K: int) -> np.ndarray:
-    """P (k <= K, 2) with midpoints inserted in its longest edges until it has K vertices."""
-    P = np.asarray(P, float)
-    while len(P) < K:
-        j = int(np.argmax(np.linalg.norm(np.roll(P, -1, axis=0) - P, axis=1)))
-        P = np.insert(P, j + 1, 0.5 * (P[j] + P[(j + 1) % len(P)]), axis=0)
-    return P
 
 
 @dataclass
@@ -141,32 +77,18 @@ class SMCResult:
     history: dict = field(default_factory=dict)
     #: the seed of the sampler's draws
     seed: int = 0
-    #: (K, 2) m body frame (centroid at the origin, CCW) of a polygon sampler's best
-    #: hypothesis; None for a box (its extents say it all)
-    vertices: np.ndarray = None
 
 
 class _Particles(ParticleParameters):
-    """The hypotheses' parameters (box extents (N, 2), and for a polygon sampler each
-    one's unit polygon (N, K, 2), :func:`random_unit_polygons`, which its extents
-    scale), weights and lineage."""
-
-    def __init__(self, n, rng, L, m0, has_force, extents0, polygon_vertices: int = 0):
-        super().__init__(n, rng, L, m0, has_force, extents0)
-        # drawn after every box parameter: a box sampler's draws are those it always made
-        self.unit = random_unit_polygons(rng, n, int(polygon_vertices)) if polygon_vertices else None
+    """The hypotheses' parameters (as box extents (N, 2)), weights and lineage."""
 
     def hypotheses(self):
-        if self.unit is None:
-            return box_hypotheses(self.extents[:, 0], self.extents[:, 1], self.mass, self.mu_g, self.mu_f)
-        return polygon_hypotheses(self.unit * (0.5 * self.extents[:, None, :]), self.mass, self.mu_g, self.mu_f)
+        return box_hypotheses(self.extents[:, 0], self.extents[:, 1], self.mass, self.mu_g, self.mu_f)
 
     def resample(self, pose, vel, hist):
         """Systematic resampling, then jitter; pose, vel (N, 3) and the lineage history
         (T, N, 3) are reordered with the hypotheses."""
         idx = self.resample_parameters()
-        if self.unit is not None:
-            self.unit = self.unit[idx]
         j = JITTER
         pose = pose[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["position"], j["position"], j["angle"]]
         vel = vel[idx] + self.rng.normal(0, 1, size=(self.n, 3)) * [j["velocity"], j["velocity"], j["omega"]]
@@ -288,7 +210,7 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
     rng = np.random.default_rng(settings.seed)
     w0, h0 = initial_extents(runs, L)
     parts = _Particles(int(settings.particles), rng, L, m0, any(r.force is not None for r in runs),
-                       np.array([w0, h0]), polygon_vertices=int(settings.polygon_vertices))
+                       np.array([w0, h0]))
     stats = {"resamples": 0, "skipped": 0}
     histories = []
     for i, run in enumerate(runs):
@@ -317,15 +239,12 @@ def smc_start(runs: list[Run], L: float, m0: float, settings: SMCSettings = SMCS
             poses.append(hist[:, int(np.argmax(single.log_lik))].copy())
     poses = [_as_start(run, P) for run, P in zip(runs, poses)]
     ext = parts.extents[best]
-    best_hyp = parts.take([best]).hypotheses()
-    vertices = None if parts.unit is None else best_hyp.vertices[0].copy()
-    result = SMCResult(extents=ext.copy(), mass=float(best_hyp.mass[0]), inertia=float(best_hyp.inertia[0]),
+    mass = float(parts.mass[best])
+    result = SMCResult(extents=ext.copy(), mass=mass, inertia=mass * float(ext[0] ** 2 + ext[1] ** 2) / 12,
                        mu_ground=float(parts.mu_g[best]), mu_finger=float(parts.mu_f[best]), poses=poses,
                        log_likelihood=float(parts.log_lik[best]), resamples=stats["resamples"],
-                       skipped=stats["skipped"], wall_time=time.perf_counter() - t0, seed=int(settings.seed),
-                       vertices=vertices)
-    what = "box" if vertices is None else "polygon, extents"
+                       skipped=stats["skipped"], wall_time=time.perf_counter() - t0, seed=int(settings.seed))
     log.info(f"sampled start: {parts.n} hypotheses, {stats['resamples']} resamples, {stats['skipped']} idle samples "
-             f"skipped, best {what} {np.round(ext * 1e3, 1)} mm, log likelihood {result.log_likelihood:.4g} "
+             f"skipped, best box {np.round(ext * 1e3, 1)} mm, log likelihood {result.log_likelihood:.4g} "
              f"({result.wall_time:.1f} s)")
     return result

@@ -82,25 +82,6 @@ def box_hypotheses(width, height, mass, mu_ground, mu_finger) -> Hypotheses:
                       np.asarray(mu_finger, float))
 
 
-def polygon_hypotheses(vertices, mass, mu_ground, mu_finger) -> Hypotheses:
-    """Convex polygons of uniform density: ``vertices`` (N, K, 2) m CCW in any body
-    frame (re-centred here at each polygon's centroid), mass, mu_ground, mu_finger (N,)
-    kg, -, -; the inertia is the lamina's, mass · J / area (J the polar second moment of
-    area about the centroid)."""
-    V = np.asarray(vertices, float)
-    x0, y0 = V[..., 0], V[..., 1]
-    x1, y1 = np.roll(x0, -1, axis=-1), np.roll(y0, -1, axis=-1)
-    cross = x0 * y1 - x1 * y0
-    area = 0.5 * np.sum(cross, axis=-1)
-    cx = np.sum((x0 + x1) * cross, axis=-1) / (6.0 * area)
-    cy = np.sum((y0 + y1) * cross, axis=-1) / (6.0 * area)
-    j_origin = np.sum(cross * (x0 * x0 + x0 * x1 + x1 * x1 + y0 * y0 + y0 * y1 + y1 * y1), axis=-1) / 12.0
-    J = j_origin - area * (cx * cx + cy * cy)
-    m = np.asarray(mass, float)
-    centred = V - np.stack([cx, cy], -1)[..., None, :]
-    return Hypotheses(centred, m, m * J / area, np.asarray(mu_ground, float), np.asarray(mu_finger, float))
-
-
 # ---------------------------------------------------------------------------------
 # the compiled kernels: one hypothesis at a time, every substep of a sample in one call
 
