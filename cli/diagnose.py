@@ -40,6 +40,10 @@ from tacest.parallel import machine_workers
 @click.option("--reach", type=click.FloatRange(min=0), default=None, metavar="M",
               help="No action at a distance in every fit: a ground impulse at a vertex more than M m up "
               "costs its height (noise.complementarity_reach; default 0.01; 0: off). 2-D runs.")
+@click.option("--cold-starts", type=click.Choice(["all", "transforms", "none"]), default=None,
+              help="Which candidates' fits to all data also start from the estimator's own starts, beside the "
+              "plain fit's: every candidate's, the data transforms' (latency, time_scale), or none (default: "
+              "the diagnosis' default, docs/diagnosis.md). 2-D runs.")
 @click.option("--suggest", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also write N plan files (suggest_<k>.h5) of the pokes that best tell the leading candidates "
               "apart (docs/diagnosis.md).")
@@ -66,7 +70,8 @@ from tacest.parallel import machine_workers
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, reach, suggest, poke_style, explore, inject, seed, pokes, budget, policy,
+             max_candidates, floor_mode, reach, cold_starts, suggest, poke_style, explore, inject, seed, pokes, budget,
+             policy,
              dim, observe_pose, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
@@ -103,8 +108,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     if any(r.dim == 3 for r in loaded):  # 3-D runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or reach is not None:
-            raise TacestError("--estimate and --reach are for 2-D runs")
+        if estimate_path or reach is not None or cold_starts is not None:
+            raise TacestError("--estimate, --reach and --cold-starts are for 2-D runs")
         names3 = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
         opts3 = Options3D(fit_iterations=fit_iterations, effects=names3, floor=floor_mode or "calibrated")
         for key, val in (("window", window), ("alpha", alpha)):
@@ -121,7 +126,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     shape = shape or (est.shape if est is not None else "box")
     opts = DiagnoseOptions(effects=names, floor=floor_mode)
     for key, val in (("window", window), ("alpha", alpha), ("max_folds", max_folds),
-                     ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach)):
+                     ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach),
+                     ("cold_starts", cold_starts)):
         if val is not None:
             setattr(opts, key, val)
     check_heldout_data(loaded)  # before any fit: without held-out data nothing can be decided
@@ -162,7 +168,7 @@ def _append_note(tmp, text) -> list:
 #: options of --explore only, and options of a diagnosis of given runs only
 EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim", "observe_pose")
 RUNS_ONLY = ("estimate_path", "shape", "suggest", "window", "alpha", "max_candidates", "floor_mode", "reach",
-             "workers", "scheduler")
+             "cold_starts", "workers", "scheduler")
 
 
 def _check_modes(explore: bool):
