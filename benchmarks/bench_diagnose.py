@@ -129,11 +129,13 @@ def _echo(quiet):
 # worker: one diagnosis in its own process
 
 
-def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "", reach: str = "0") -> dict:
+def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "", reach: str = "0",
+           cold_starts: str = "") -> dict:
     """Diagnose the run files (without truth) of one recording, ``run_paths`` separated
     by RUN_SEPARATOR; never raises.  ``known_mass``: "MASS,LOG_SIGMA" (kg, -) of a
     weighed object's mass prior, or empty; ``effects``: the candidates,
-    comma-separated (empty: every SPEC effect); ``reach``: noise.complementarity_reach (m)."""
+    comma-separated (empty: every SPEC effect); ``reach``: noise.complementarity_reach (m);
+    ``cold_starts``: DiagnoseOptions.cold_starts (empty: its default)."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
     from tacest.estimation.config import EstimatorConfig
@@ -149,6 +151,8 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     t0 = time.perf_counter()
     try:
         opts = DiagnoseOptions(fit_iterations=fit_iterations, reach=float(reach))
+        if cold_starts:
+            opts.cold_starts = cold_starts
         if effects:
             opts.effects = tuple(effects.split(","))
         d = diagnose(runs, "box", config=config, options=opts)
@@ -168,11 +172,11 @@ RUN_SEPARATOR = "::"
 
 
 def run_job(run_paths: list, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "",
-            reach: float = 0.0) -> dict:
+            reach: float = 0.0, cold_starts: str = "") -> dict:
     """The worker's result for the run files ``run_paths`` (one recording), in a subprocess
     with a time limit."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", RUN_SEPARATOR.join(map(str, run_paths)),
-           str(fit_iterations), known_mass, effects, repr(float(reach))]
+           str(fit_iterations), known_mass, effects, repr(float(reach)), cold_starts or ""]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -644,7 +648,7 @@ def print_summary(s: dict):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
@@ -666,6 +670,9 @@ def main(argv=None):
     ap.add_argument("--reach", type=float, default=None, metavar="M",
                     help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the diagnosis' "
                          "default, DiagnoseOptions.reach); results with a reach are cached apart (_reach<M>)")
+    ap.add_argument("--cold-starts", default="", choices=["", "all", "transforms", "none"],
+                    help="which candidates also start from the estimator's own starts (DiagnoseOptions.cold_starts; "
+                         "default: the diagnosis' default); results with it given are cached apart (_cold-<MODE>)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
@@ -716,13 +723,14 @@ def main(argv=None):
             if args.known_mass is not None:
                 known = weighed_mass(rec, effect, seed, args.known_mass)
             out = cache / (f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}"
-                           f"{'' if not args.reach else f'_reach{args.reach:g}'}.json")
+                           f"{'' if not args.reach else f'_reach{args.reach:g}'}"
+                           f"{'' if not args.cold_starts else f'_cold-{args.cold_starts}'}.json")
             if out.exists():
                 res = json.loads(out.read_text())
             else:
                 echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
                      " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
-                res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach)
+                res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach, args.cold_starts)
                 # the worker's own "code" is kept: a result whose code differs from this
                 # run's (the tree edited while the benchmark ran) makes the table MIXED
                 res.update(effect=effect, seed=seed, injected=injected)

@@ -55,15 +55,17 @@ def _peak_rss_mb(dask_worker=None) -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_once(runs, workers: int) -> dict:
-    """One diagnosis with ``workers`` (1: in this process): wall time, report, tasks."""
+def run_once(runs, workers: int, cold_starts: str = None) -> dict:
+    """One diagnosis with ``workers`` (1: in this process) and ``cold_starts``
+    (DiagnoseOptions.cold_starts; None: its default): wall time, report, tasks."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose
     from tacest.parallel import Executor, ParallelSettings
 
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     with Executor(ParallelSettings(workers=workers)) as ex:
-        d = diagnose(runs, "box", options=DiagnoseOptions(), executor=ex)
+        opts = DiagnoseOptions() if cold_starts is None else DiagnoseOptions(cold_starts=cold_starts)
+        d = diagnose(runs, "box", options=opts, executor=ex)
         memory = ex._client.run(_peak_rss_mb) if ex._client is not None else {"in-process": _peak_rss_mb()}
         per_worker = ex.tasks_per_worker()  # the scheduler's task stream, before the cluster stops
     wall = time.perf_counter() - t0
@@ -113,6 +115,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="local workers of the second run (default 2)")
     ap.add_argument("--cache", default=None, help="folder of the recording (default $TMPDIR/tacest_bench_diagnose)")
     ap.add_argument("--json", default=None, help="write the figures to this file")
+    ap.add_argument("--cold-starts", default=None, choices=["all", "transforms", "none"],
+                    help="which candidates also start from the estimator's own starts (default: the diagnosis' "
+                         "default, DiagnoseOptions.cold_starts)")
     a = ap.parse_args(argv)
     cache = Path(a.cache or Path(tempfile.gettempdir()) / "tacest_bench_diagnose")
     cache.mkdir(parents=True, exist_ok=True)
@@ -121,10 +126,10 @@ def main(argv=None) -> int:
     print(f"load average {os.getloadavg()[0]:.2f}; {os.cpu_count()} cores; recording {rec.bare[0].name} and "
           f"{len(rec.bare) - 1} more runs ({sum(r.n_samples for r in runs)} samples), effect {a.effect}, seed "
           f"{a.seed}; every candidate", flush=True)
-    one = run_once(runs, 1)
+    one = run_once(runs, 1, a.cold_starts)
     print(f"--workers 1: {one['wall']:.0f} s (load {one['load_before']:.2f} -> {one['load_after']:.2f}), "
           f"verdict {one['verdict']}", flush=True)
-    many = run_once(runs, a.workers)
+    many = run_once(runs, a.workers, a.cold_starts)
     print(f"--workers {a.workers}: {many['wall']:.0f} s (load {many['load_before']:.2f} -> "
           f"{many['load_after']:.2f}), verdict {many['verdict']}, tasks per worker "
           + ", ".join(f"{w} {n}" for w, n in sorted(many["per_worker"].items())), flush=True)

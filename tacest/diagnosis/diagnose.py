@@ -183,7 +183,7 @@ class DiagnoseOptions:
     fits_per_candidate: int = FITS_PER_CANDIDATE
     max_candidates: Optional[int] = None
     floor: str = "calibrated"
-    cold_starts: str = "all"
+    cold_starts: str = "transforms"
     reach: Optional[float] = DIAGNOSIS_REACH
 
     def validate(self):
