@@ -290,16 +290,20 @@ def test_candidate_fit_keeps_the_better_of_warm_and_cold_starts(clean_run, monke
     s = _ColdLuckStandIn(lucky="linear_drag")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
-    d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag", "force_bias")))
+    d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag", "force_bias"),
+                                                                              cold_starts="all"))
     lin = next(c for c in d.effects if c.name == "linear_drag")
     fb = next(c for c in d.effects if c.name == "force_bias")
     assert lin.fits[0]["start"] == "cold" and fb.fits[0]["start"] in ("warm", "cold")
     # the plain model from the cold start lands in the same basin: nothing credited
     assert abs(lin.improvement) < 1e-9 and d.verdict == "none", d.reason
-    # without cold starts the warm fit is used
-    d2 = diag_mod.diagnose([clean_run], "box",
-                           options=diag_mod.DiagnoseOptions(effects=("linear_drag",), cold_starts=False))
-    assert d2.effects[0].fits[0]["start"] == "warm"
+    # without cold starts, or with them for the data transforms only (the default), the
+    # warm fit of an NLP candidate is used
+    for mode in (False, "transforms", None):
+        opts = diag_mod.DiagnoseOptions(effects=("linear_drag",))
+        opts.cold_starts = opts.cold_starts if mode is None else mode
+        d2 = diag_mod.diagnose([clean_run], "box", options=opts)
+        assert d2.effects[0].fits[0]["start"] == "warm", mode
 
 
 # ------------------------------------------------------------------------------------

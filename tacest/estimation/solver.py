@@ -639,10 +639,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
     for k, (record, _) in enumerate(starts):
-        # the search ends at a good converged fit once the compared starts are in, unless
-        # the fit that would be kept (a budget fit of lower objective) violates its own
-        # physics; checked before each further start, so that a compared start that was
-        # abandoned or failed after a good fit does not start the restarts
+        # ends at a good converged fit once the compared starts are in (whatever became of
+        # the last of them), unless the fit to keep (a budget fit) violates its physics
         if k >= min_solves and converged is not None and converged[1] and best[2]:
             break
         _announce(k, min_solves, len(starts), attempts, restart_physics)
