@@ -647,6 +647,8 @@ def print_summary(s: dict):
 
 
 def main(argv=None):
+    from tacest.diagnosis.diagnose import COLD_STARTS
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
@@ -670,7 +672,7 @@ def main(argv=None):
     ap.add_argument("--reach", type=float, default=None, metavar="M",
                     help="noise.complementarity_reach of the diagnoses (m; 0: off; default: the diagnosis' "
                          "default, DiagnoseOptions.reach); results with a reach are cached apart (_reach<M>)")
-    ap.add_argument("--cold-starts", default="", choices=["", "all", "transforms", "none"],
+    ap.add_argument("--cold-starts", default="", choices=("", *COLD_STARTS),
                     help="which candidates also start from the estimator's own starts (DiagnoseOptions.cold_starts; "
                          "default: the diagnosis' default); results with it given are cached apart (_cold-<MODE>)")
     ap.add_argument("--quiet", action="store_true")

@@ -107,6 +107,7 @@ def task_table(tasks) -> dict:
 
 def main(argv=None) -> int:
     import bench_diagnose as bd  # the sibling script (this folder is on sys.path when a script runs)
+    from tacest.diagnosis.diagnose import COLD_STARTS
     from tacest.io.run import read_run
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -115,7 +116,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="local workers of the second run (default 2)")
     ap.add_argument("--cache", default=None, help="folder of the recording (default $TMPDIR/tacest_bench_diagnose)")
     ap.add_argument("--json", default=None, help="write the figures to this file")
-    ap.add_argument("--cold-starts", default=None, choices=["all", "transforms", "none"],
+    ap.add_argument("--cold-starts", default=None, choices=COLD_STARTS,
                     help="which candidates also start from the estimator's own starts (default: the diagnosis' "
                          "default, DiagnoseOptions.cold_starts)")
     a = ap.parse_args(argv)

@@ -410,3 +410,12 @@ def test_cold_starts_says_which_candidates_also_start_from_the_estimators_own_st
     assert ctx.starts(("restitution",), warm=True) == restitution
     with pytest.raises(Exception, match="cold_starts must be one of"):
         diag_mod.DiagnoseOptions(cold_starts="some").validate()
+
+
+def test_the_cli_offers_exactly_the_cold_start_modes():
+    """`tacest diagnose --cold-starts` writes its choices out (the CLI imports no
+    diagnosis code at start-up): they must be DiagnoseOptions' modes."""
+    from tacest.cli.diagnose import diagnose as command
+
+    (param,) = [p for p in command.params if p.name == "cold_starts"]
+    assert tuple(param.type.choices) == diag_mod.COLD_STARTS
