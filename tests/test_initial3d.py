@@ -247,7 +247,7 @@ def test_a_tipping_sampled_start_goes_first(monkeypatch, tilt_deg, first):
     est, calls = _fake_estimator(monkeypatch, [(50.0, 0.5), (40.0, 0.5), (30.0, 0.5), (20.0, 0.5)])
     est.config = est.config.updated({"solver3d": {"sampler_particles": 256}})
     sampled = Start3D(np.full(3, 0.7), [np.zeros((400, 7))], "sampler", 0.0, extra={"max_tilt_deg": tilt_deg})
-    monkeypatch.setattr(est, "sampled_start", lambda tracked: sampled)
+    monkeypatch.setattr(est, "sampled_starts", lambda tracked: [sampled])
     est.offered_starts.append(sampled)
     est.solve()
     labels = [a["start"] for a in est.attempts]

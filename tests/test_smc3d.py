@@ -201,10 +201,10 @@ def test_a_polytope_estimate_gets_the_sampled_start_too(toppled_no_force, monkey
     from tacest.estimation.estimator3d import Estimator3D
     from tacest.estimation.initial3d import start_candidates_3d
 
-    est = Estimator3D([toppled_no_force], "polytope:8")  # the default sampler: 3 runs of 256
+    est = Estimator3D([toppled_no_force], "polytope:8")  # the default sampler: 8 runs of 256, one start
     tracked = start_candidates_3d(est.runs, est.scales.L, np.ones(3), 1)[0]
-    sampled = est.sampled_start(tracked)
-    assert sampled is not None and sampled.label == "sampler"
+    (sampled,) = est.sampled_starts(tracked)
+    assert sampled.label == "sampler"
     assert sampled.extra["max_tilt_deg"] > 30.0
     assert sampled.shape_params is None  # solved from est.shape.initial(extents): the polytope of the box
     assert len(est.shape.initial(sampled.extents)) == 8

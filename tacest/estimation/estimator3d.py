@@ -486,7 +486,7 @@ class Estimator3D:
         parameters, or no fingertip) solve once, from the observed poses and
         :meth:`choose_start_shape` (with an effect that models impacts, twice:
         :func:`solve_observed_tracks`).  Without pose observations: the starts of
-        :func:`order_starts` (initial3d.start_candidates_3d's and :meth:`sampled_start`'s),
+        :func:`order_starts` (initial3d.start_candidates_3d's and :meth:`sampled_starts`),
         the compared ones all solved, then restarts while the fit of lowest objective
         fails or violates its own physics by more than ``solver3d.restart_physics``
         (solver.solve_from_starts: a fit that used up its budget competes by objective).
@@ -510,7 +510,7 @@ class Estimator3D:
                 self.start_tracks = None
         t0 = time.perf_counter()
         starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
-        starts, compared = order_starts(starts, self.sampled_start(starts[0]), cfg3)
+        starts, compared = order_starts(starts, self.sampled_starts(starts[0]), cfg3)
         if self.previous is not None:  # first, and compared (as in 2-D)
             starts.insert(0, self.previous)
             compared += 1
@@ -535,13 +535,13 @@ class Estimator3D:
         self.z = out.z
         return out
 
-    def sampled_start(self, tracked: Start3D) -> Start3D | None:
-        """The sampler's start (:func:`sampled_start_3d`), or None where it is off.  Its
-        hypotheses are boxes: another shape starts as its ``initial`` of the lineage's
+    def sampled_starts(self, tracked: Start3D) -> list:
+        """The sampler's starts (:func:`sampled_starts_3d`), [] where it is off.  Its
+        hypotheses are boxes: another shape starts as its ``initial`` of a lineage's
         extents, on the lineage's poses."""
         if not self.config.solver3d.sampler_particles:
-            return None
-        return sampled_start_3d(self.runs, self.scales, tracked, self.config)
+            return []
+        return sampled_starts_3d(self.runs, self.scales, tracked, self.config)
 
     def fit_quality(self, z):
         """The goodness-of-fit test of the fit at z (fitquality.goodness_of_fit)."""
@@ -751,20 +751,28 @@ MIN_BOUND_OVER_SCALE = 0.5
 
 
 
-def sampled_start_3d(runs: list, sc: Scales, tracked: Start3D, config: EstimatorConfig) -> Start3D:
-    """The sampler's start (smc3d.py): the lineage of highest likelihood over
-    ``solver3d.sampler_runs`` runs of ``sampler_particles`` hypotheses, seeds
-    sampler_seed, +1, ... (in forked processes: solver.map_in_processes); half of each
-    run's hypotheses around the box of the ``tracked`` start."""
+def sampled_starts_3d(runs: list, sc: Scales, tracked: Start3D, config: EstimatorConfig) -> list:
+    """The sampler's starts (smc3d.py): of ``solver3d.sampler_runs`` runs of
+    ``sampler_particles`` hypotheses (seeds sampler_seed, +1, ...; in forked processes:
+    solver.map_in_processes; half of each run's hypotheses around the box of the
+    ``tracked`` start), the lineages of the ``sampler_starts`` highest likelihoods, best
+    first (a run's lineage whose box is within 2 % of a better one's is dropped)."""
     cfg3 = config.solver3d
     found = map_in_processes(lambda k: smc_start_3d(runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
         particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
         start_workers(config.solver))  # independent runs, seeded
-    best = max(found, key=lambda r: r.log_likelihood)  # the first of equals, as before
-    cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0]) for run, P in zip(runs, best.poses))
-    return Start3D(best.extents / sc.L, best.poses, "sampler", cost,
-                   extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
-                          "max_tilt_deg": best.max_tilt_deg})
+    kept = []
+    for r in sorted(found, key=lambda r: -r.log_likelihood):  # stable: the first of equals first, as before
+        if len(kept) < int(cfg3.sampler_starts) and all(
+                np.max(np.abs(r.extents / k.extents - 1.0)) > 0.02 for k in kept):
+            kept.append(r)
+    out = []
+    for best in kept:
+        cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0]) for run, P in zip(runs, best.poses))
+        out.append(Start3D(best.extents / sc.L, best.poses, "sampler", cost,
+                           extra={"sampler_seed": best.seed, "log_likelihood": best.log_likelihood,
+                                  "max_tilt_deg": best.max_tilt_deg}))
+    return out
 
 
 def solve_start(est: "Estimator3D", s0, tracks, abandon_above):
@@ -833,17 +841,18 @@ def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
     return out
 
 
-def order_starts(starts: list, sampled, cfg3) -> tuple:
+def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     """(starts in the order they are solved, how many are compared) from the push-tracked
-    and resting starts (initial3d.start_candidates_3d) and the sampler's (or None): a
+    and resting starts (initial3d.start_candidates_3d) and the sampler's (best first): a
     lineage that tips by more than ``cfg3.sampler_tip_deg`` goes first (the push tracker
-    never tips the box), a flat one second; with ``cfg3.compare_starts`` every start but
-    the resting one is compared and the resting one goes last, a restart only (compared,
-    it was far worse on all but one benchmark recording and crept to the iteration
-    budget on two, 190 s)."""
+    never tips the box), a flat one after the first push-tracked start; with
+    ``cfg3.compare_starts`` every start but the resting one is compared and the resting
+    one goes last, a restart only (compared, it was far worse on all but one benchmark
+    recording and crept to the iteration budget on two, 190 s)."""
     starts = list(starts)
-    if sampled is not None:
-        starts.insert(0 if sampled.extra["max_tilt_deg"] > cfg3.sampler_tip_deg else 1, sampled)
+    tipping = [c for c in sampled if c.extra["max_tilt_deg"] > cfg3.sampler_tip_deg]
+    flat = [c for c in sampled if c.extra["max_tilt_deg"] <= cfg3.sampler_tip_deg]
+    starts = tipping + starts[:1] + flat + starts[1:]
     if not cfg3.compare_starts:
         return starts, 0
     moving = [c for c in starts if c.poses is not None]
