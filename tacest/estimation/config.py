@@ -157,10 +157,12 @@ class Solver:
     sampler_particles: int = 256
     #: seed of the sampler's random draws (the same runs and seed give the same start)
     sampler_seed: int = 0
-    #: independent sampler runs (seeds sampler_seed, sampler_seed + 1, ...), each the
-    #: start of one NLP solve, all solved, the lowest objective kept: one run's best
-    #: lineage can lead the NLP into a local minimum whose fit still looks consistent
-    #: (docs/estimation.md, "Dynamic pokes")
+    #: independent sampler runs (seeds sampler_seed, sampler_seed + 1, ...)
+    sampler_runs: int = 2
+    #: of those runs' lineages, how many (highest likelihood first, distinct boxes:
+    #: smc.best_lineages) start an NLP solve, all solved, the lowest objective kept: one
+    #: run's best lineage can lead the NLP into a local minimum whose fit still looks
+    #: consistent (docs/estimation.md, "Dynamic pokes")
     sampler_starts: int = 2
     #: processes that solve the compared starts at once (the sampler's, an earlier
     #: estimate's and, in 3-D without pose observations, every push-tracked one), and the
@@ -196,7 +198,8 @@ class Solver:
                 or self.start_workers < 0:
             raise _InvalidSetting(f"solver.start_workers must be an integer >= 0, got {self.start_workers!r}")
         _check_stages(self, "solver", "")
-        _check_sampler(self, "solver", "sampler_starts")
+        _check_sampler(self, "solver", "sampler_runs")
+        _check_sampler_starts(self, "solver")
         _check_restarts(self, "solver")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise _InvalidSetting(f"solver.linear_solver: unknown {self.linear_solver!r}; one of {', '.join(LINEAR_SOLVERS)}")
@@ -302,9 +305,7 @@ class Solver3D:
 
     def __post_init__(self):
         _check_sampler(self, "solver3d", "sampler_runs")
-        if not 1 <= self.sampler_starts <= self.sampler_runs:
-            raise _InvalidSetting(f"solver3d.sampler_starts must be within 1..sampler_runs ({self.sampler_runs}), "
-                                  f"got {self.sampler_starts}")
+        _check_sampler_starts(self, "solver3d")
         if self.max_iter_no_pose < 1:
             raise _InvalidSetting(f"solver3d.max_iter_no_pose must be >= 1, got {self.max_iter_no_pose}")
         for k in ("acceptable_tol", "acceptable_tol_no_pose"):
@@ -389,6 +390,12 @@ def _check_sampler(section, name, runs_key):
         raise _InvalidSetting(f"{name}.sampler_seed must be >= 0, got {section.sampler_seed}")
     if getattr(section, runs_key) < 1:
         raise _InvalidSetting(f"{name}.{runs_key} must be >= 1, got {getattr(section, runs_key)}")
+
+
+def _check_sampler_starts(section, name):
+    if not 1 <= section.sampler_starts <= section.sampler_runs:
+        raise _InvalidSetting(f"{name}.sampler_starts must be within 1..{name}.sampler_runs ({section.sampler_runs}), "
+                              f"got {section.sampler_starts}")
 
 
 def _check_restarts(section, name):

@@ -31,6 +31,7 @@ from tacest.estimation.problem2d import Problem2D, RunStructure
 from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen, start_verdict
 from tacest.estimation.smc2d import SMCSettings, smc_start
+from tacest.estimation.smc import best_lineages
 from tacest.estimation.solver import (BuiltSolver, SolverCache, map_in_processes, plan_stages, pin, run_stages,
                                       solve_from_starts, SolveOutcome)
 from tacest.estimation.uncertainty import information_names_2d, observed_information_2d, vertex_jacobian
@@ -313,9 +314,9 @@ class ImplicitEstimator:
         return out
 
     def sampled_starts(self) -> list:
-        """The sampler's starts (smc2d.SMCResult, one per seed of solver.sampler_seed,
-        +1, ... up to solver.sampler_starts; a start whose box is within 2 % of an
-        earlier one's is dropped), or [] where the sampler does not apply (off, pose
+        """The sampler's starts (smc2d.SMCResult): of ``solver.sampler_runs`` runs (seeds
+        solver.sampler_seed, +1, ...) the ``solver.sampler_starts`` of highest likelihood
+        (smc.best_lineages), or [] where the sampler does not apply (off, pose
         observations, or no fingertip data)."""
         cfg = self.config.solver
         n = int(cfg.sampler_particles)
@@ -323,12 +324,8 @@ class ImplicitEstimator:
             return []
         runs = map_in_processes(lambda k: smc_start(self.runs, self.scales.L, self.scales.m0,
                                                     SMCSettings(particles=n, seed=int(cfg.sampler_seed) + k)),
-                                int(cfg.sampler_starts), start_workers(cfg))  # independent runs, seeded
-        out = []
-        for s in runs:
-            if all(np.max(np.abs(s.extents / o.extents - 1.0)) > 0.02 for o in out):
-                out.append(s)
-        return out
+                                int(cfg.sampler_runs), start_workers(cfg))  # independent runs, seeded
+        return best_lineages(runs, int(cfg.sampler_starts))
 
     def sampler_z(self, sampled) -> np.ndarray:
         """Scaled z0 from the sampler's best hypothesis: its box as the starting shape

@@ -36,6 +36,7 @@ from tacest.estimation.data import (Scales, choose_scales, finger_start_position
                                    gravity_of, previous_trajectories, touch_ends, touching)
 from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
                                         touch_inconsistency_3d)
+from tacest.estimation.smc import best_lineages
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
 from tacest.estimation.fitquality import goodness_of_fit
@@ -755,17 +756,13 @@ def sampled_starts_3d(runs: list, sc: Scales, tracked: Start3D, config: Estimato
     """The sampler's starts (smc3d.py): of ``solver3d.sampler_runs`` runs of
     ``sampler_particles`` hypotheses (seeds sampler_seed, +1, ...; in forked processes:
     solver.map_in_processes; half of each run's hypotheses around the box of the
-    ``tracked`` start), the lineages of the ``sampler_starts`` highest likelihoods, best
-    first (a run's lineage whose box is within 2 % of a better one's is dropped)."""
+    ``tracked`` start), the lineages of the ``sampler_starts`` highest likelihoods
+    (smc.best_lineages)."""
     cfg3 = config.solver3d
     found = map_in_processes(lambda k: smc_start_3d(runs, sc.L, sc.m0, tracked.extents * sc.L, SMC3DSettings(
         particles=int(cfg3.sampler_particles), seed=int(cfg3.sampler_seed) + k)), int(cfg3.sampler_runs),
         start_workers(config.solver))  # independent runs, seeded
-    kept = []
-    for r in sorted(found, key=lambda r: -r.log_likelihood):  # stable: the first of equals first, as before
-        if len(kept) < int(cfg3.sampler_starts) and all(
-                np.max(np.abs(r.extents / k.extents - 1.0)) > 0.02 for k in kept):
-            kept.append(r)
+    kept = best_lineages(found, int(cfg3.sampler_starts))
     out = []
     for best in kept:
         cost = sum(float(touch_inconsistency_3d(run, best.extents[None], P[None])[0]) for run, P in zip(runs, best.poses))

@@ -117,3 +117,21 @@ def fingers_near(run: Run, t: int, position, reach: float) -> list:
         if np.min(np.linalg.norm(position[None] - c[:, None], axis=-1)) <= reach:
             out.append(f)
     return out
+
+
+#: two sampler runs whose best boxes agree within this fraction in every extent give
+#: one start, not two
+SAME_BOX = 0.02
+
+
+def best_lineages(results: list, n: int) -> list:
+    """The ``n`` sampler results (smc2d.SMCResult or smc3d.SMC3DResult, one per seeded
+    run) of highest log likelihood, a result whose box is within SAME_BOX of a better
+    one's left out; returned in the runs' order (their seeds'), so that where every run
+    is kept the starts are the runs in turn."""
+    kept = []
+    for i in sorted(range(len(results)), key=lambda i: -results[i].log_likelihood):  # stable: equals by seed
+        r = results[i]
+        if len(kept) < n and all(np.max(np.abs(r.extents / results[j].extents - 1.0)) > SAME_BOX for j in kept):
+            kept.append(i)
+    return [results[i] for i in sorted(kept)]
