@@ -840,7 +840,7 @@ def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
 
 def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     """(starts in the order they are solved, how many are compared) from the push-tracked
-    and resting starts (initial3d.start_candidates_3d) and the sampler's (best first): a
+    and resting starts (initial3d.start_candidates_3d) and the sampler's (smc.best_lineages): a
     lineage that tips by more than ``cfg3.sampler_tip_deg`` goes first (the push tracker
     never tips the box), a flat one after the first push-tracked start; with
     ``cfg3.compare_starts`` every start but the resting one is compared and the resting
