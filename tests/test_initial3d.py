@@ -114,15 +114,18 @@ class _FakeProblem:
     n_shape = 3
 
 
-def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, compare=False):
+def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, compare=False, pushed=3):
     """An Estimator3D without an NLP: its per-start solves return (objective, physics) of
     ``outcomes`` in turn (None: the solve fails; (objective, physics, status): a fit
     ending with that IPOPT status, e.g. its iteration budget used up); ``compare``:
-    solver3d.compare_starts (off: the restart logic alone)."""
+    solver3d.compare_starts (off: the restart logic alone); ``pushed``:
+    solver3d.compared_push_tracked.  ``est.found`` counts the starts taken from the
+    start search."""
     est = estimator3d.Estimator3D.__new__(estimator3d.Estimator3D)
     # the sampled start is off here (its place among the starts: test_a_tipping_sampled_start_goes_first)
     cfg = EstimatorConfig().updated({"solver3d": {"restart_physics": restart_physics, "restarts": restarts,
-                                                  "sampler_particles": 0, "compare_starts": compare},
+                                                  "sampler_particles": 0, "compare_starts": compare,
+                                                  "compared_push_tracked": pushed},
                                      # the fake solves note their calls here: one process
                                      "solver": {"start_workers": 1}})
     est.config, est.problem = cfg, _FakeProblem()
@@ -131,7 +134,14 @@ def _fake_estimator(monkeypatch, outcomes, restart_physics=0.1, restarts=2, comp
     est.scales = type("S", (), {"L": 0.1})()
     est.start_tracks, est.attempts, est.accept_budget = None, [], False
     starts = [Start3D(np.full(3, 1.0 + 0.3 * k), [np.zeros((400, 7))], f"start {k}", float(k)) for k in range(3)]
-    monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: starts[:n])
+    est.found = 0
+
+    def candidates(runs, L, rest, n, starts=starts):
+        for c in starts[:n]:
+            est.found += 1
+            yield c
+
+    monkeypatch.setattr(estimator3d, "iter_start_candidates_3d", candidates)
     calls = []
     offered = est.offered_starts = []
 
@@ -191,10 +201,10 @@ def test_compared_starts_are_all_solved(monkeypatch):
     for outcomes, n_calls, kept in (([(50.0, 0.05), (40.0, 0.05), (5.0, 0.0)], 2, 40.0),
                                     ([(50.0, 0.5), (40.0, 0.5), (5.0, 0.0)], 3, 5.0)):
         est, calls = _fake_estimator(monkeypatch, outcomes, compare=True)
-        resting = estimator3d.start_candidates_3d(None, None, None, 3)
+        resting = list(estimator3d.iter_start_candidates_3d(None, None, None, 3))
         resting[0] = Start3D(np.ones(3), None, "resting", 0.0)
         est.offered_starts.extend(resting)  # any order of the starts' trajectories
-        monkeypatch.setattr(estimator3d, "start_candidates_3d", lambda runs, L, rest, n: resting[:n])
+        monkeypatch.setattr(estimator3d, "iter_start_candidates_3d", lambda runs, L, rest, n: iter(resting[:n]))
         assert est.solve().objective == kept and len(calls) == n_calls
         assert [a["start"] for a in est.attempts][-1] == ("resting" if n_calls == 3 else "start 2")
 
@@ -372,6 +382,43 @@ def test_the_previous_estimate_is_solved_first_and_compared(monkeypatch):
     # the previous start and the three compared ones are all solved; the lowest kept
     assert len(calls) == 4 and out.objective == 5.0
 
+
+
+def test_the_further_push_tracked_starts_are_restarts_searched_for_when_wanted(monkeypatch):
+    """solver3d.compared_push_tracked (default 1): the best push-tracked start is
+    compared, the further ones are restarts, and the start search is not asked for them
+    while a compared fit is good."""
+    assert EstimatorConfig().solver3d.compared_push_tracked == 1
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), (40.0, 0.05), (5.0, 0.0)], compare=True, pushed=1)
+    assert est.solve().objective == 50.0 and len(calls) == 1 and est.found == 1
+    # a compared fit that violates its physics: the further starts are found and solved
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.5), (40.0, 0.05), (5.0, 0.0)], compare=True, pushed=1)
+    assert est.solve().objective == 40.0 and len(calls) == 2 and est.found == 3
+    assert [a["start"] for a in est.attempts] == ["start 0", "start 1"]
+    # two compared push-tracked starts: both solved, the third not searched for
+    est, calls = _fake_estimator(monkeypatch, [(50.0, 0.05), (40.0, 0.05), (5.0, 0.0)], compare=True, pushed=2)
+    assert est.solve().objective == 40.0 and len(calls) == 2 and est.found == 2
+
+
+def test_start_candidates_are_searched_one_at_a_time(monkeypatch):
+    """iter_start_candidates_3d gives start_candidates_3d's starts, each found when asked
+    for: the first needs the coarse grid and one refinement, not the later ones'."""
+    import tacest.estimation.initial3d as initial3d
+
+    run = _push_run()
+    every = start_candidates_3d([run], 0.1, np.ones(3), 3)
+    tracked = []
+    real = initial3d.push_tracker_3d
+    monkeypatch.setattr(initial3d, "push_tracker_3d", lambda r, e: tracked.append(len(e)) or real(r, e))
+    found = initial3d.iter_start_candidates_3d([run], 0.1, np.ones(3), 3)
+    first = next(found)
+    assert first.label == every[0].label and np.array_equal(first.extents, every[0].extents)
+    assert len(tracked) == 2  # the coarse grid, one refinement
+    rest = list(found)
+    assert [c.label for c in rest] == [c.label for c in every[1:]]
+    for a, b in zip(rest, every[1:]):
+        np.testing.assert_array_equal(a.extents, b.extents)
+        assert a.inconsistency == b.inconsistency
 
 
 def test_a_polytope_start_from_an_estimate_with_a_com_offset_has_the_shapes_own_radii():

@@ -34,8 +34,8 @@ from tacest.estimation.bounds import FRICTION_BOUNDS, INERTIA_DIAG_BOUNDS, INERT
 from tacest.estimation.config import EstimatorConfig, solver_structure_key, start_workers
 from tacest.estimation.data import (Scales, choose_scales, finger_start_positions, finger_velocity, force_in_contact,
                                    gravity_of, previous_trajectories, touch_ends, touching)
-from tacest.estimation.initial3d import (Start3D, continued_track, push_tracker_3d, smoothed_start_track, start_candidates_3d,
-                                        touch_inconsistency_3d)
+from tacest.estimation.initial3d import (Start3D, continued_track, iter_start_candidates_3d, push_tracker_3d,
+                                         smoothed_start_track, touch_inconsistency_3d)
 from tacest.estimation.smc import best_lineages
 from tacest.estimation.smc3d import SMC3DSettings, smc_start_3d
 from tacest.estimation.problem3d import Problem3D
@@ -487,8 +487,9 @@ class Estimator3D:
         parameters, or no fingertip) solve once, from the observed poses and
         :meth:`choose_start_shape` (with an effect that models impacts, twice:
         :func:`solve_observed_tracks`).  Without pose observations: the starts of
-        :func:`order_starts` (initial3d.start_candidates_3d's and :meth:`sampled_starts`),
-        the compared ones all solved, then restarts while the fit of lowest objective
+        :func:`order_starts` (initial3d.iter_start_candidates_3d's and
+        :meth:`sampled_starts`), the compared ones all solved, then restarts (the further
+        push-tracked starts are searched for only then) while the fit of lowest objective
         fails or violates its own physics by more than ``solver3d.restart_physics``
         (solver.solve_from_starts: a fit that used up its budget competes by objective).
         Held parameters, runs poked unseen: one solve from :func:`held_shape_tracks`."""
@@ -510,31 +511,49 @@ class Estimator3D:
             finally:
                 self.start_tracks = None
         t0 = time.perf_counter()
-        starts = start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
+        found = iter_start_candidates_3d(self.runs, self.scales.L, np.ones(3), 1 + int(cfg3.restarts))
+        starts = first_starts(found, int(cfg3.compared_push_tracked) if cfg3.compare_starts else 1)
         starts, compared = order_starts(starts, self.sampled_starts(starts[0]), cfg3)
         if self.previous is not None:  # first, and compared (as in 2-D)
             starts.insert(0, self.previous)
             compared += 1
-        log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + "; ".join(
-            f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts))
+        log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + self.starts_text(starts))
+        n_tried = [len(starts)]
+
+        def later():  # the further push-tracked starts, found once a restart is wanted
+            t1 = time.perf_counter()
+            more = list(found)
+            if cfg3.compare_starts:  # the resting one last (order_starts)
+                more = [c for c in more if c.poses is not None] + [c for c in more if c.poses is None]
+            n_tried[0] += len(more)
+            log.info(f"{len(more)} more starts ({time.perf_counter() - t1:.2f} s): " + self.starts_text(more))
+            return [(self.start_record(c), c) for c in more]
 
         def solve_one(c, abandon_above):
             s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
             return solve_start(self, s0, c.poses, abandon_above)
 
-        records = [{"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
-                    "touch_inconsistency": float(c.inconsistency), **c.extra} for c in starts]
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-                list(zip(records, starts)), solve_one, cfg3.restart_physics, self.attempts,
+                [(self.start_record(c), c) for c in starts], solve_one, cfg3.restart_physics, self.attempts,
                 min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver),
-                abandon=self.config.solver.abandon_hopeless)
+                abandon=self.config.solver.abandon_hopeless, more=later)
         except SolveFailedError as first:
-            if len(starts) == 1:
+            if n_tried[0] == 1:
                 raise
-            raise SolveFailedError(f"no converged fit from any of {len(starts)} starts; the first: {first}") from None
+            raise SolveFailedError(f"no converged fit from any of {n_tried[0]} starts; the first: {first}") from None
         self.z = out.z
         return out
+
+    def start_record(self, c: Start3D) -> dict:
+        """The attempt record of start c (solver.solve_from_starts): its label, extents (m),
+        touch inconsistency and what its maker noted (``extra``)."""
+        return {"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
+                "touch_inconsistency": float(c.inconsistency), **c.extra}
+
+    def starts_text(self, starts: list) -> str:
+        """The starts' labels and extents (m), for the log."""
+        return "; ".join(f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts)
 
     def sampled_starts(self, tracked: Start3D) -> list:
         """The sampler's starts (:func:`sampled_starts_3d`), [] where it is off.  Its
@@ -838,14 +857,31 @@ def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
     return out
 
 
+def first_starts(found, n_pushed: int) -> list:
+    """The starts wanted before any solve, from the iterator ``found``
+    (initial3d.iter_start_candidates_3d): up to its ``n_pushed``-th push-tracked one (at
+    least its first start); all of them where the resting start comes among those (its
+    place among the restarts depends on the later ones: :func:`order_starts`)."""
+    first = []
+    for c in found:
+        first.append(c)
+        if sum(s.poses is not None for s in first) >= max(1, n_pushed):
+            break
+    if any(c.poses is None for c in first):
+        first += list(found)
+    return first
+
+
 def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     """(starts in the order they are solved, how many are compared) from the push-tracked
     and resting starts (initial3d.start_candidates_3d) and the sampler's (smc.best_lineages): a
     lineage that tips by more than ``cfg3.sampler_tip_deg`` goes first (the push tracker
     never tips the box), a flat one after the first push-tracked start; with
-    ``cfg3.compare_starts`` every start but the resting one is compared and the resting
-    one goes last, a restart only (compared, it was far worse on all but one benchmark
-    recording and crept to the iteration budget on two, 190 s)."""
+    ``cfg3.compare_starts`` the sampler's starts and the best
+    ``cfg3.compared_push_tracked`` push-tracked ones are compared, the further
+    push-tracked ones are restarts, and the resting one goes last, a restart only
+    (compared, it was far worse on all but one benchmark recording and crept to the
+    iteration budget on two, 190 s)."""
     starts = list(starts)
     tipping = [c for c in sampled if c.extra["max_tilt_deg"] > cfg3.sampler_tip_deg]
     flat = [c for c in sampled if c.extra["max_tilt_deg"] <= cfg3.sampler_tip_deg]
@@ -853,7 +889,8 @@ def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     if not cfg3.compare_starts:
         return starts, 0
     moving = [c for c in starts if c.poses is not None]
-    return moving + [c for c in starts if c.poses is None], len(moving)
+    pushed = len(moving) - len(sampled)
+    return moving + [c for c in starts if c.poses is None], len(sampled) + min(pushed, int(cfg3.compared_push_tracked))
 
 
 def previous_start(runs: list, shape: Shape3D, previous: Estimate, L: float) -> Start3D:

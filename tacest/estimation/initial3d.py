@@ -334,6 +334,13 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     :data:`DISTINCT_EXTENT_RATIO` in some extent, or it is the resting start (the other
     kind of trajectory), so that a restart explores another basin.  With n > 1 the
     resting start is among them (last, if its cost does not rank it higher)."""
+    return list(iter_start_candidates_3d(runs, L, resting_extents, n))
+
+
+def iter_start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, n: int = 1):
+    """The starts of :func:`start_candidates_3d`, each found when it is asked for: the
+    grid search of a later one refines about 0.1 s per coarse box near an earlier pick
+    (a second or two for a restart that a good first fit makes unnecessary)."""
     g = EXTENT_GRID
     grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     cost = np.zeros(len(grid))
@@ -364,8 +371,10 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
     order = np.argsort(cost_key(all_ext, all_cost), kind="stable")
     picked: list[Start3D] = []
     for k in order:
-        if k == 0:
-            cand = Start3D(rest, None, "resting", rest_cost)
+        if len(picked) == n:
+            return
+        if k == 0 or (n > 1 and len(picked) == n - 1 and all(p.poses is not None for p in picked)):
+            cand = Start3D(rest, None, "resting", rest_cost)  # the plain start is always tried
         else:
             def close(e):
                 return any(p.poses is not None and np.max(np.abs(np.log(e / p.extents))) <= np.log(
@@ -378,8 +387,6 @@ def start_candidates_3d(runs: list[Run], L: float, resting_extents: np.ndarray, 
                 continue
             cand = Start3D(box, poses, "push-tracked", c)
         picked.append(cand)
-        if len(picked) == n:
-            break
-    if n > 1 and all(p.poses is not None for p in picked):  # the plain start is always tried
-        picked[-1] = Start3D(rest, None, "resting", rest_cost)
-    return picked
+        yield cand
+    if n > 1 and all(p.poses is not None for p in picked):  # grid used up: the plain start too
+        yield Start3D(rest, None, "resting", rest_cost)

@@ -559,7 +559,7 @@ def _restart_reason(last: dict, restart_physics: float) -> str:
 
 def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts: list, min_solves: int = 0,
                       accept_budget: bool = False, workers: int = 1, abandon: bool = False,
-                      resume=None) -> tuple:
+                      resume=None, more=None) -> tuple:
     """Solve from each start in turn until a fit is good enough; keep the fit of lowest
     objective (the restarts of the 2-D and 3-D estimators).
 
@@ -607,7 +607,10 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         by its objective and never ends the search; if it is still the fit of lowest
         objective when the search ends, it is resumed and the resumed fit kept (its
         attempt's entry then holds the resumed fit, ``resumed`` true).  Where it is
-        resumed it counts as a finished fit for ``abandon``.
+        resumed it counts as a finished fit for ``abandon``;
+    more() -> list of further (record, start), or None: restarts made only when the
+        search reaches the end of ``starts`` without ending (the 3-D estimator's further
+        push-tracked starts, a second or two of grid search it need not spend).
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -623,6 +626,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     holds every attempt).
     """
     best = failure = converged = None  # converged: (objective, good) of the best converged fit
+    starts = list(starts)
     n_pre = min(int(min_solves), len(starts))
     processes = fork_processes(workers, n_pre)
     solved = {}
@@ -638,11 +642,10 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     if processes > 1:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
-    for k, (record, _) in enumerate(starts):
-        # ends at a good converged fit once the compared starts are in (whatever became of
-        # the last of them), unless the fit to keep (a budget fit) violates its physics
-        if k >= min_solves and converged is not None and converged[1] and best[2]:
-            break
+    # ends at a good converged fit once the compared starts are in (whatever became of
+    # the last of them), unless the fit to keep (a budget fit) violates its physics
+    for k, record in _in_turn(starts, more, lambda k: k >= min_solves and converged is not None
+                              and converged[1] and best[2]):
         _announce(k, min_solves, len(starts), attempts, restart_physics)
         if k and k not in solved:  # a restart: with the next ones in as many processes as may run
             solved.update(_solve_at_once(k, len(starts), workers, solve))
@@ -676,6 +679,21 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         log.info(f"kept the fit of lowest objective ({best[0].objective:.6g}), whose final stage used up its "
                  f"iteration budget: {best[0].status}")
     return best[0], best[1]
+
+
+def _in_turn(starts: list, more, stop):
+    """(k, record) of each start of :func:`solve_from_starts` in turn until stop(k);
+    when ``starts`` are used up, they are extended (in place) by ``more()``, once."""
+    k = 0
+    while not stop(k):
+        if k == len(starts):
+            if more is None:
+                return
+            starts.extend(more())
+            more = None
+            continue
+        yield k, starts[k][0]
+        k += 1
 
 
 def _resumed(best: tuple, converged, resume, attempts: list, restart_physics: float, accept_budget: bool) -> tuple:
