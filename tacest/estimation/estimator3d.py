@@ -517,17 +517,9 @@ class Estimator3D:
         if self.previous is not None:  # first, and compared (as in 2-D)
             starts.insert(0, self.previous)
             compared += 1
-        log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + self.starts_text(starts))
+        L = self.scales.L
+        log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + starts_text(starts, L))
         n_tried = [len(starts)]
-
-        def later():  # the further push-tracked starts, found once a restart is wanted
-            t1 = time.perf_counter()
-            more = list(found)
-            if cfg3.compare_starts:  # the resting one last (order_starts)
-                more = [c for c in more if c.poses is not None] + [c for c in more if c.poses is None]
-            n_tried[0] += len(more)
-            log.info(f"{len(more)} more starts ({time.perf_counter() - t1:.2f} s): " + self.starts_text(more))
-            return [(self.start_record(c), c) for c in more]
 
         def solve_one(c, abandon_above):
             s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
@@ -535,25 +527,15 @@ class Estimator3D:
 
         try:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
-                [(self.start_record(c), c) for c in starts], solve_one, cfg3.restart_physics, self.attempts,
+                [(start_record(c, L), c) for c in starts], solve_one, cfg3.restart_physics, self.attempts,
                 min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver),
-                abandon=self.config.solver.abandon_hopeless, more=later)
+                abandon=self.config.solver.abandon_hopeless, more=later_starts(found, cfg3.compare_starts, L, n_tried))
         except SolveFailedError as first:
             if n_tried[0] == 1:
                 raise
             raise SolveFailedError(f"no converged fit from any of {n_tried[0]} starts; the first: {first}") from None
         self.z = out.z
         return out
-
-    def start_record(self, c: Start3D) -> dict:
-        """The attempt record of start c (solver.solve_from_starts): its label, extents (m),
-        touch inconsistency and what its maker noted (``extra``)."""
-        return {"start": c.label, "start_extents": np.asarray(c.extents * self.scales.L, float),
-                "touch_inconsistency": float(c.inconsistency), **c.extra}
-
-    def starts_text(self, starts: list) -> str:
-        """The starts' labels and extents (m), for the log."""
-        return "; ".join(f"{c.label} {np.round(c.extents * self.scales.L, 3)} m" for c in starts)
 
     def sampled_starts(self, tracked: Start3D) -> list:
         """The sampler's starts (:func:`sampled_starts_3d`), [] where it is off.  Its
@@ -855,6 +837,36 @@ def solve_warm(est: "Estimator3D", z_other, s0) -> SolveOutcome:
     est.p_final = est.stage_params(stages[-1])
     est.bounds_final = est.variable_bounds(est.z)
     return out
+
+
+def start_record(c: Start3D, L: float) -> dict:
+    """The attempt record of start c (solver.solve_from_starts): its label, extents (m;
+    c's are in units of the length scale L m), touch inconsistency and what its maker
+    noted (``extra``)."""
+    return {"start": c.label, "start_extents": np.asarray(c.extents * L, float),
+            "touch_inconsistency": float(c.inconsistency), **c.extra}
+
+
+def starts_text(starts: list, L: float) -> str:
+    """The starts' labels and extents (m), for the log."""
+    return "; ".join(f"{c.label} {np.round(c.extents * L, 3)} m" for c in starts)
+
+
+def later_starts(found, compare_starts: bool, L: float, n_tried: list):
+    """solver.solve_from_starts' ``more``: the rest of the iterator ``found``
+    (initial3d.iter_start_candidates_3d), searched for once a restart is wanted, as
+    (record, start) pairs; with ``compare_starts`` the resting one last
+    (:func:`order_starts`).  n_tried[0] counts them in."""
+    def later():
+        t0 = time.perf_counter()
+        more = list(found)
+        if compare_starts:
+            more = [c for c in more if c.poses is not None] + [c for c in more if c.poses is None]
+        n_tried[0] += len(more)
+        log.info(f"{len(more)} more starts ({time.perf_counter() - t0:.2f} s): " + starts_text(more, L))
+        return [(start_record(c, L), c) for c in more]
+
+    return later
 
 
 def first_starts(found, n_pushed: int) -> list:

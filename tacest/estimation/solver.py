@@ -608,9 +608,8 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
         objective when the search ends, it is resumed and the resumed fit kept (its
         attempt's entry then holds the resumed fit, ``resumed`` true).  Where it is
         resumed it counts as a finished fit for ``abandon``;
-    more() -> list of further (record, start), or None: restarts made only when the
-        search reaches the end of ``starts`` without ending (the 3-D estimator's further
-        push-tracked starts, a second or two of grid search it need not spend).
+    more() -> further (record, start) pairs, or None: restarts made only once the search
+        reaches the end of ``starts`` (the 3-D estimator's further push-tracked starts).
 
     A fit whose final stage used up its iteration budget (BUDGET_STATUSES) competes by
     its objective like a converged one and keeps its status (success False: the caller
@@ -642,8 +641,7 @@ def solve_from_starts(starts: list, solve_one, restart_physics: float, attempts:
     if processes > 1:
         log.info(f"solving the {n_pre} compared starts in {processes} processes")
         solved = dict(enumerate(fork_map(solve, n_pre, processes, returned=(SolveFailedError,))))
-    # ends at a good converged fit once the compared starts are in (whatever became of
-    # the last of them), unless the fit to keep (a budget fit) violates its physics
+    # ends at a good converged fit once the compared starts are in, unless the kept (budget) fit violates its physics
     for k, record in _in_turn(starts, more, lambda k: k >= min_solves and converged is not None
                               and converged[1] and best[2]):
         _announce(k, min_solves, len(starts), attempts, restart_physics)
