@@ -519,7 +519,6 @@ class Estimator3D:
             compared += 1
         L = self.scales.L
         log.info(f"{len(starts)} starts ({time.perf_counter() - t0:.2f} s): " + starts_text(starts, L))
-        n_tried = [len(starts)]
 
         def solve_one(c, abandon_above):
             s0 = self.shape.initial(c.extents) if c.shape_params is None else c.shape_params
@@ -529,11 +528,12 @@ class Estimator3D:
             out, (self.s0, self.p_final, self.bounds_final) = solve_from_starts(
                 [(start_record(c, L), c) for c in starts], solve_one, cfg3.restart_physics, self.attempts,
                 min_solves=compared, accept_budget=self.accept_budget, workers=start_workers(self.config.solver),
-                abandon=self.config.solver.abandon_hopeless, more=later_starts(found, cfg3.compare_starts, L, n_tried))
-        except SolveFailedError as first:
-            if n_tried[0] == 1:
+                abandon=self.config.solver.abandon_hopeless, more=later_starts(found, cfg3.compare_starts, L))
+        except SolveFailedError as first:  # every start was solved (the later ones too): one attempt each
+            if len(self.attempts) == 1:
                 raise
-            raise SolveFailedError(f"no converged fit from any of {n_tried[0]} starts; the first: {first}") from None
+            raise SolveFailedError(f"no converged fit from any of {len(self.attempts)} starts; "
+                                   f"the first: {first}") from None
         self.z = out.z
         return out
 
@@ -852,17 +852,16 @@ def starts_text(starts: list, L: float) -> str:
     return "; ".join(f"{c.label} {np.round(c.extents * L, 3)} m" for c in starts)
 
 
-def later_starts(found, compare_starts: bool, L: float, n_tried: list):
+def later_starts(found, compare_starts: bool, L: float):
     """solver.solve_from_starts' ``more``: the rest of the iterator ``found``
     (initial3d.iter_start_candidates_3d), searched for once a restart is wanted, as
     (record, start) pairs; with ``compare_starts`` the resting one last
-    (:func:`order_starts`).  n_tried[0] counts them in."""
+    (:func:`order_starts`)."""
     def later():
         t0 = time.perf_counter()
         more = list(found)
         if compare_starts:
-            more = [c for c in more if c.poses is not None] + [c for c in more if c.poses is None]
-        n_tried[0] += len(more)
+            more = resting_last(more)
         log.info(f"{len(more)} more starts ({time.perf_counter() - t0:.2f} s): " + starts_text(more, L))
         return [(start_record(c, L), c) for c in more]
 
@@ -884,6 +883,12 @@ def first_starts(found, n_pushed: int) -> list:
     return first
 
 
+def resting_last(starts: list) -> list:
+    """The starts with a trajectory (push-tracked, sampled, an earlier estimate's) in
+    their order, then those without (the resting start)."""
+    return [c for c in starts if c.poses is not None] + [c for c in starts if c.poses is None]
+
+
 def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     """(starts in the order they are solved, how many are compared) from the push-tracked
     and resting starts (initial3d.start_candidates_3d) and the sampler's (smc.best_lineages): a
@@ -900,9 +905,9 @@ def order_starts(starts: list, sampled: list, cfg3) -> tuple:
     starts = tipping + starts[:1] + flat + starts[1:]
     if not cfg3.compare_starts:
         return starts, 0
-    moving = [c for c in starts if c.poses is not None]
-    pushed = len(moving) - len(sampled)
-    return moving + [c for c in starts if c.poses is None], len(sampled) + min(pushed, int(cfg3.compared_push_tracked))
+    starts = resting_last(starts)
+    pushed = sum(c.poses is not None for c in starts) - len(sampled)
+    return starts, len(sampled) + min(pushed, int(cfg3.compared_push_tracked))
 
 
 def previous_start(runs: list, shape: Shape3D, previous: Estimate, L: float) -> Start3D:
