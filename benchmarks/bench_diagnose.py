@@ -57,7 +57,8 @@ times exp(REL · N(0, 1)) (a weighing error of REL; seeded per recording), with
 (``diagnose.KNOWN_MASS_LOG_SIGMA``); results are cached apart (``_km<REL>`` in their
 names).
 
-Every diagnosis runs in its own subprocess (this script with ``--worker``) under a time
+Every diagnosis runs in its own subprocess (this script with ``--worker``; its fits in
+that process, or with ``--workers N`` on a local Dask cluster of N workers) under a time
 limit; its result is cached as JSON per recording, and the recordings with it, in a
 folder named by the code version, ``<cache>/code_<digest>`` (default cache
 ``$TMPDIR/tacest_bench_diagnose``; the digest is tacest.provenance.source_digest of
@@ -130,16 +131,19 @@ def _echo(quiet):
 
 
 def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: str = "", reach: str = "0",
-           cold_starts: str = "") -> dict:
+           cold_starts: str = "", workers: str = "1") -> dict:
     """Diagnose the run files (without truth) of one recording, ``run_paths`` separated
     by RUN_SEPARATOR; never raises.  ``known_mass``: "MASS,LOG_SIGMA" (kg, -) of a
     weighed object's mass prior, or empty; ``effects``: the candidates,
     comma-separated (empty: every SPEC effect); ``reach``: noise.complementarity_reach (m);
-    ``cold_starts``: DiagnoseOptions.cold_starts (empty: its default)."""
+    ``cold_starts``: DiagnoseOptions.cold_starts (empty: its default); ``workers``: a
+    local Dask cluster of that many workers runs the fits (1: this process; the result
+    does not depend on it, the wall time does)."""
     from tacest.diagnosis.diagnose import DiagnoseOptions, diagnose, mass_is_known
     from tacest.errors import TacestError
     from tacest.estimation.config import EstimatorConfig
     from tacest.io.run import read_run
+    from tacest.parallel import Executor, ParallelSettings
 
     config = EstimatorConfig()
     if known_mass:
@@ -155,7 +159,8 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
             opts.cold_starts = cold_starts
         if effects:
             opts.effects = tuple(effects.split(","))
-        d = diagnose(runs, "box", config=config, options=opts)
+        with Executor(ParallelSettings(workers=int(workers))) as ex:
+            d = diagnose(runs, "box", config=config, options=opts, executor=ex)
     except TacestError as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "wall": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a crash is a result to report
@@ -164,7 +169,7 @@ def worker(run_paths: str, fit_iterations: int, known_mass: str = "", effects: s
     return {"ok": True, "verdict": obj["verdict"], "reason": obj["reason"], "effects": obj["effects"],
             "where": obj["where"][:10], "heldout": obj["heldout"], "backend": obj["backend"],
             "wall": time.perf_counter() - t0, "samples": sum(r.n_samples for r in runs), "runs": len(runs),
-            "mass_known": mass_is_known(config), "code": code_version()}
+            "mass_known": mass_is_known(config), "code": code_version(), "workers": int(workers)}
 
 
 #: separates the run files of one recording on the worker's command line
@@ -172,11 +177,11 @@ RUN_SEPARATOR = "::"
 
 
 def run_job(run_paths: list, fit_iterations: int, timeout: float, known_mass: str = "", effects: str = "",
-            reach: float = 0.0, cold_starts: str = "") -> dict:
+            reach: float = 0.0, cold_starts: str = "", workers: int = 1) -> dict:
     """The worker's result for the run files ``run_paths`` (one recording), in a subprocess
     with a time limit."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", RUN_SEPARATOR.join(map(str, run_paths)),
-           str(fit_iterations), known_mass, effects, repr(float(reach)), cold_starts or ""]
+           str(fit_iterations), known_mass, effects, repr(float(reach)), cold_starts or "", str(int(workers))]
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -650,7 +655,7 @@ def main(argv=None):
     from tacest.diagnosis.diagnose import COLD_STARTS
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=7, help=argparse.SUPPRESS)
     ap.add_argument("--seeds", type=int, default=2, help="seeds 0..N-1 per effect (default 2)")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds FIRST..FIRST+N-1 (default 0; e.g. calibration on seeds not reported)")
@@ -675,6 +680,9 @@ def main(argv=None):
     ap.add_argument("--cold-starts", default="", choices=("", *COLD_STARTS),
                     help="which candidates also start from the estimator's own starts (DiagnoseOptions.cold_starts; "
                          "default: the diagnosis' default); results with it given are cached apart (_cold-<MODE>)")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="fits of each diagnosis on a local Dask cluster of this many workers (default 1: in the "
+                         "diagnosis' process, as tacest diagnose; the verdicts do not depend on it, the wall times do)")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--json", default=None, help="write every result and the summary to this file")
     args = ap.parse_args(argv)
@@ -696,6 +704,9 @@ def main(argv=None):
         args.reach = DiagnoseOptions().reach
     if not args.reach >= 0:
         print(f"--reach must be >= 0 (m), got {args.reach}", file=sys.stderr)
+        return 1
+    if args.workers < 1:
+        print(f"--workers must be >= 1, got {args.workers}", file=sys.stderr)
         return 1
     if bad or args.seeds < 1 or args.pokes < 2 or not 0 <= args.tip_pokes < args.pokes:
         print(f"bad arguments: effects {bad}, seeds {args.seeds}, pokes {args.pokes} (>= 2), "
@@ -732,7 +743,8 @@ def main(argv=None):
             else:
                 echo(f"diagnosing {rec.bare[0].stem}{'' if len(rec.bare) == 1 else f' and {len(rec.bare) - 1} more runs'}"
                      " ..." + (f" (weighed mass, log sigma {args.known_mass:g})" if known else ""))
-                res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach, args.cold_starts)
+                res = run_job(rec.bare, args.fit_iterations, args.timeout, known, "", args.reach, args.cold_starts,
+                              args.workers)
                 # the worker's own "code" is kept: a result whose code differs from this
                 # run's (the tree edited while the benchmark ran) makes the table MIXED
                 res.update(effect=effect, seed=seed, injected=injected)

@@ -342,9 +342,16 @@ def test_pipeline_blames_latency_and_recovers_it(recordings, stand_in):
     assert lat.params == {"samples": 2}
     assert lat.reduction > 0.5
     assert lat.folds_improved == lat.folds_compared == 3
-    # time scale changes nothing the stand-in sees: no improvement, not significant
+    # time scale changes nothing the stand-in sees: no improvement on all data, so it is
+    # not held out (screened by its fit), not significant, and the reason says so
     ts = next(c for c in d.effects if c.name == "time_scale")
-    assert not ts.significant and abs(ts.improvement) < 1e-9
+    assert not ts.significant and abs(ts.full_improvement) < 1e-9
+    assert ts.status == "screened" and not ts.heldout and "time_scale" in d.reason
+    # without the screen it is held out and improves nothing there either
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale"),
+                                                                         fit_screen=False))
+    ts = next(c for c in d.effects if c.name == "time_scale")
+    assert d.verdict == "latency" and ts.status == "ok" and abs(ts.improvement) < 1e-9
     # where: the contact term carries the flagged excess
     assert d.where and d.where[0].term == "contact"
 
@@ -359,6 +366,64 @@ def test_pipeline_on_a_clean_recording_says_none(recordings, stand_in):
     # the mass prior every fit used is reported: the configuration's weak default
     assert d.to_json()["mass_prior"] == {"mass": EstimatorConfig().prior.mass,
                                          "log_sigma": EstimatorConfig().prior.mass_log_sigma, "known": False}
+
+
+def test_candidates_no_better_on_all_data_are_not_held_out(recordings, stand_in):
+    """A candidate whose fit to all data improves on the plain model's by less than its
+    penalty cannot count held out (screened_by_fit): its held-out fits are skipped, the
+    verdict is still decided (none, not undetermined), the reason and the JSON say why,
+    and a suggestion still sees the candidate (suggest.ranked_candidates)."""
+    from tacest.diagnosis.suggest import ranked_candidates
+
+    run = _read(recordings["none"])
+    opts = dict(effects=("latency", "time_scale"))
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(**opts))
+    screened_calls = stand_in.calls
+    assert d.verdict == "none", d.reason
+    assert all(diag_mod.screened_for_fit(c) and not c.heldout for c in d.effects)
+    assert all(c.full_improvement < c.penalty for c in d.effects)
+    assert "not held out" in d.reason and "not compared" not in d.reason
+    js = d.to_json()
+    assert js["options"]["fit_screen"] is True
+    assert all(e["status"] == "screened" and e["full_improvement"] is not None for e in js["effects"])
+    assert {name for name, _ in ranked_candidates(d)} == {"latency", "time_scale"}
+    # held out as before with the screen off: the same verdict from more fits
+    stand_in.calls = 0
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(fit_screen=False, **opts))
+    assert d.verdict == "none" and all(c.status == "ok" and c.heldout for c in d.effects)
+    assert stand_in.calls > screened_calls
+
+
+def test_screened_by_fit_is_bic_on_all_data():
+    """The screen's rule: below the penalty (0.5 ln N per parameter) screened; at or
+    above it, or NaN (no fit to compare), held out."""
+    pen = 2 * diag_mod.penalty_per_parameter(1000)
+    assert pen == pytest.approx(math.log(1000))
+    assert diag_mod.screened_by_fit(pen - 1e-9, pen) and diag_mod.screened_by_fit(-5.0, pen)
+    assert not diag_mod.screened_by_fit(pen, pen) and not diag_mod.screened_by_fit(float("nan"), pen)
+    assert diag_mod.penalty_per_parameter(0) == diag_mod.penalty_per_parameter(2)  # at least ln 2 / 2
+
+
+def test_a_transform_line_search_starts_the_estimator_once(recordings, stand_in, monkeypatch):
+    """A data transform's line search fits the estimator's own start (cold) at its
+    first value only; its later values start from the plain fit and from the search's
+    best fit so far (TRANSFORM_COLD_ONCE).  Counted: the estimator's fits of the
+    diagnosis, the plain model's one included."""
+    run = _read(recordings["none"])
+    cold = []
+    fit = stand_in.fit_estimator
+    monkeypatch.setattr(diag_mod, "fit_estimator", lambda *a, **k: cold.append(1) or fit(*a, **k))
+    # an NLP candidate beside it: the warm back end, where transforms get cold starts
+    opts = diag_mod.DiagnoseOptions(effects=("time_scale", "angular_damping"), fit_screen=False)
+    d = diag_mod.diagnose([run], "box", options=opts)
+    assert d.backend == "warm"
+    ts = next(c for c in d.effects if c.name == "time_scale")
+    assert len(ts.fits) == opts.fits_per_candidate == 3
+    assert len(cold) == 1 + 1
+    cold.clear()
+    monkeypatch.setattr(diag_mod, "TRANSFORM_COLD_ONCE", False)
+    diag_mod.diagnose([run], "box", options=opts)
+    assert len(cold) == 1 + 3
 
 
 def test_every_fit_of_a_diagnosis_has_its_reach(recordings, stand_in):

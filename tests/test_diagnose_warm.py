@@ -306,6 +306,39 @@ def test_candidate_fit_keeps_the_better_of_warm_and_cold_starts(clean_run, monke
         assert d2.effects[0].fits[0]["start"] == "warm", mode
 
 
+class _ColdClockStandIn(_BasinStandIn):
+    """Only the estimator's own start on data with the clock rescaled (time_scale's
+    cold fits) finds the lower basin; warm starts keep their start's basin."""
+
+    def __init__(self, dt):
+        super().__init__(lucky=None)
+        self.dt = dt
+
+    def fit_estimator(self, runs, shape, config, effects=(), fixed=None, echo=None, refit_shape=False):
+        f = self._fit(runs, None, effects)
+        if runs[0].dt != self.dt:
+            f.estimate.params["basin"] = self.BASIN
+            for r in f.estimate.runs:
+                r.residuals = {t: self.BASIN * v for t, v in r.residuals.items()}
+        return f
+
+
+def test_a_line_search_keeps_the_basin_of_its_one_cold_start(clean_run, monkeypatch):
+    """With the estimator's own start at the first value only (TRANSFORM_COLD_ONCE), a
+    basin only that start finds is kept at every later value: they start from the
+    search's best fit so far (``best``)."""
+    s = _ColdClockStandIn(clean_run.dt)
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    opts = diag_mod.DiagnoseOptions(effects=("time_scale", "force_bias"), fit_screen=False)
+    d = diag_mod.diagnose([clean_run], "box", options=opts)
+    ts = next(c for c in d.effects if c.name == "time_scale")
+    assert [f["start"] for f in ts.fits] == ["cold", "best", "best"]
+    objs = [f["objective"] for f in ts.fits]
+    assert max(objs) - min(objs) < 1e-6 * min(objs)  # the same basin at every value
+    assert ts.full_objective < 0.8 * (ts.full_objective + ts.full_improvement)  # below the plain fit's
+
+
 # ------------------------------------------------------------------------------------
 # the start at a typical strength (candidates.TYPICAL_STARTS)
 

@@ -157,6 +157,11 @@ def check_heldout_data(runs: list) -> None:
 #: (_Context.starts): every candidate's, the data transforms' only, or none (then no
 #: typical start either: the warm start alone)
 COLD_STARTS = ("all", "transforms", "none")
+#: a data transform's line search starts the estimator's own fit at its first value only;
+#: each later value is started from the plain fit and from the search's best fit so far
+#: (``best``), which holds whatever basin the estimator's starts found (docs/diagnosis.md,
+#: "Screened by the fit to all data, and one cold start per line search")
+TRANSFORM_COLD_ONCE = True
 
 
 @dataclass
@@ -172,7 +177,10 @@ class DiagnoseOptions:
     (tacest.estimation.floor); reach : m, noise.complementarity_reach of every fit
     (DIAGNOSIS_REACH; 0 off; None: the configuration's); cold_starts : which
     candidates' fits to all data also start from the estimator's own starts
-    (COLD_STARTS; True and False, the earlier form, mean ``all`` and ``none``).
+    (COLD_STARTS; True and False, the earlier form, mean ``all`` and ``none``);
+    fit_screen : skip the held-out fits of a candidate whose fit to all data improves
+    on the plain model's by less than its penalty (it cannot count: see
+    :func:`screened_by_fit`).
     """
 
     effects: Optional[tuple] = None
@@ -185,6 +193,7 @@ class DiagnoseOptions:
     floor: str = "calibrated"
     cold_starts: str = "transforms"
     reach: Optional[float] = DIAGNOSIS_REACH
+    fit_screen: bool = True
 
     def validate(self):
         if isinstance(self.cold_starts, bool):  # the setting's earlier form: on or off
@@ -218,7 +227,10 @@ class CandidateResult:
     """One candidate's fits and held-out comparison.
 
     status : ``ok``, ``unavailable`` (the estimator cannot model it), ``failed`` (its
-    fits failed), ``screened`` (not refitted: see max_candidates);
+    fits failed), ``screened`` (not refitted: see max_candidates; or, with
+    ``full_improvement`` set, not held out: see :func:`screened_by_fit`);
+    full_improvement : the plain model's objective on all data minus this candidate's
+    (both fitted to all data; NaN where it was not fitted);
     value : chosen grid value of a transform candidate; params / params_std : fitted
     effect parameters and their one-sigma uncertainty (NaN: not available);
     fits : [{value, objective, status, wall_time}] fits to all data;
@@ -240,6 +252,7 @@ class CandidateResult:
     params_std: dict = field(default_factory=dict)
     fits: list = field(default_factory=list)
     full_objective: float = float("nan")
+    full_improvement: float = float("nan")
     heldout: dict = field(default_factory=dict)
     floor: float = float("nan")
     occam: float = 0.0
@@ -271,7 +284,8 @@ class CandidateResult:
             "at_bound": list(self.at_bound), "immaterial": list(self.immaterial),
             "control_objective": {str(k): _num(v) for k, v in self.control.items()},
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
-            "full_objective": _num(self.full_objective), "fits": self.fits, "screening": _num(self.screening),
+            "full_objective": _num(self.full_objective), "full_improvement": _num(self.full_improvement),
+            "fits": self.fits, "screening": _num(self.screening),
             "wall_time": _num(self.wall_time),
         }
 
@@ -336,7 +350,7 @@ class Diagnosis:
                         "fits_per_candidate": self.options.fits_per_candidate,
                         "cold_starts": self.options.cold_starts,
                         "max_candidates": self.options.max_candidates, "floor": self.options.floor,
-                        "reach": self.options.reach},
+                        "reach": self.options.reach, "fit_screen": self.options.fit_screen},
         }
 
 
@@ -420,7 +434,7 @@ class _Context:
 
     def start_fit(self, how, runs, effects=(), warm: FitResult = None) -> tuple:
         """(weighted objective, FitResult) of one start of a fit to all ``runs``: ``warm``
-        (or None) from the warm fit, ``cold`` the estimator's own fit with the
+        (or None; ``best``: a transform's best fit so far) from the warm fit, ``cold`` the estimator's own fit with the
         configuration's budget (as the plain fit had), ``typical`` from the effect at a
         typical strength.  Raises SolveFailedError."""
         extra = {"effects": tuple(effects), "information": True} if effects else {}
@@ -435,14 +449,20 @@ class _Context:
             f.notes.append(f"start: {how}")
         return weighted_objective(f.estimate, self.config), f
 
-    def fit_all(self, name: str, value, effects=(), warm: FitResult = None) -> FitResult:
+    def fit_all(self, name: str, value, effects=(), warm: FitResult = None, best: FitResult = None) -> FitResult:
         """Candidate fit to all runs (a transform applied first), from every start of
-        :meth:`starts` one after another; the best (:func:`best_start`)."""
+        :meth:`starts` one after another; the best (:func:`best_start`).  ``best``: a
+        transform's best fit so far at another value; given, it replaces the estimator's
+        own start (``cold``) by a warm start from it (``best``): the line search pays
+        for the estimator's starts once, at its first value (TRANSFORM_COLD_ONCE)."""
         runs = self.candidate_runs(name, value)
+        starts = self.starts(effects, warm)
+        if best is not None and TRANSFORM_COLD_ONCE:
+            starts = tuple("best" if how == "cold" else how for how in starts)
         done, errors = [], []
-        for how in self.starts(effects, warm):
+        for how in starts:
             try:
-                done.append(self.start_fit(how, runs, effects, warm))
+                done.append(self.start_fit(how, runs, effects, best if how == "best" else warm))
             except SolveFailedError as exc:
                 errors.append(exc)
         return best_start(done, errors)[1]
@@ -579,11 +599,13 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     plain_folds = [ex.submit(_plain_fold_task, graph.ctx, fold, graph.base, name=f"plain-fold{fold.index}")
                    for fold in folds]
     pending = {}
+    per_param = penalty_per_parameter(sum(p.stop - p.start for p in pieces))
     for i, c in enumerate(cres):
         if c.status == "ok":
             fit = graph.submit_candidate(i, base_full_obj)
-            pending[i] = (fit, [ex.submit(_fold_task, graph.ctx, fold, specs[i], fit, plain, name=f"{c.name}-fold")
-                                for fold, plain in zip(folds, plain_folds)])
+            screen = (base_full_obj, c.n_params * per_param) if options.fit_screen else None
+            pending[i] = (fit, [ex.submit(_fold_task, graph.ctx, fold, specs[i], fit, plain, screen,
+                                          name=f"{c.name}-fold") for fold, plain in zip(folds, plain_folds)])
     held = _plain_heldout(ctx, folds, pieces, ex.gather(plain_folds), floor, heldout_info, K)
     base_fold, floor_fold, base_fold_occam = held["objective"], held["floor"], held["occam"]
     for i, c in enumerate(cres):
@@ -592,7 +614,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             continue
         fit, fold_outs = ex.gather([pending[i][0]])[0], ex.gather(pending[i][1])
         _fit_candidate(ctx, c, specs[i], fit, fold_outs, folds, base_fold, floor_fold, base_fold_occam,
-                       held["penalty_per_param"], held["fold_share"])
+                       held["penalty_per_param"], held["fold_share"], base_full_obj)
         log.info(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
                  + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
                     + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
@@ -738,7 +760,7 @@ def _plain_heldout(ctx, folds, pieces, outs, floor, heldout_info, K) -> dict:
         pieces_h = [p.cut(runs) for p in fold.heldout]
         floor_fold[fold.index] = sum(floor.objective_floor(residual_dof(r, K), contact_state(r)) for r in pieces_h)
     n_heldout_samples = sum(p.stop - p.start for p in pieces)
-    penalty_per_param = 0.5 * math.log(max(n_heldout_samples, 2))
+    penalty_per_param = penalty_per_parameter(n_heldout_samples)
     # each fold's share of the held-out samples: its share of the penalty
     fold_share = {f.index: sum(p.stop - p.start for p in f.heldout) / n_heldout_samples for f in folds}
 
@@ -767,6 +789,9 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
                          "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
     if not base_fold:
         verdict, reason = UNDETERMINED, "every held-out fit of the plain model failed: no comparison possible"
+    elif not ok and any(screened_for_fit(c) for c in cres):
+        verdict, reason = "none", ("no candidate improves the plain model's fit to all data by more than its "
+                                   "parameter penalty")
     elif not ok:
         verdict, reason = UNDETERMINED, "no candidate effect could be compared on held-out data (see their status)"
     elif winners:
@@ -801,7 +826,11 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
             + ", ".join([f"{k} at its bound" for k in c.at_bound]
                         + [f"{k} {c.params[k]:.3g} below {MATERIAL_SIZE[k]:g}" for k in c.immaterial]) + ")"
             for c in guarded)
-    missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened")]
+    below = [c for c in cres if screened_for_fit(c)]
+    if below:
+        reason += "; not held out (improving the fit to all data by less than their penalty): " + ", ".join(
+            f"{c.name} ({c.full_improvement:.3g} < {c.penalty:.3g})" for c in below)
+    missing = [c.name for c in cres if c.status in ("unavailable", "failed", "screened") and c not in below]
     if missing:
         reason += f"; not compared: {', '.join(missing)} (see their status)"
     if verdict == "none" and any(c.name == "force_scale" for c in cres) and not ctx.mass_known:
@@ -848,7 +877,8 @@ def _transform_task(ctx: _Context, spec, base: FitResult, base_full_obj: float) 
                 break
             objectives[value] = None
             try:
-                f = ctx.fit_all(spec.name, value, warm=base)
+                best = min(tried, key=lambda t: t[0])[2] if tried else None
+                f = ctx.fit_all(spec.name, value, warm=base, best=best)
                 obj = weighted_objective(f.estimate, ctx.config)
                 c.fits.append({"value": value, "objective": obj, "status": f.estimate.solver_status,
                                "start": _start_of(f), "wall_time": f.wall_time})
@@ -913,7 +943,8 @@ def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
     return c
 
 
-def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict) -> Optional[dict]:
+def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict,
+               screen: Optional[tuple] = None) -> Optional[dict]:
     """One candidate in one fold (None where its fit to all data or the plain model's
     held-out fit of the fold failed): the held-out objective with the candidate, and the
     control, the plain model from the candidate's start (its fit to all data with the
@@ -922,9 +953,13 @@ def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict
     this one, so that a candidate is not credited with a better basin its fit happened to
     find (on a clean recording a com_offset fit of 0.5 mm found one and "improved" by
     35).  {heldout, control: objective or None, heldout_error, control_error: a failed
-    solve's message, unavailable, seconds}."""
+    solve's message, unavailable, seconds}; {screened: True} without a fit where
+    ``screen`` = (the plain model's objective on all data, the candidate's penalty) and
+    :func:`screened_by_fit` says the candidate cannot count."""
     if cand.status != "ok" or "failed" in plain:
         return None
+    if screen is not None and screened_by_fit(screen[0] - cand.full_objective, screen[1]):
+        return {"screened": True, "seconds": 0.0}
     t0 = time.perf_counter()
     out = {"heldout": None, "control": None, "heldout_error": None, "control_error": None, "unavailable": None}
     name = spec.name if spec.kind == "transform" else "none"
@@ -944,16 +979,22 @@ def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict
 
 
 def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, outs: list, folds, base_fold,
-                   floor_fold, occam_fold, penalty_per_param, fold_share):
+                   floor_fold, occam_fold, penalty_per_param, fold_share, base_full_obj=float("nan")):
     """Fill ``c`` (candidate ``spec``) from its fit to all data and its folds (``outs``,
     :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
-    (module doc)."""
+    (module doc); ``base_full_obj``: the plain model's objective on all data."""
     for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial"):
         setattr(c, key, getattr(fit, key))
     c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
     if fit.status != "ok":
         return
     c.full_objective = fit.full_objective
+    c.full_improvement = base_full_obj - fit.full_objective
+    if any(o is not None and o.get("screened") for o in outs):
+        c.status, c.penalty = "screened", c.n_params * penalty_per_param
+        c.message = (f"not held out: its fit to all data improves on the plain model's by {c.full_improvement:.3g}, "
+                     f"less than its penalty {c.penalty:.3g}")
+        return
     by_fold = {fold.index: o for fold, o in zip(folds, outs) if o is not None and fold.index in base_fold}
     for j, o in by_fold.items():
         if o["unavailable"] is not None:
@@ -1083,6 +1124,30 @@ def mass_is_known(config: EstimatorConfig) -> bool:
     return float(config.prior.mass_log_sigma) <= KNOWN_MASS_LOG_SIGMA
 
 
+def penalty_per_parameter(n_heldout_samples: int) -> float:
+    """BIC's price of one parameter in objective units (a negative log-likelihood):
+    0.5 ln N over the N held-out samples compared."""
+    return 0.5 * math.log(max(int(n_heldout_samples), 2))
+
+
+def screened_by_fit(full_improvement: float, penalty: float) -> bool:
+    """Whether a candidate whose fit to all data improves the plain model's objective by
+    ``full_improvement`` (both fitted to all data) is left out of the held-out comparison:
+    when that is less than its ``penalty`` (k parameters x :func:`penalty_per_parameter`),
+    the data as a whole prefer the plain model by BIC.  A held-out fit, trained on part of
+    the data with the effect's parameters then held, does not improve by more than the
+    fit to all of it beyond sampling noise, and the verdict needs a held-out improvement
+    above the same penalty (module doc; docs/diagnosis.md, "Screened by the fit to all
+    data").  NaN: not screened."""
+    return bool(np.isfinite(full_improvement) and full_improvement < penalty)
+
+
+def screened_for_fit(c: CandidateResult) -> bool:
+    """Whether ``c`` was left out of the held-out comparison by :func:`screened_by_fit`
+    (not by its screening signature: see DiagnoseOptions.max_candidates)."""
+    return c.status == "screened" and np.isfinite(c.full_improvement)
+
+
 def candidate_counts(c: CandidateResult, mass_known: bool, guards: bool = True) -> bool:
     """counts() for a candidate's result; ``guards=False`` leaves out its parameter guards
     (at a bound, below the material size), to tell which candidates only they stop."""
@@ -1112,7 +1177,7 @@ def counts(score, folds_improved, folds_compared, gap_before, improvement, floor
 
 
 def _start_of(fit: FitResult) -> str:
-    """How a fit to all data started (``warm``, ``cold``, ``typical``), from its notes."""
+    """How a fit to all data started (``warm``, ``cold``, ``typical``, ``best``), from its notes."""
     return next((n[7:] for n in fit.notes if n.startswith("start: ")), "warm")
 
 

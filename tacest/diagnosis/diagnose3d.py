@@ -328,11 +328,11 @@ def _rule_terms(e: dict, fits: dict, n_held: int, floor: float, gap_before: floa
     candidate must also pass the rule with the ablation in the plain model's place
     (``effect_improvement``: what the effect's value itself gains on the held-out runs,
     judged against the ablation's own gap; ``ablation_counts``)."""
-    from tacest.diagnosis.diagnose import counts, params_immaterial
+    from tacest.diagnosis.diagnose import counts, params_immaterial, penalty_per_parameter
 
     fit = fits[e["name"]]
     k = max(int(fit.n_params), 1)
-    penalty = k * 0.5 * math.log(max(n_held, 2))
+    penalty = k * penalty_per_parameter(n_held)
 
     def rule(before, gap):
         improvement = (before - fit.heldout_loss_per_sample) * n_held

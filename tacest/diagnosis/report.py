@@ -91,7 +91,9 @@ def markdown(diag, figures: list) -> str:
     L.append(f"Held-out design: {h.get('design', '–')}. The gap is the held-out objective above its noise floor "
              "(plus the plain model's Occam term where poses are observed); "
              f"a candidate counts if its improvement exceeds {_f(h.get('penalty_per_parameter'))} per added "
-             "parameter, in total and, by each fold's share of that penalty, in at least half of the folds.")
+             "parameter, in total and, by each fold's share of that penalty, in at least half of the folds; "
+             "one whose fit to all data improves on the plain model's by less than that is not held out "
+             "(status screened).")
     L.append("")
     if "gap_plain" in h:
         L.append(f"Plain model: held-out objective {_f(h.get('objective_plain'))}, floor {_f(h.get('floor'))}, "

@@ -139,10 +139,17 @@ def discrimination(a: dict, b: dict, noise: dict) -> float:
 
 def ranked_candidates(diag) -> list:
     """[(name, fitted parameters)] of a diagnosis' candidates whose fits succeeded, best
-    first (2-D: tacest.diagnosis.diagnose.Diagnosis; 3-D: diagnose3d.Diagnosis3D)."""
+    first (2-D: tacest.diagnosis.diagnose.Diagnosis; 3-D: diagnose3d.Diagnosis3D).  In
+    2-D the held-out candidates come first, in the diagnosis' order, then those not held
+    out because their fit to all data improved by less than their penalty
+    (diagnose.screened_for_fit), most improving first: where the data cannot tell the
+    candidates apart, those are the ones an experiment must."""
     if hasattr(diag, "fits"):  # 3-D
         return [(e["name"], diag.fits[e["name"]].params) for e in diag.effects]
-    return [(c.name, c.params) for c in diag.effects if c.status == "ok"]
+    from tacest.diagnosis.diagnose import screened_for_fit
+
+    below = sorted((c for c in diag.effects if screened_for_fit(c)), key=lambda c: -c.full_improvement)
+    return [(c.name, c.params) for c in diag.effects if c.status == "ok"] + [(c.name, c.params) for c in below]
 
 
 def leading_models(diag, leaders: int = LEADERS, dim: int = 2) -> tuple:
