@@ -588,6 +588,8 @@ def summarize(results: list) -> dict:
         c = next((e for e in r["effects"] if e["name"] == r["effect"]), None)
         if c is not None and c.get("status") == "ok":
             reductions.append(_reduction(c))
+        elif c is not None and c.get("status") == "screened" and c.get("full_improvement") is not None:
+            reductions.append(0.0)  # not held out: its fit to all data beat no penalty, it closed nothing
     # force_scale is observationally equivalent to a clean recording of an object g times
     # as heavy (only gain x mass is identifiable): the accuracy without it says how the
     # diagnosis does on what the data can tell (reported beside the figure, not instead)
@@ -737,7 +739,8 @@ def main(argv=None):
                 known = weighed_mass(rec, effect, seed, args.known_mass)
             out = cache / (f"{effect}_{seed}{rec.tag}{'' if not known else f'_km{args.known_mass:g}'}"
                            f"{'' if not args.reach else f'_reach{args.reach:g}'}"
-                           f"{'' if not args.cold_starts else f'_cold-{args.cold_starts}'}.json")
+                           f"{'' if not args.cold_starts else f'_cold-{args.cold_starts}'}"
+                           f"{'' if args.workers == 1 else f'_w{args.workers}'}.json")
             if out.exists():
                 res = json.loads(out.read_text())
             else:

@@ -44,9 +44,9 @@ from tacest.parallel import machine_workers
               help="Which candidates' fits to all data also start from the estimator's own starts, beside the "
               "plain fit's: every candidate's, the data transforms' (latency, time_scale), or none (default: "
               "the diagnosis' default, docs/diagnosis.md). 2-D runs.")
-@click.option("--hold-out-all", is_flag=True, help="Hold out every candidate, also those whose fit to all data "
-              "improves on the plain model's by less than their penalty (by default they are not held out: they "
-              "cannot count). 2-D runs.")
+@click.option("--screen-by-fit", is_flag=True, help="Do not hold out a candidate whose fit to all data improves on "
+              "the plain model's by less than its penalty: faster, but an effect seen only across runs or pokes "
+              "can be missed (docs/diagnosis.md). 2-D runs.")
 @click.option("--suggest", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also write N plan files (suggest_<k>.h5) of the pokes that best tell the leading candidates "
               "apart (docs/diagnosis.md).")
@@ -73,7 +73,7 @@ from tacest.parallel import machine_workers
 @click.option("--quiet", is_flag=True, help="No progress output.")
 @parallel_options
 def diagnose(runs, output, estimate_path, shape, effects, config_path, window, alpha, max_folds, fit_iterations,
-             max_candidates, floor_mode, reach, cold_starts, hold_out_all, suggest, poke_style, explore, inject, seed,
+             max_candidates, floor_mode, reach, cold_starts, screen_by_fit, suggest, poke_style, explore, inject, seed,
              pokes, budget, policy, dim, observe_pose, as_json, quiet, workers, scheduler):
     """Diagnose where and why the model disagrees with RUNS (run files of one object):
     residuals against the noise floor, candidate effects compared on held-out data,
@@ -110,8 +110,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     if any(r.dim == 3 for r in loaded):  # 3-D runs: tacest/diagnosis/diagnose3d.py
         from tacest.diagnosis.diagnose3d import Options3D, diagnose_3d, write_report_3d
 
-        if estimate_path or reach is not None or cold_starts is not None or hold_out_all:
-            raise TacestError("--estimate, --reach, --cold-starts and --hold-out-all are for 2-D runs")
+        if estimate_path or reach is not None or cold_starts is not None or screen_by_fit:
+            raise TacestError("--estimate, --reach, --cold-starts and --screen-by-fit are for 2-D runs")
         names3 = tuple(n.strip() for n in effects.split(",") if n.strip()) if effects else None
         opts3 = Options3D(fit_iterations=fit_iterations, effects=names3, floor=floor_mode or "calibrated")
         for key, val in (("window", window), ("alpha", alpha)):
@@ -126,7 +126,7 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     names = parse_effect_list(effects)
     est = read_estimate(estimate_path) if estimate_path else None
     shape = shape or (est.shape if est is not None else "box")
-    opts = DiagnoseOptions(effects=names, floor=floor_mode, fit_screen=not hold_out_all)
+    opts = DiagnoseOptions(effects=names, floor=floor_mode, fit_screen=screen_by_fit)
     for key, val in (("window", window), ("alpha", alpha), ("max_folds", max_folds),
                      ("fit_iterations", fit_iterations), ("max_candidates", max_candidates), ("reach", reach),
                      ("cold_starts", cold_starts)):
@@ -170,7 +170,7 @@ def _append_note(tmp, text) -> list:
 #: options of --explore only, and options of a diagnosis of given runs only
 EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim", "observe_pose")
 RUNS_ONLY = ("estimate_path", "shape", "suggest", "window", "alpha", "max_candidates", "floor_mode", "reach",
-             "cold_starts", "hold_out_all", "workers", "scheduler")
+             "cold_starts", "screen_by_fit", "workers", "scheduler")
 
 
 def _check_modes(explore: bool):

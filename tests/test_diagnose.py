@@ -342,16 +342,14 @@ def test_pipeline_blames_latency_and_recovers_it(recordings, stand_in):
     assert lat.params == {"samples": 2}
     assert lat.reduction > 0.5
     assert lat.folds_improved == lat.folds_compared == 3
-    # time scale changes nothing the stand-in sees: no improvement on all data, so it is
-    # not held out (screened by its fit), not significant, and the reason says so
+    # time scale changes nothing the stand-in sees: no improvement, not significant
     ts = next(c for c in d.effects if c.name == "time_scale")
-    assert not ts.significant and abs(ts.full_improvement) < 1e-9
-    assert ts.status == "screened" and not ts.heldout and "time_scale" in d.reason
-    # without the screen it is held out and improves nothing there either
+    assert not ts.significant and abs(ts.improvement) < 1e-9 and abs(ts.full_improvement) < 1e-9
+    # screened by its fit to all data (fit_screen) it is not held out, and the reason says so
     d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(effects=("latency", "time_scale"),
-                                                                         fit_screen=False))
+                                                                         fit_screen=True))
     ts = next(c for c in d.effects if c.name == "time_scale")
-    assert d.verdict == "latency" and ts.status == "ok" and abs(ts.improvement) < 1e-9
+    assert d.verdict == "latency" and ts.status == "screened" and not ts.heldout and "time_scale" in d.reason
     # where: the contact term carries the flagged excess
     assert d.where and d.where[0].term == "contact"
 
@@ -369,15 +367,15 @@ def test_pipeline_on_a_clean_recording_says_none(recordings, stand_in):
 
 
 def test_candidates_no_better_on_all_data_are_not_held_out(recordings, stand_in):
-    """A candidate whose fit to all data improves on the plain model's by less than its
-    penalty cannot count held out (screened_by_fit): its held-out fits are skipped, the
+    """With fit_screen, a candidate whose fit to all data improves on the plain model's by
+    less than its penalty is not held out (screened_by_fit): its held-out fits are skipped, the
     verdict is still decided (none, not undetermined), the reason and the JSON say why,
     and a suggestion still sees the candidate (suggest.ranked_candidates)."""
     from tacest.diagnosis.suggest import ranked_candidates
 
     run = _read(recordings["none"])
     opts = dict(effects=("latency", "time_scale"))
-    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(**opts))
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(fit_screen=True, **opts))
     screened_calls = stand_in.calls
     assert d.verdict == "none", d.reason
     assert all(diag_mod.screened_for_fit(c) and not c.heldout for c in d.effects)
@@ -387,9 +385,9 @@ def test_candidates_no_better_on_all_data_are_not_held_out(recordings, stand_in)
     assert js["options"]["fit_screen"] is True
     assert all(e["status"] == "screened" and e["full_improvement"] is not None for e in js["effects"])
     assert {name for name, _ in ranked_candidates(d)} == {"latency", "time_scale"}
-    # held out as before with the screen off: the same verdict from more fits
+    # held out with the screen off (the default): the same verdict from more fits
     stand_in.calls = 0
-    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(fit_screen=False, **opts))
+    d = diag_mod.diagnose([run], "box", options=diag_mod.DiagnoseOptions(**opts))
     assert d.verdict == "none" and all(c.status == "ok" and c.heldout for c in d.effects)
     assert stand_in.calls > screened_calls
 

@@ -201,6 +201,7 @@ def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
 def test_options_of_the_other_mode_are_refused_in_one_line(recorded, tmp_path):
     for args, fragment in ((["--explore", "--window", "5"], "--window: not an option of --explore"),
                            (["--explore", "--cold-starts", "none"], "--cold-starts: not an option of --explore"),
+                           (["--explore", "--screen-by-fit"], "--screen-by-fit: not an option of --explore"),
                            ([str(recorded.path), "--budget", "3"], "--budget: not an option of a diagnosis of RUNS"),
                            ([str(recorded.path), "--observe-pose", "5e-4"],
                             "--observe-pose: not an option of a diagnosis of RUNS")):

@@ -135,7 +135,9 @@ DIAGNOSIS_REACH = 0.01
 
 #: the verdict when nothing could be compared on held-out data (every held-out fit of
 #: the plain model failed, or no candidate's): not "none", which means that the
-#: comparison was made and no unmodelled effect was found (docs/diagnosis.md, "Verdict")
+#: comparison was made (held out, or for a candidate whose fit to all data does not beat
+#: its penalty, on all data: screened_by_fit) and no unmodelled effect was found
+#: (docs/diagnosis.md, "Verdict")
 UNDETERMINED = "undetermined"
 
 
@@ -179,8 +181,8 @@ class DiagnoseOptions:
     candidates' fits to all data also start from the estimator's own starts
     (COLD_STARTS; True and False, the earlier form, mean ``all`` and ``none``);
     fit_screen : skip the held-out fits of a candidate whose fit to all data improves
-    on the plain model's by less than its penalty (it cannot count: see
-    :func:`screened_by_fit`).
+    on the plain model's by less than its penalty (:func:`screened_by_fit`; faster, but
+    it can miss an effect whose evidence is only across pieces: off by default).
     """
 
     effects: Optional[tuple] = None
@@ -193,7 +195,7 @@ class DiagnoseOptions:
     floor: str = "calibrated"
     cold_starts: str = "transforms"
     reach: Optional[float] = DIAGNOSIS_REACH
-    fit_screen: bool = True
+    fit_screen: bool = False
 
     def validate(self):
         if isinstance(self.cold_starts, bool):  # the setting's earlier form: on or off
@@ -555,6 +557,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     graph = _Graph(ex, ctx, specs)
     pieces = make_pieces(runs)
     folds = make_folds(pieces, options.max_folds)
+    per_param = penalty_per_parameter(sum(p.stop - p.start for p in pieces))  # every piece is held out once
     ex.plan(graph.n_tasks(len(folds), estimate is None), what="diagnosis")
     if options.max_candidates is None:  # the estimator's own starts do not need the plain fit: at once
         graph.submit_cold_starts(range(len(specs)))
@@ -563,6 +566,11 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     base = _plain_fit(ctx, graph, estimate)
     base_est = base.estimate
     base_full_obj = weighted_objective(base.estimate, config)
+    if options.fit_screen and estimate is not None and not same_loss(estimate, config):
+        options = dataclasses.replace(options, fit_screen=False)
+        ctx.notes.append("every candidate held out: the given estimate was fitted with other noise or weight "
+                         "settings (e.g. without the diagnosis' reach), so its objective on all data is not the "
+                         "candidates' to compare with")
 
     # 2. where ---------------------------------------------------------------------
     residuals = [re.residuals for re in base_est.runs]
@@ -599,7 +607,6 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     plain_folds = [ex.submit(_plain_fold_task, graph.ctx, fold, graph.base, name=f"plain-fold{fold.index}")
                    for fold in folds]
     pending = {}
-    per_param = penalty_per_parameter(sum(p.stop - p.start for p in pieces))
     for i, c in enumerate(cres):
         if c.status == "ok":
             fit = graph.submit_candidate(i, base_full_obj)
@@ -614,7 +621,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             continue
         fit, fold_outs = ex.gather([pending[i][0]])[0], ex.gather(pending[i][1])
         _fit_candidate(ctx, c, specs[i], fit, fold_outs, folds, base_fold, floor_fold, base_fold_occam,
-                       held["penalty_per_param"], held["fold_share"], base_full_obj)
+                       held["penalty_per_param"], held["fold_share"], base_full_obj, options.fit_screen)
         log.info(f"{c.name}: {c.status}" + (f" ({c.message})" if c.message else "")
                  + (f", held-out gap {c.gap_before:.4g} -> {c.gap_after:.4g} ("
                     + (f"{c.reduction:.0%} closed" if np.isfinite(c.reduction) else "no gap above the floor")
@@ -789,7 +796,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
                          "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
     if not base_fold:
         verdict, reason = UNDETERMINED, "every held-out fit of the plain model failed: no comparison possible"
-    elif not ok and any(screened_for_fit(c) for c in cres):
+    elif not ok and all_screened_by_fit(cres):
         verdict, reason = "none", ("no candidate improves the plain model's fit to all data by more than its "
                                    "parameter penalty")
     elif not ok:
@@ -979,10 +986,11 @@ def _fold_task(ctx: _Context, fold: Fold, spec, cand: _CandidateFit, plain: dict
 
 
 def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, outs: list, folds, base_fold,
-                   floor_fold, occam_fold, penalty_per_param, fold_share, base_full_obj=float("nan")):
+                   floor_fold, occam_fold, penalty_per_param, fold_share, base_full_obj=float("nan"), screen=False):
     """Fill ``c`` (candidate ``spec``) from its fit to all data and its folds (``outs``,
     :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
-    (module doc); ``base_full_obj``: the plain model's objective on all data."""
+    (module doc); ``base_full_obj``: the plain model's objective on all data; ``screen``:
+    the diagnosis screens by it (DiagnoseOptions.fit_screen)."""
     for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial"):
         setattr(c, key, getattr(fit, key))
     c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
@@ -990,7 +998,8 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, 
         return
     c.full_objective = fit.full_objective
     c.full_improvement = base_full_obj - fit.full_objective
-    if any(o is not None and o.get("screened") for o in outs):
+    if screen and screened_by_fit(c.full_improvement, c.n_params * penalty_per_param):
+        # its fold tasks were skipped by the same rule (_fold_task)
         c.status, c.penalty = "screened", c.n_params * penalty_per_param
         c.message = (f"not held out: its fit to all data improves on the plain model's by {c.full_improvement:.3g}, "
                      f"less than its penalty {c.penalty:.3g}")
@@ -1118,6 +1127,14 @@ def params_immaterial(params: dict) -> list:
 EQUIVALENT_TO_PLAIN = ("force_scale",)
 
 
+def same_loss(estimate: Estimate, config: EstimatorConfig) -> bool:
+    """Whether ``estimate`` was fitted with the noise and weight settings of ``config``
+    (the loss whose objective the candidates' fits to all data are compared with)."""
+    want = config.to_dict()
+    got = estimate.config if isinstance(estimate.config, dict) else {}
+    return all(got.get(k) == want[k] for k in ("noise", "weights"))
+
+
 def mass_is_known(config: EstimatorConfig) -> bool:
     """Whether the configuration's mass prior is tight enough to split a force-sensor
     gain from the mass (``prior.mass_log_sigma`` <= KNOWN_MASS_LOG_SIGMA)."""
@@ -1132,14 +1149,23 @@ def penalty_per_parameter(n_heldout_samples: int) -> float:
 
 def screened_by_fit(full_improvement: float, penalty: float) -> bool:
     """Whether a candidate whose fit to all data improves the plain model's objective by
-    ``full_improvement`` (both fitted to all data) is left out of the held-out comparison:
-    when that is less than its ``penalty`` (k parameters x :func:`penalty_per_parameter`),
-    the data as a whole prefer the plain model by BIC.  A held-out fit, trained on part of
-    the data with the effect's parameters then held, does not improve by more than the
-    fit to all of it beyond sampling noise, and the verdict needs a held-out improvement
-    above the same penalty (module doc; docs/diagnosis.md, "Screened by the fit to all
-    data").  NaN: not screened."""
+    ``full_improvement`` (both fitted to all data) is left out of the held-out comparison
+    (DiagnoseOptions.fit_screen): when that is less than its ``penalty`` (k parameters x
+    :func:`penalty_per_parameter`), the data as a whole prefer the plain model by BIC.
+    Not a bound on the held-out improvement: parameters trained on some pieces can
+    predict the others worse than a compromise fitted to all of them does, so an effect
+    can gain more held out than on all data (docs/diagnosis.md, "Screened by the fit to
+    all data").  NaN: not screened."""
     return bool(np.isfinite(full_improvement) and full_improvement < penalty)
+
+
+def all_screened_by_fit(cres: list) -> bool:
+    """Whether some candidates were screened by their fit to all data and every other
+    one was never fitted (unavailable, or not refitted by max_candidates): then the data
+    decided, and the verdict is ``none``; a candidate whose fits failed leaves it
+    undetermined."""
+    below = [c for c in cres if screened_for_fit(c)]
+    return bool(below) and all(c in below or c.status in ("unavailable", "screened") for c in cres)
 
 
 def screened_for_fit(c: CandidateResult) -> bool:

@@ -67,6 +67,8 @@ def _f(v, fmt="{:.3g}"):
 
 def markdown(diag, figures: list) -> str:
     """The readable summary."""
+    from tacest.diagnosis.diagnose import all_screened_by_fit
+
     L = []
     L.append("# tacest diagnose")
     L.append("")
@@ -91,9 +93,9 @@ def markdown(diag, figures: list) -> str:
     L.append(f"Held-out design: {h.get('design', '–')}. The gap is the held-out objective above its noise floor "
              "(plus the plain model's Occam term where poses are observed); "
              f"a candidate counts if its improvement exceeds {_f(h.get('penalty_per_parameter'))} per added "
-             "parameter, in total and, by each fold's share of that penalty, in at least half of the folds; "
-             "one whose fit to all data improves on the plain model's by less than that is not held out "
-             "(status screened).")
+             "parameter, in total and, by each fold's share of that penalty, in at least half of the folds"
+             + ("; one whose fit to all data improves on the plain model's by less than that is not held out "
+                "(status screened)." if diag.options.fit_screen else "."))
     L.append("")
     if "gap_plain" in h:
         L.append(f"Plain model: held-out objective {_f(h.get('objective_plain'))}, floor {_f(h.get('floor'))}, "
@@ -113,6 +115,9 @@ def markdown(diag, figures: list) -> str:
         L += msgs + [""]
     if "heldout_gap.png" in figures:
         L.append("![held-out gap per candidate](heldout_gap.png)")
+    elif all_screened_by_fit(diag.effects):
+        L.append("No held-out comparison: no candidate's fit to all data improves on the plain model's by more "
+                 "than its penalty, so none was held out, and there is no figure.")
     else:
         L.append("No held-out comparison: no candidate's held-out fit succeeded ("
                  + ", ".join(f"{c.name}: {c.status}" for c in diag.effects) + "), so there is no figure.")
