@@ -402,6 +402,22 @@ def test_screened_by_fit_is_bic_on_all_data():
     assert diag_mod.penalty_per_parameter(0) == diag_mod.penalty_per_parameter(2)  # at least ln 2 / 2
 
 
+def test_the_screen_compares_only_with_an_estimate_of_the_same_loss():
+    """same_loss: an estimate fitted with the diagnosis' noise and weights (its reach
+    included) is comparable; one fitted without the reach (tacest estimate's default),
+    with other weights, or without a recorded configuration is not."""
+    diag_cfg = EstimatorConfig().with_reach(diag_mod.DIAGNOSIS_REACH)
+
+    def est(config):
+        return Estimate(dim=2, shape="box", vertices=np.zeros((4, 2)), params={}, runs=[],
+                        config=config.to_dict() if config is not None else {})
+
+    assert diag_mod.same_loss(est(diag_cfg), diag_cfg)
+    assert not diag_mod.same_loss(est(EstimatorConfig()), diag_cfg)
+    assert not diag_mod.same_loss(est(diag_cfg.updated({"weights": {"contact": 2.0}})), diag_cfg)
+    assert not diag_mod.same_loss(est(None), diag_cfg)
+
+
 def test_a_transform_line_search_starts_the_estimator_once(recordings, stand_in, monkeypatch):
     """A data transform's line search fits the estimator's own start (cold) at its
     first value only; its later values start from the plain fit and from the search's
