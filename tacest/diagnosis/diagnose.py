@@ -557,7 +557,8 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
     graph = _Graph(ex, ctx, specs)
     pieces = make_pieces(runs)
     folds = make_folds(pieces, options.max_folds)
-    per_param = penalty_per_parameter(sum(p.stop - p.start for p in pieces))  # every piece is held out once
+    n_heldout = sum(p.stop - p.start for p in pieces)  # every piece is held out once
+    per_param = penalty_per_parameter(n_heldout)
     ex.plan(graph.n_tasks(len(folds), estimate is None), what="diagnosis")
     if options.max_candidates is None:  # the estimator's own starts do not need the plain fit: at once
         graph.submit_cold_starts(range(len(specs)))
@@ -613,7 +614,7 @@ def diagnose(runs: list, shape: str = "box", config: EstimatorConfig = None, opt
             screen = (base_full_obj, c.n_params * per_param) if options.fit_screen else None
             pending[i] = (fit, [ex.submit(_fold_task, graph.ctx, fold, specs[i], fit, plain, screen,
                                           name=f"{c.name}-fold") for fold, plain in zip(folds, plain_folds)])
-    held = _plain_heldout(ctx, folds, pieces, ex.gather(plain_folds), floor, heldout_info, K)
+    held = _plain_heldout(ctx, folds, n_heldout, per_param, ex.gather(plain_folds), floor, heldout_info, K)
     base_fold, floor_fold, base_fold_occam = held["objective"], held["floor"], held["occam"]
     for i, c in enumerate(cres):
         if c.status != "ok":
@@ -742,10 +743,11 @@ def _plain_fold_task(ctx: _Context, fold: Fold, base: FitResult) -> dict:
     return {"objective": obj, "status": status, "occam": occam}
 
 
-def _plain_heldout(ctx, folds, pieces, outs, floor, heldout_info, K) -> dict:
+def _plain_heldout(ctx, folds, n_heldout_samples, penalty_per_param, outs, floor, heldout_info, K) -> dict:
     """The plain model held out (``outs``: the :func:`_plain_fold_task` of each fold):
     per fold its objective, status and Occam part, the noise floor of the held-out
-    pieces, the penalty per parameter and each fold's share of it (step 4 of
+    pieces, the penalty per parameter (``penalty_per_param``, of the
+    ``n_heldout_samples`` held-out samples) and each fold's share of it (step 4 of
     :func:`diagnose`)."""
     runs = ctx.runs
     log.info(f"held-out design: {heldout_info['design']} ({len(folds)} folds)")
@@ -766,8 +768,6 @@ def _plain_heldout(ctx, folds, pieces, outs, floor, heldout_info, K) -> dict:
     for fold in folds:
         pieces_h = [p.cut(runs) for p in fold.heldout]
         floor_fold[fold.index] = sum(floor.objective_floor(residual_dof(r, K), contact_state(r)) for r in pieces_h)
-    n_heldout_samples = sum(p.stop - p.start for p in pieces)
-    penalty_per_param = penalty_per_parameter(n_heldout_samples)
     # each fold's share of the held-out samples: its share of the penalty
     fold_share = {f.index: sum(p.stop - p.start for p in f.heldout) / n_heldout_samples for f in folds}
 
