@@ -299,3 +299,29 @@ def test_a_stalled_fit_is_set_aside_and_resumed_only_if_it_is_kept(resumed_to):
     else:
         with pytest.raises(SolveFailedError):
             search([(10.0, STALLED_STATUS)], resume=resume)
+
+
+def test_the_solver_cache_keeps_the_most_recently_used_structures_only():
+    """SolverCache holds at most ``limit`` built solvers and drops the least recently
+    used first: a structure used again survives the next build, the oldest unused one
+    does not (an unbounded cache held every structure of a process's life: 5.3 GB
+    after one diagnosis, and a closed loop of diagnoses was killed for memory)."""
+    from tacest.estimation.solver import SolverCache
+
+    builds = []
+
+    def build(key):
+        return lambda: builds.append(key) or f"solver {key}"
+
+    cache = SolverCache(limit=2)
+    assert cache.get("a", build("a")) == "solver a"
+    cache.get("b", build("b"))
+    cache.get("a", build("a"))  # used again: now the most recent
+    cache.get("c", build("c"))  # drops b, the least recently used
+    assert len(cache) == 2 and builds == ["a", "b", "c"]
+    cache.get("a", build("a"))
+    assert builds == ["a", "b", "c"]  # a was kept
+    cache.get("b", build("b"))
+    assert builds == ["a", "b", "c", "b"]  # b was not
+    with pytest.raises(ValueError):
+        SolverCache(limit=0)

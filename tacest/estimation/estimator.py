@@ -32,8 +32,8 @@ from tacest.estimation.fitquality import goodness_of_fit
 from tacest.estimation.result import FitFacts, assemble, ended_at_bound, shape_params_at_bound, shape_seen, start_verdict
 from tacest.estimation.smc2d import SMCSettings, smc_start
 from tacest.estimation.smc import best_lineages
-from tacest.estimation.solver import (BuiltSolver, SolverCache, map_in_processes, plan_stages, pin, run_stages,
-                                      solve_from_starts, SolveOutcome)
+from tacest.estimation.solver import (SOLVER_CACHE_LIMIT, BuiltSolver, SolverCache, map_in_processes, plan_stages, pin,
+                                      run_stages, solve_from_starts, SolveOutcome)
 from tacest.estimation.uncertainty import information_names_2d, observed_information_2d, vertex_jacobian
 from tacest.geometry.shapes import make_shape, numeric_vertices, polygon_area_centroid_j
 from tacest.io.estimate import Estimate, RunEstimate
@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 PIN_MODES = ("all", "shape", "physics")
 
 #: built NLPs and solvers by structure (shape, runs, settings, effects): the diagnosis
-#: refits the same structures many times
-_SOLVERS = SolverCache()
+#: refits the same structures many times (the most recent SOLVER_CACHE_LIMIT kept)
+_SOLVERS = SolverCache(limit=SOLVER_CACHE_LIMIT)
 
 
 def check_runs(runs: list[Run]):

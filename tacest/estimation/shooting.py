@@ -79,7 +79,7 @@ from tacest.estimation.data import Scales, choose_scales, force_in_contact, pose
 from tacest.estimation.estimator import check_runs
 from tacest.estimation.initial import initial_extents, initial_pose
 from tacest.estimation.result import FitFacts, assemble, shape_seen
-from tacest.estimation.solver import BuiltSolver, SolverCache, Stage, run_stages
+from tacest.estimation.solver import SOLVER_CACHE_LIMIT, BuiltSolver, SolverCache, Stage, run_stages
 from tacest.estimation.uncertainty import Information, std_of
 from tacest.geometry.shapes import Shape, cross2, make_shape, numeric_vertices, polygon_area_centroid_j, \
     polygon_sd_and_normal_function, rot2
@@ -141,7 +141,7 @@ OUTPUT_NAMES = ("Q", "V", "F_sim", "imp_ground_n", "imp_ground_t", *TERMS, "gap"
 #: names of the physical parameters in theta after the shape block (as in problem.py)
 
 #: built shooting problems by structure (the problem, not its solvers: BuiltSolver per estimate)
-_CACHE = SolverCache()
+_CACHE = SolverCache(limit=SOLVER_CACHE_LIMIT)
 
 
 def softplus(x, w):
