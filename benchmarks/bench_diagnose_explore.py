@@ -45,8 +45,11 @@ def run_loop(effect, seed, policy, args, folder: Path) -> dict:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
     except subprocess.TimeoutExpired:
         return {"ok": False, "error": f"timeout after {args.timeout:.0f} s"}
-    if out.returncode != 0:
-        return {"ok": False, "error": (out.stderr.strip().splitlines() or ["?"])[-1]}
+    if out.returncode < 0:  # no line of its own: e.g. the kernel's out-of-memory kill (SIGKILL)
+        return {"ok": False, "error": f"killed by signal {-out.returncode}"}
+    if out.returncode != 0:  # the CLI's one error line (after any warnings)
+        lines = [ln for ln in out.stderr.strip().splitlines() if not ln.startswith("warning:")]
+        return {"ok": False, "error": f"exit {out.returncode}: {(lines or ['?'])[-1]}"}
     s = json.loads(out.stdout)
     steps = s["steps"]
     right = [st["actions"] for st in steps if st["verdict"] == effect]
