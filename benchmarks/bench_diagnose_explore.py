@@ -4,7 +4,7 @@ suggested pokes against random ones, side by side, on the same recordings.
     nice -n 10 .venv/bin/python benchmarks/bench_diagnose_explore.py [--effects none,linear_drag,...]
         [--candidates a,b,...] [--seeds 1] [--first-seed 0] [--pokes 4] [--budget 6]
         [--policies suggest,random] [--max-folds 3] [--fit-iterations 150]
-        [--cache DIR] [--timeout 7200] [--json OUT.json]
+        [--cache DIR] [--timeout 7200] [--workers N] [--json OUT.json]
 
 For every effect and seed, a 2-D box is recorded by tacest's simulator with the effect
 hidden (its seed's random strength; no pose observations, no weighed mass: touch alone)
@@ -38,7 +38,7 @@ def run_loop(effect, seed, policy, args, folder: Path) -> dict:
     cmd = [sys.executable, "-m", "tacest", "diagnose", "--explore", "--inject", effect, "--seed", str(seed),
            "--pokes", str(args.pokes), "--budget", str(args.budget), "--policy", policy,
            "--max-folds", str(args.max_folds), "--fit-iterations", str(args.fit_iterations),
-           "-o", str(folder), "--json", "--quiet"]
+           "-o", str(folder), "--json", "--quiet", "--workers", str(args.workers)]
     if args.candidates:
         cmd += ["--effects", args.candidates]
     try:
@@ -76,11 +76,15 @@ def main(argv=None):
     ap.add_argument("--fit-iterations", type=int, default=150)
     ap.add_argument("--cache", default=os.path.join(tempfile.gettempdir(), "tacest_bench_diagnose_explore"))
     ap.add_argument("--timeout", type=float, default=7200.0)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="worker processes of each diagnosis' local cluster (1: in the loop's process)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     effects = [e for e in args.effects.split(",") if e]
     policies = [p for p in args.policies.split(",") if p]
     tag = f"p{args.pokes}-b{args.budget}-f{args.max_folds}-i{args.fit_iterations}-c{args.candidates or 'all'}"
+    if args.workers > 1:  # the same verdicts, other wall times
+        tag += f"-w{args.workers}"
     cache = Path(args.cache) / f"code_{source_digest(Path(__file__).resolve())}" / tag
     cache.mkdir(parents=True, exist_ok=True)
     print(f"cache {cache}", flush=True)

@@ -97,7 +97,8 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
     _check_modes(explore)
     if explore:
         return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
-                        fit_iterations, config_path, as_json, quiet, int(dim), observe_pose)
+                        fit_iterations, config_path, as_json, quiet, int(dim), observe_pose,
+                        executor(workers, scheduler))
     if not runs:
         raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
     ex = executor(workers, scheduler)  # the options checked before any work
@@ -170,7 +171,7 @@ def _append_note(tmp, text) -> list:
 #: options of --explore only, and options of a diagnosis of given runs only
 EXPLORE_ONLY = ("inject", "seed", "pokes", "budget", "policy", "dim", "observe_pose")
 RUNS_ONLY = ("estimate_path", "shape", "suggest", "window", "alpha", "max_candidates", "floor_mode", "reach",
-             "cold_starts", "screen_by_fit", "workers", "scheduler")
+             "cold_starts", "screen_by_fit")
 
 
 def _check_modes(explore: bool):
@@ -188,8 +189,9 @@ def _check_modes(explore: bool):
 
 
 def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds, fit_iterations,
-             config_path, as_json, quiet, dim, observe_pose=None):
-    """``tacest diagnose --explore`` (tacest.diagnosis.explore)."""
+             config_path, as_json, quiet, dim, observe_pose, ex):
+    """``tacest diagnose --explore`` (tacest.diagnosis.explore); ex : the executor of
+    --workers / --scheduler (unstarted), where each diagnosis' fits run."""
     from tacest.cli.logs import step_progress
     from tacest.diagnosis.candidates import parse_effect_list
     from tacest.diagnosis.explore import ExploreDiagnosisOptions, explore_diagnosis
@@ -207,7 +209,8 @@ def _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effe
                                    poke_style=poke_style, effects=names, max_folds=max_folds,
                                    fit_iterations=fit_iterations, config_path=config_path, dim=dim,
                                    observe_pose=observe_pose).validate()
-    summary = explore_diagnosis(opts, output, progress=step_progress(quiet, "diagnoses"))
+    with ex:
+        summary = explore_diagnosis(opts, output, progress=step_progress(quiet, "diagnoses"), executor=ex)
     if as_json:
         click.echo(json.dumps(summary, default=str))
     if not quiet:

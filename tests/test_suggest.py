@@ -118,15 +118,18 @@ def test_diagnose_explore_decides_with_a_suggested_poke(tmp_path):
     """The closed loop on a case built to need it: a box with strong linear drag
     (b = 2 N·s/m) poked twice at random (gentle, slow pokes: drag hides, verdict none);
     one suggested poke (dynamic: the box slides fast) and the verdict names the drag.
-    Candidates restricted to drag and a force bias, 2 folds and 40 iterations: cheap."""
+    Candidates restricted to drag and a force bias, 2 folds and 40 iterations: cheap.
+    Each diagnosis' fits run on a local cluster of 2 worker processes (--workers: the
+    loop's results do not depend on where its fits run)."""
     out = subprocess.run([sys.executable, "-m", "tacest", "diagnose", "--explore", "--inject", "linear_drag:b=2.0",
                           "--seed", "3", "--pokes", "2", "--budget", "1", "--effects", "linear_drag,force_bias",
-                          "--max-folds", "2", "--fit-iterations", "40", "-o", str(tmp_path / "x"), "--json", "--quiet"],
+                          "--max-folds", "2", "--fit-iterations", "40", "-o", str(tmp_path / "x"), "--json", "--quiet",
+                          "--workers", "2"],
                          capture_output=True, text=True, timeout=1200)
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout)
     steps = summary["steps"]
-    assert summary["injected"] == [{"name": "linear_drag", "b": 2.0}]
+    assert summary["injected"] == [{"name": "linear_drag", "b": 2.0}] and summary["workers"] == 2
     assert steps[0]["verdict"] == "none" and steps[0]["next_action"]
     assert (tmp_path / "x" / "plan_1.h5").is_file() and (tmp_path / "x" / "diagnosis_0" / "report.md").is_file()
     assert steps[-1]["actions"] == 1 and steps[-1]["verdict"] == "linear_drag" and summary["decided"] is True

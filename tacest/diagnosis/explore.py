@@ -98,9 +98,11 @@ def decided(verdict: str) -> bool:
     return verdict not in (NONE, UNDETERMINED)
 
 
-def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> dict:
+def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None, executor=None) -> dict:
     """Run the loop (module docstring); returns the summary dict.  progress :
-    callable(n_done, n_total) after each diagnosis."""
+    callable(n_done, n_total) after each diagnosis; executor : where each diagnosis'
+    fits run (tacest.parallel.Executor, started; None: in this process), which does not
+    change the loop's results."""
     from tacest.estimation.config import load_config
     from tacest.io.outputs import replacing_files
     from tacest.sim.record import SimOptions
@@ -122,10 +124,10 @@ def explore_diagnosis(opts: ExploreDiagnosisOptions, out_dir, progress=None) -> 
         for old in out.glob("diagnosis_*"):
             if old.is_dir() and (old / "report.md").is_file():  # an earlier loop's report folder
                 shutil.rmtree(old)
-        return _loop(opts, sim, config, out, progress)
+        return _loop(opts, sim, config, out, progress, executor)
 
 
-def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> dict:
+def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress, executor=None) -> dict:
     from tacest.diagnosis.suggest import model_of, suggest
     from tacest.io.plan import Plan, write_plan
     from tacest.planning.actions import action_space_for
@@ -141,14 +143,14 @@ def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> di
     injected = read_run(run_path).truth.effects
     steps = []
     summary = {"effect": opts.effect, "injected": injected, "options": asdict(opts), "steps": steps,
-               "complete": False}
+               "complete": False, "workers": _workers(executor)}
     rng = np.random.default_rng(np.random.SeedSequence([int(opts.seed), 37]))
     total = int(opts.budget) + 1
     for n in range(total):
         run = read_run(run_path)
         blind = run.replace(truth=None)
         t0 = time.perf_counter()
-        diag, state_runs, candidates = _diagnose(blind, opts, config, out / f"diagnosis_{n}")
+        diag, state_runs, candidates = _diagnose(blind, opts, config, out / f"diagnosis_{n}", executor)
         step = {"actions": n, "pokes": int(opts.pokes) + n, "samples": run.n_samples, "verdict": diag.verdict,
                 "reason": diag.reason, "diagnosis_time": time.perf_counter() - t0, "candidates": candidates}
         done = decided(diag.verdict)
@@ -192,6 +194,15 @@ def _loop(opts: ExploreDiagnosisOptions, sim, config, out: Path, progress) -> di
     return summary
 
 
+def _workers(executor) -> int | str:
+    """The summary's ``workers``: 1 (this process), the local cluster's worker
+    processes, or the scheduler's address (its workers are not known here)."""
+    if executor is None or not executor.distributed:
+        return 1
+    st = executor.settings
+    return st.scheduler if st.scheduler else int(st.workers)
+
+
 def _write_summary(out: Path, summary: dict) -> None:
     from tacest.io.outputs import atomic_file
 
@@ -199,7 +210,7 @@ def _write_summary(out: Path, summary: dict) -> None:
         tmp.write_text(json.dumps({"complete": False, **summary}, indent=1, default=_num) + "\n")
 
 
-def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
+def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder, executor=None) -> tuple:
     """One step's diagnosis of the run ``blind`` (no truth) and its report folder:
     (diagnosis, the runs whose last state is the object's now, {candidate: reduction,
     score, status})."""
@@ -207,7 +218,7 @@ def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
         from tacest.diagnosis.diagnose import diagnose
         from tacest.diagnosis.report import write_report
 
-        diag = diagnose([blind], "box", config=config, options=opts.diagnose_options())
+        diag = diagnose([blind], "box", config=config, options=opts.diagnose_options(), executor=executor)
         write_report(diag, folder)
         return diag, [blind], {c.name: {"reduction": _num(c.reduction), "score": _num(c.score), "status": c.status}
                                for c in diag.effects}
@@ -216,7 +227,7 @@ def _diagnose(blind, opts: ExploreDiagnosisOptions, config, folder) -> tuple:
 
     parts = [p.replace(filename=f"part{i}") for i, p in enumerate(split_at_actions(blind))]
     diag = diagnose_3d(parts, "box", config=config,
-                       options=Options3D(fit_iterations=opts.fit_iterations, effects=opts.effects))
+                       options=Options3D(fit_iterations=opts.fit_iterations, effects=opts.effects), executor=executor)
     write_report_3d(diag, folder)
     return diag, diag.base_runs, {e["name"]: {"reduction": _num(e["reduction"]), "score": _num(e.get("score")),
                                               "status": diag.fits[e["name"]].status} for e in diag.effects}
