@@ -95,13 +95,12 @@ def diagnose(runs, output, estimate_path, shape, effects, config_path, window, a
 
     setup_logging(quiet)
     _check_modes(explore)
+    ex = executor(workers, scheduler)  # the options checked before any work
     if explore:
         return _explore(runs, output, inject, seed, pokes, budget, policy, poke_style, effects, max_folds,
-                        fit_iterations, config_path, as_json, quiet, int(dim), observe_pose,
-                        executor(workers, scheduler))
+                        fit_iterations, config_path, as_json, quiet, int(dim), observe_pose, ex)
     if not runs:
         raise TacestError("diagnose needs RUNS (or --explore to record them in simulation)")
-    ex = executor(workers, scheduler)  # the options checked before any work
     out = check_output(output, inputs=[*runs, estimate_path, config_path], folder=True)
     config = load_config(config_path)
     check_linear_solver(config.solver.linear_solver)
