@@ -179,6 +179,12 @@ def test_the_suggestion_works_in_3d_and_skips_what_it_cannot_predict():
     d_down = S.discrimination(S.predicted_measurements(model, down, [], True),
                               S.predicted_measurements(model, down, drag, True), noise)
     assert best > 10 * max(d_down, 1.0)
+    # nothing shows: screening draws the 3-D effects (a face friction per face of the box)
+    blind = SimpleNamespace(base=est, verdict="none", fits={},
+                            effects=[{"name": n} for n in ("edge_radius", "linear_drag", "face_friction", "com_offset")])
+    screened = S.suggest(blind, [run], n=1, iterations=1, population=4)[0]
+    assert screened.criterion == S.SCREEN and screened.models == ["none", "linear_drag", "face_friction", "com_offset"]
+    assert all(np.isfinite(v) and v > 0 for v in screened.pairwise.values())
 
 
 def test_diagnose_explore_in_3d_writes_its_loop(tmp_path):
@@ -255,3 +261,69 @@ def test_the_suggestion_is_the_same_scored_in_forked_workers_or_here(recorded):
     res = subprocess.run([sys.executable, "-c", _FORK_SCRIPT, str(recorded.path)], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.split("\n")[0] == "True 12", res.stdout
+
+
+ALL_CANDIDATES = ("restitution", "angular_damping", "linear_drag", "soft_contact", "force_bias", "force_scale",
+                  "latency", "face_friction", "com_offset", "time_scale")
+
+
+def _nothing_shows(est, names, known_mass=False, params=None):
+    """A diagnosis whose verdict is ``none`` with the given candidates (fitted
+    parameters ``params``: name -> dict)."""
+    params = params or {}
+    return SimpleNamespace(base=est, verdict="none", mass_prior={"known": known_mass},
+                           effects=[CandidateResult(name=n, kind="nlp", n_params=1, params=params.get(n, {}))
+                                    for n in names])
+
+
+def test_screening_draws_every_predictable_candidate_from_its_typical_range(recorded):
+    """Verdict none: every candidate compared is drawn SCREEN_DRAWS times from the
+    simulator's typical range for the estimated object (drag b = m/τ, τ in 0.2-1 s:
+    m <= b <= 5 m), seeded; force_scale (a mass without a known one) and time_scale
+    (no prediction) are left out and said so; an unavailable candidate is not drawn."""
+    diag = _nothing_shows(recorded.est, ALL_CANDIDATES)
+    diag.effects[0].status = "unavailable"  # restitution
+    assert S.criterion_for(diag) == S.SCREEN
+    models, skipped = S.screening_models(diag, recorded.model, 2, seed=5)
+    assert [m for m, _ in models] == ["none", "angular_damping", "linear_drag", "soft_contact", "force_bias",
+                                      "latency", "face_friction", "com_offset"]
+    assert sorted(n for n, _ in skipped) == ["force_scale", "time_scale"]
+    assert all(len(sets) == S.SCREEN_DRAWS for _, sets in models[1:])
+    m = recorded.model.mass
+    for (eff,) in dict(models)["linear_drag"]:
+        assert m - 1e-12 <= eff["b"] <= 5 * m + 1e-12
+    for (eff,) in dict(models)["face_friction"]:
+        assert len(eff["values"]) == len(recorded.model.vertices)
+    again, _ = S.screening_models(diag, recorded.model, 2, seed=5)
+    other, _ = S.screening_models(diag, recorded.model, 2, seed=6)
+    assert repr(again) == repr(models) and repr(other) != repr(models)
+    known, skipped = S.screening_models(_nothing_shows(recorded.est, ALL_CANDIDATES, known_mass=True),
+                                        recorded.model, 2, seed=5)
+    assert "force_scale" in dict(known) and [n for n, _ in skipped] == ["time_scale"]
+    blamed = SimpleNamespace(**{**vars(diag), "verdict": "linear_drag"})
+    assert S.criterion_for(blamed) == S.SEPARATE
+
+
+def test_while_nothing_shows_the_suggestion_aims_at_effects_of_typical_size_not_at_noise(recorded):
+    """A case built to need screening: the data show nothing, so the candidates' fitted
+    sizes are noise (drag b = 1e-6 N·s/m, damping c = 1e-9 N·m·s).  Separating those
+    fits is worth almost nothing whatever the poke (< 1 nat: the old criterion aimed at
+    noise); the screening poke would show a drag of typical size by hundreds of nats,
+    far more than a poke pressing straight down on the box does."""
+    noise_sized = {"linear_drag": {"linear_drag.b": 1e-6}, "angular_damping": {"angular_damping.c": 1e-9}}
+    diag = _nothing_shows(recorded.est, ("linear_drag", "angular_damping"), params=noise_sized)
+    separated = S.suggest(diag, [recorded.run], n=1, seed=1, criterion=S.SEPARATE)[0]
+    assert separated.criterion == S.SEPARATE and min(separated.pairwise.values()) < 1.0
+    screened = S.suggest(diag, [recorded.run], n=1, seed=1)[0]
+    assert screened.criterion == S.SCREEN and screened.plan.extra_attrs["criterion"] == S.SCREEN
+    assert screened.models == ["none", "linear_drag", "angular_damping"]
+    assert set(screened.pairwise) == {"none vs linear_drag", "none vs angular_damping"}
+    models, _ = S.screening_models(diag, recorded.model, 2, seed=1)
+
+    def shows_drag(action):
+        p0 = S.predicted_measurements(recorded.model, action, [], False)
+        return np.mean([S.discrimination(p0, S.predicted_measurements(recorded.model, action, eff, False), NOISE)
+                        for eff in dict(models)["linear_drag"]])
+
+    chosen = shows_drag(screened.plan.chosen)
+    assert chosen > 100.0 and chosen > 10 * shows_drag(_action(recorded.model, math.pi / 2))

@@ -20,16 +20,31 @@ noiseless).  Terms, per sample and finger: the force at every sample (a clean se
 contact flag that one model sets and the other not (CONTACT_FLIP_LLR), and the pose where
 the runs observe it.
 
-The models compared are the plain model (``none``) and the ``leaders - 1`` best candidates
-whose fit succeeded; an action scores log(1 + the smallest pairwise discrimination), so
-that the chosen action separates every pair.  The search is the planner's (cross-entropy
+Two criteria, by what the diagnosis found:
+
+- **separate** (the diagnosis blamed an effect, or could not decide): the models
+  compared are the plain model (``none``) and the ``leaders - 1`` best candidates whose
+  fit succeeded, with their fitted parameters; an action scores log(1 + the smallest
+  pairwise discrimination), so that the chosen action separates every pair.
+- **screen** (verdict ``none``: the data show no effect yet).  The candidates' fitted
+  parameters are then what the noise made of them, and their ranking too: aiming at the
+  best two of them aims at noise (docs/diagnosis.md, "Touch alone").  The question is
+  which experiment would show an effect if one is there, so every candidate the
+  diagnosis compared and a prediction can use is drawn SCREEN_DRAWS times from its
+  typical range (the simulator's random draws, tacest.sim.effects, for the estimated
+  object: drag m/τ, damping I/τ, a COM 0.25-0.45 inradius off, ...; face_friction too,
+  whose draws give every face its coefficient), and an action scores the mean over
+  candidates and draws of log(1 + its discrimination from the plain model): an action
+  that shows many effects beats one that shows one effect hugely.  force_scale is left
+  out unless the mass is known (without it a gain is a mass: no action shows it).  The search is the planner's (cross-entropy
 method over the planner's action space, tacest.planning.actions, ``--poke-style``); the N
 best distinct actions are written as plan files (SPEC ``tacest.plan``: ``method``
 ``discriminate``, ``score`` ``expected_llr``), each executable with ``tacest record --plan``.
 
 Not modelled by the predictions: ``time_scale`` (a clock error changes the time stamps,
-not what one poke measures against another), ``face_friction`` (its per-face values
-are not kept in the diagnosis' candidate parameters) and tacest's 3-D extensions
+not what one poke measures against another), ``face_friction`` with its fitted values
+(its per-face values are not kept in the diagnosis' candidate parameters; screening
+draws them) and tacest's 3-D extensions
 ``edge_radius`` and ``ground_offset`` (the simulator has no such effect); a candidate of
 these is left out and said so.
 """
@@ -56,17 +71,28 @@ PREDICTABLE = ("restitution", "angular_damping", "linear_drag", "soft_contact", 
                "latency", "com_offset")
 #: default number of models compared: the plain model and the best two candidates
 LEADERS = 3
+#: effects a screening prediction can draw (PREDICTABLE, and face_friction: its drawn
+#: per-face values act in the simulated world)
+SCREENABLE = PREDICTABLE + ("face_friction",)
+#: random draws of each candidate effect from its typical range when screening (module
+#: docstring): two, so that a signed effect (a force bias, a COM offset) is seen in two
+#: directions at the cost of 2 predictions per candidate and action
+SCREEN_DRAWS = 2
+#: the criteria (module docstring)
+SEPARATE, SCREEN = "separate", "screen"
 
 
 @dataclass
 class Suggestion:
     """A suggested experiment: ``plan`` (tacest.io.plan.Plan, chosen action and the
     searched candidates with their scores), ``models`` compared, ``pairwise``
-    {"A vs B": expected discrimination (nats) of the chosen action}."""
+    {"A vs B": expected discrimination (nats) of the chosen action; screening: its mean
+    over B's draws}, ``criterion`` SEPARATE or SCREEN (module docstring)."""
 
     plan: object
     models: list
     pairwise: dict = field(default_factory=dict)
+    criterion: str = SEPARATE
 
 
 def sim_effects_of(name: str, params: dict, dim: int = 2) -> list:
@@ -180,13 +206,73 @@ def model_of(diag, runs: list, config=None):
     return ModelState.from_estimate(diag.base, runs)
 
 
+def criterion_for(diag) -> str:
+    """SCREEN when the diagnosis' verdict is ``none`` (no effect shown yet), else SEPARATE
+    (module docstring)."""
+    from tacest.sim.effects import NONE
+
+    return SCREEN if getattr(diag, "verdict", None) == NONE else SEPARATE
+
+
+def compared_names(diag) -> list:
+    """Names of the candidates a diagnosis compared or could have (2-D: every candidate
+    but those unavailable for its data; 3-D: those it fitted), in its order."""
+    if hasattr(diag, "fits"):  # 3-D
+        return [e["name"] for e in diag.effects]
+    return [c.name for c in diag.effects if c.status != "unavailable"]
+
+
+def screening_models(diag, model, dim: int, seed: int = 0, draws: int = SCREEN_DRAWS, config=None) -> tuple:
+    """([(name, [effects of draw 1], ...)] of the plain model (one set, no effect) and of
+    every screenable candidate the diagnosis compared, each drawn ``draws`` times from
+    its typical range for the estimated object ``model`` (module docstring); [(name,
+    why)] of those left out).  Seeded: the same ``seed`` draws the same effects."""
+    from tacest.diagnosis.diagnose import EQUIVALENT_TO_PLAIN, mass_is_known
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.sim.effects import resolve_effect
+
+    if dim == 3:
+        from tacest.sim3d.record import effect_context
+    else:
+        from tacest.sim.record import effect_context
+    ctx = effect_context(model.sim_object())
+    prior = getattr(diag, "mass_prior", None)
+    mass_known = bool(prior.get("known")) if prior else mass_is_known(config or EstimatorConfig())
+    models, skipped = [("none", [[]])], []
+    for name in compared_names(diag):
+        if name not in SCREENABLE:
+            skipped.append((name, "its effect cannot be predicted (tacest.diagnosis.suggest)"))
+        elif name in EQUIVALENT_TO_PLAIN and not mass_known:
+            skipped.append((name, "without a known mass it is a mass: no action shows it"))
+        else:
+            rng = np.random.default_rng(np.random.SeedSequence([int(seed), 43, SCREENABLE.index(name)]))
+            models.append((name, [[resolve_effect(name, {}, rng, ctx)] for _ in range(int(draws))]))
+    return models, skipped
+
+
+def _noise(diag, last) -> dict:
+    """The sensor noise a discrimination is measured against (the run's, else the
+    estimate's configuration): {force N or None, normal rad, position m, angle rad}."""
+    cfg_noise = diag.base.config.get("noise", {}) if isinstance(diag.base.config, dict) else {}
+    noise = {"force": float(last.extra_attrs.get("noise_force", cfg_noise.get("force", 0.05))) if last.has_force
+             else None,
+             "normal": float(last.extra_attrs.get("noise_normal", cfg_noise.get("normal", 0.05))),
+             "position": float(last.sigma_position) if last.has_pose_obs else 1.0,
+             "angle": float(last.sigma_angle) if last.has_pose_obs else 1.0}
+    for k in ("force", "normal"):
+        if noise[k] is not None:
+            noise[k] = max(noise[k], 1e-3)  # a noiseless recording still has a resolution
+    return noise
+
+
 def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: str = "dynamic", seed: int = 0,
-            iterations: int = 3, population: int = 12, config=None) -> list:
-    """The ``n`` best distinct pokes to tell the diagnosis' leading models apart (module
+            iterations: int = 3, population: int = 12, config=None, criterion: str = None) -> list:
+    """The ``n`` best distinct pokes to tell the diagnosis' models apart (module
     docstring): a list of :class:`Suggestion`, best first.  runs : the runs of
     ``diag.base`` (the plain model's estimate: the object's state and fingers at the end
     of the last one; 3-D: the held-out runs, ``diag.base_runs``); config : the
-    diagnosis' EstimatorConfig (3-D; None: the defaults)."""
+    diagnosis' EstimatorConfig (3-D; None: the defaults); criterion : SEPARATE or SCREEN
+    (None: criterion_for(diag))."""
     from tacest.io.plan import Plan
     from tacest.planning.actions import action_space_for
     from tacest.parallel import forked_map
@@ -197,39 +283,42 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     dim = int(runs[-1].dim)
     if not runs[-1].n_fingers:
         raise TacestError("--suggest: the runs have no fingertip to poke with")
-    models, skipped = leading_models(diag, leaders, dim)
+    criterion = criterion or criterion_for(diag)
+    model = model_of(diag, runs, config)
+    if criterion == SCREEN:
+        models, skipped = screening_models(diag, model, dim, seed, config=config)
+    else:
+        models, skipped = leading_models(diag, leaders, dim)
+        models = [(name, [eff]) for name, eff in models]
     for name, why in skipped:
         log.info(f"suggest: {name} left out ({why})")
     if len(models) < 2:
         raise TacestError("--suggest: no candidate besides the plain model can be predicted; nothing to tell apart")
-    model = model_of(diag, runs, config)
     last = runs[-1]
-    cfg_noise = diag.base.config.get("noise", {}) if isinstance(diag.base.config, dict) else {}
-    noise = {"force": float(last.extra_attrs.get("noise_force", cfg_noise.get("force", 0.05))) if last.has_force
-             else None,
-             "normal": float(last.extra_attrs.get("noise_normal", cfg_noise.get("normal", 0.05))),
-             "position": float(last.sigma_position) if last.has_pose_obs else 1.0,
-             "angle": float(last.sigma_angle) if last.has_pose_obs else 1.0}
-    for k in ("force", "normal"):
-        if noise[k] is not None:
-            noise[k] = max(noise[k], 1e-3)  # a noiseless recording still has a resolution
+    noise = _noise(diag, last)
     space = action_space_for(model, poke_style)
     target = model.centroid__world
+    names = [m for m, _ in models]
+    pairs = [("none", b) for b in names[1:]] if criterion == SCREEN else \
+        [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
 
     def pairwise(action) -> dict:
+        """{"A vs B": [nats per draw of B]} (an empty dict if a prediction failed)."""
         preds = {}
-        for name, eff in models:
+        for name, sets in models:
             try:
-                preds[name] = predicted_measurements(model, action, eff, last.has_pose_obs)
+                preds[name] = [predicted_measurements(model, action, eff, last.has_pose_obs) for eff in sets]
             except TacestError:
                 return {}
-        names = [m for m, _ in models]
-        return {f"{a} vs {b}": discrimination(preds[a], preds[b], noise)
-                for i, a in enumerate(names) for b in names[i + 1:]}
+        return {f"{a} vs {b}": [discrimination(preds[a][0], pb, noise) for pb in preds[b]] for a, b in pairs}
 
     def score(action) -> float:
         d = pairwise(action)
-        return math.log1p(min(d.values())) if d else -math.inf
+        if not d:
+            return -math.inf
+        if criterion == SCREEN:
+            return float(np.mean([math.log1p(v) for ds in d.values() for v in ds]))
+        return math.log1p(min(ds[0] for ds in d.values()))
 
     lo, hi = space.bounds()
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
@@ -237,8 +326,9 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
         from tacest.information.expected import PREDICT_SUBSTEPS
         from tacest.information.expected3d import SETTLE_TIME, settled_world
 
-        for _, eff in models:
-            settled_world(model, model.dt / PREDICT_SUBSTEPS, SETTLE_TIME, eff)
+        for _, sets in models:
+            for eff in sets:
+                settled_world(model, model.dt / PREDICT_SUBSTEPS, SETTLE_TIME, eff)
     cands, scores = [], []
     for f in space.searched_fingers():
         # each candidate's score is deterministic: forked copies of this process score
@@ -263,9 +353,10 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     for i in chosen:
         plan = Plan(chosen=cands[i].copy(), candidates=cands, scores=scores, method="discriminate",
                     score="expected_llr", names=list(space.poke_names), kind="poke",
-                    extra_attrs={"models": ",".join(m for m, _ in models), "poke_style": poke_style,
+                    extra_attrs={"models": ",".join(names), "poke_style": poke_style, "criterion": criterion,
                                  "target": np.asarray(target, float)})
-        out.append(Suggestion(plan=plan, models=[m for m, _ in models], pairwise=pairwise(cands[i])))
+        pw = {p: float(np.mean(v)) for p, v in pairwise(cands[i]).items()}
+        out.append(Suggestion(plan=plan, models=names, pairwise=pw, criterion=criterion))
     return out
 
 
@@ -277,17 +368,20 @@ def suggestion_writer(suggestions: list, json_obj: dict):
     from tacest.io.plan import write_plan
 
     json_obj["suggestions"] = [
-        {"file": f"suggest_{k}.h5", "models": s.models, "chosen": s.plan.chosen_dict(),
+        {"file": f"suggest_{k}.h5", "models": s.models, "criterion": s.criterion, "chosen": s.plan.chosen_dict(),
          "pairwise_expected_llr": {p: float(v) for p, v in s.pairwise.items()}}
         for k, s in enumerate(suggestions, 1)]
 
     def write(tmp) -> list:
         names = []
+        models = ", ".join(suggestions[0].models)
+        why = (f"Pokes that would best show an effect of typical size (no effect shows yet): each of "
+               f"{', '.join(suggestions[0].models[1:])} "
+               "drawn from its typical range against the plain model" if suggestions[0].criterion == SCREEN
+               else f"Pokes whose predicted measurements differ most between {models}")
         lines = ["", "## Suggested next experiments", "",
-                 "Pokes whose predicted measurements differ most between "
-                 f"{', '.join(suggestions[0].models)} (expected log-likelihood ratio, nats; "
-                 "`tacest record --plan suggest_<k>.h5` records one):", "",
-                 "| file | approach (deg) | depth (m) | speed (m/s) | smallest pairwise |", "|---|---|---|---|---|"]
+                 f"{why} (expected log-likelihood ratio, nats; `tacest record --plan suggest_<k>.h5` records one):",
+                 "", "| file | approach (deg) | depth (m) | speed (m/s) | smallest pairwise |", "|---|---|---|---|---|"]
 
         def approach(c):
             if "approach_angle" in c:

@@ -205,6 +205,13 @@ class WorldState:
 # a new object
 
 
+def effect_context(obj: SimObject) -> fx.EffectContext:
+    """What the effects' random draws depend on, for a 2-D object (mass kg, inertia
+    kg·m² about the COM, inradius m about the centroid, faces, ground friction)."""
+    return fx.EffectContext(mass=obj.mass, inertia=obj.inertia, inradius=inradius(obj.vertices),
+                            n_faces=obj.n_faces, friction_ground=obj.friction_ground)
+
+
 @deferred_interrupts()  # Ctrl-C in a substep's cffi callback would be lost (tacest.interrupt)
 def initial_state(opts: SimOptions) -> WorldState:
     """A new object (per ``opts.object_spec`` and ``opts.seed``) at rest on the ground,
@@ -219,9 +226,7 @@ def initial_state(opts: SimOptions) -> WorldState:
     rng = _rng(opts.seed, _STREAM_OBJECT)
     vertices, kind, preferred = make_shape(opts.object_spec, rng)
     obj = uniform_object(vertices, kind, rng)
-    ctx = fx.EffectContext(mass=obj.mass, inertia=obj.inertia, inradius=inradius(vertices),
-                           n_faces=obj.n_faces, friction_ground=obj.friction_ground)
-    effects = fx.resolve_effects(opts.effects, opts.seed, ctx)
+    effects = fx.resolve_effects(opts.effects, opts.seed, effect_context(obj))
     com = fx.find(effects, "com_offset")
     if com is not None:
         obj = apply_com_offset(obj, com["dx"], com["dy"])
