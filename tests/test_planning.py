@@ -495,3 +495,19 @@ def test_plan_cli_dynamic_style_plans_a_fast_high_poke_that_record_executes(tmp_
     assert res.returncode == 0, res.stderr
     res = _tacest("plan", "est.h5", "run.h5", "--poke-style", "wild", "-o", "p.h5", cwd=tmp_path)
     assert res.returncode == 2 and not (tmp_path / "p.h5").exists()
+
+
+def test_the_planner_keeps_a_bounded_number_of_information_models():
+    """Each step of a closed loop has its estimate's scales in the key of its expected-
+    information model: the planner's caches keep at most INFO_CACHE_LIMIT of them (an
+    unbounded cache grows with the loop), and a model asked for again is the same object."""
+    from tacest.estimation.config import EstimatorConfig
+    from tacest.planning import planner as P
+
+    cfg = EstimatorConfig()
+    first = P.expected_information_model("box", 1, cfg, 0.1, 0.5)
+    assert P.expected_information_model("box", 1, cfg, 0.1, 0.5) is first
+    for i in range(P.INFO_CACHE_LIMIT + 2):
+        P.expected_information_model("box", 1, cfg, 0.2 + 0.01 * i, 0.5)
+    assert len(P._INFO_CACHE) == P.INFO_CACHE_LIMIT and P._INFO3_CACHE.limit == P.INFO_CACHE_LIMIT
+    assert P.expected_information_model("box", 1, cfg, 0.1, 0.5) is not first  # dropped, built again

@@ -448,7 +448,9 @@ class SolverCache:
         self.limit = limit
         self._items: dict = {}
 
-    def get(self, key, build: Callable[[], BuiltSolver]) -> BuiltSolver:
+    def get(self, key, build: Callable[[], object]):
+        """The item of ``key``, built by ``build()`` if not kept (a built solver, or any
+        costly structure: the planner keeps its expected-information models here)."""
         if key in self._items:
             self._items[key] = self._items.pop(key)  # now the most recently used
             return self._items[key]

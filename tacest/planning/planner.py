@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from tacest.errors import TacestError
+from tacest.estimation.solver import SolverCache
 from tacest.information.expected import (PREDICT_SUBSTEPS, ExpectedInformation, ModelState, config_of_estimate,
                                          past_information, predict_poke)
 from tacest.information.scores import SCORES, score
@@ -113,15 +114,18 @@ class PlanSettings:
         return self.information or DEFAULT_INFORMATION[int(dim)]
 
 
-_INFO_CACHE: dict = {}
+#: built expected-information models kept per process (least recently used dropped
+#: first, tacest.estimation.solver.SolverCache): the key holds the estimate's scales, so
+#: every step of a closed loop can build a new one, and an unbounded cache grows with
+#: the loop as the solver cache did (docs/parallel.md, "Memory")
+INFO_CACHE_LIMIT = 4
+_INFO_CACHE = SolverCache(limit=INFO_CACHE_LIMIT)
 
 
 def expected_information_model(shape_spec: str, n_fingers: int, config, L: float, m0: float) -> ExpectedInformation:
     """The ExpectedInformation of a structure, built once per process and reused."""
     key = (shape_spec, int(n_fingers), json.dumps(config.to_dict(), sort_keys=True), float(L), float(m0))
-    if key not in _INFO_CACHE:
-        _INFO_CACHE[key] = ExpectedInformation(shape_spec, n_fingers, config, L, m0)
-    return _INFO_CACHE[key]
+    return _INFO_CACHE.get(key, lambda: ExpectedInformation(shape_spec, n_fingers, config, L, m0))
 
 
 @dataclass
@@ -179,7 +183,7 @@ class Scorer3(Scorer):
         return out
 
 
-_INFO3_CACHE: dict = {}
+_INFO3_CACHE = SolverCache(limit=INFO_CACHE_LIMIT)
 
 
 def expected_information_model_3d(shape_spec: str, n_fingers: int, config, effects: tuple, scales):
@@ -188,9 +192,7 @@ def expected_information_model_3d(shape_spec: str, n_fingers: int, config, effec
 
     key = (shape_spec, int(n_fingers), json.dumps(config.to_dict(), sort_keys=True), tuple(effects),
            float(scales.L), float(scales.m0), float(scales.g))
-    if key not in _INFO3_CACHE:
-        _INFO3_CACHE[key] = ExpectedInformation3D(shape_spec, n_fingers, config, tuple(effects), scales)
-    return _INFO3_CACHE[key]
+    return _INFO3_CACHE.get(key, lambda: ExpectedInformation3D(shape_spec, n_fingers, config, tuple(effects), scales))
 
 
 def make_scorer_3d(est, runs, settings: PlanSettings) -> Scorer3:
