@@ -102,6 +102,15 @@ BOUND_TOLERANCE = 0.01
 #: the candidate compared held out with its own augmentation at e = 0 (the nested
 #: model), which the relief then no longer credits.
 MATERIAL_SIZE = {"restitution.e": 0.2}
+#: m: soft_contact's material size, the sink of the ground under the object's own weight
+#: (compliance × mass × g).  The plate law holds to one sigma of the process noise over a
+#: sample (model.effects_contact.SoftContact.plate_law: 0.05 g·dt² = 49 µm at the default
+#: noise and 100 Hz), so a smaller sink is within the plate's own slack: a "compliance"
+#: of 1e-10 m/N that closes part of a gap does it through that slack (as on the
+#: force_scale loop of 2026-11-29, 21 %; and on toss-design seed 3 before soft_contact
+#: had its typical start, 36 %), not through a ground that gives.  Soft grounds sink by
+#: tenths of a millimetre and more (the simulator: 0.16-6.5 mm).
+SOFT_CONTACT_MATERIAL_SINK = 5e-5
 #: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
 #: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
 #: 1 ± 0.15–0.35 (docs/effects.md), which a mass known to 10 % separates from the mass
@@ -510,7 +519,7 @@ def typical_start_fit(runs: list, shape: str, config: EstimatorConfig, name: str
     (the plain fit's trajectories where a run has none), every parameter held at the
     plain fit's values and the effect's at its typical strength; then everything free
     from there.  ``extra``: fit_local keywords of the candidate fit (effects=...)."""
-    params = dict(plain.params, **cands.TYPICAL_STARTS[name])
+    params = dict(plain.params, **cands.TYPICAL_STARTS[name](plain))
     start = dataclasses.replace(plain, params=params, model=[name])
     held = fit_local(runs, shape, config, warm=start, warm_runs=observed_warm_runs(runs, list(plain.runs)),
                      hold_warm=True, accept_budget=True, effects=(name,))
@@ -831,7 +840,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
         reason += "; not blamed: " + ", ".join(
             f"{c.name} (score {c.score:.3g}; "
             + ", ".join([f"{k} at its bound" for k in c.at_bound]
-                        + [f"{k} {c.params[k]:.3g} below {MATERIAL_SIZE[k]:g}" for k in c.immaterial]) + ")"
+                        + [immaterial_words(k, c.params, _fit_mass(c)) for k in c.immaterial]) + ")"
             for c in guarded)
     below = [c for c in cres if screened_for_fit(c)]
     if below:
@@ -945,7 +954,7 @@ def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
     K = len(np.asarray(cfit.estimate.vertices))
     theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, c.effects, K)
     c.at_bound = params_at_bound(theta, c.effects, K=K)
-    c.immaterial = params_immaterial(c.params)
+    c.immaterial = params_immaterial(c.params, mass=cfit.estimate.params.get("mass"))
     c.full_objective, c.fit = obj, cfit
     return c
 
@@ -1110,11 +1119,36 @@ def at_hard_bound(u: float, lo: float, hi: float, centre: float) -> bool:
     return bool((abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol))
 
 
-def params_immaterial(params: dict) -> list:
+def params_immaterial(params: dict, mass: float = None) -> list:
     """Names of the effect parameters in ``params`` ({"effect.parameter": value}, as a
-    candidate reports them) below their MATERIAL_SIZE."""
-    return [k for k, least in MATERIAL_SIZE.items()
-            if k in params and params[k] is not None and np.isfinite(params[k]) and params[k] < least]
+    candidate reports them) below their MATERIAL_SIZE, and soft_contact.compliance when
+    the object's weight (``mass`` kg; None: not checked) sinks the ground by less than
+    SOFT_CONTACT_MATERIAL_SINK."""
+    def finite(k):
+        return k in params and params[k] is not None and np.isfinite(params[k])
+
+    out = [k for k, least in MATERIAL_SIZE.items() if finite(k) and params[k] < least]
+    if mass is not None and finite("soft_contact.compliance") and soft_sink(params, mass) < SOFT_CONTACT_MATERIAL_SINK:
+        out.append("soft_contact.compliance")
+    return out
+
+
+def soft_sink(params: dict, mass: float) -> float:
+    """m, the ground's sink under the object's weight (mass kg) by a candidate's fitted
+    soft_contact.compliance (m/N)."""
+    return float(params["soft_contact.compliance"]) * float(mass) * STANDARD_GRAVITY
+
+
+def _fit_mass(c: CandidateResult):
+    """kg, the mass of a candidate's fit to all data (None without one)."""
+    return None if c.fit is None else c.fit.estimate.params.get("mass")
+
+
+def immaterial_words(key: str, params: dict, mass: float = None) -> str:
+    """The reason's words for a parameter below its material size (params_immaterial)."""
+    if key == "soft_contact.compliance":
+        return f"a sink of {soft_sink(params, mass):.2g} m under the object's weight, below {SOFT_CONTACT_MATERIAL_SINK:g}"
+    return f"{key} {params[key]:.3g} below {MATERIAL_SIZE[key]:g}"
 
 
 #: candidates whose augmentation is observationally equivalent to the plain model with

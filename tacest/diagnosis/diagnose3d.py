@@ -341,7 +341,7 @@ def _rule_terms(e: dict, fits: dict, n_held: int, floor: float, gap_before: floa
                     immaterial=immaterial)
         return improvement, ok
 
-    immaterial = params_immaterial(fit.params)
+    immaterial = params_immaterial(fit.params, mass=fit.params.get("mass"))
     improvement, ok = rule(fits[NONE].heldout_loss_per_sample, gap_before)
     out = {"improvement": float(improvement), "penalty": float(penalty), "score": float(improvement - penalty),
            "counts": bool(ok), "at_bound": list(fit.at_bound), "immaterial": immaterial}
