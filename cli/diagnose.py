@@ -49,7 +49,8 @@ from tacest.parallel import machine_workers
               "can be missed (docs/diagnosis.md). 2-D runs.")
 @click.option("--suggest", type=click.IntRange(min=1), default=None, metavar="N",
               help="Also write N plan files (suggest_<k>.h5) of the pokes that best tell the leading candidates "
-              "apart (docs/diagnosis.md).")
+              "apart, or, while no effect shows (verdict none), that would best show any candidate at a typical "
+              "size (docs/diagnosis.md).")
 @click.option("--poke-style", type=click.Choice(["gentle", "dynamic"]), default="dynamic", show_default=True,
               help="Action space of --suggest: the planner's gentle or dynamic pokes.")
 @click.option("--explore", is_flag=True, help="No RUNS: the closed loop in simulation: record a box with "
