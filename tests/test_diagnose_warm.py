@@ -202,7 +202,7 @@ class _BasinStandIn:
         return FitResult(estimate=est, runs=list(runs), theta=np.zeros(6 + len(effects)))
 
     def fit_local(self, runs, shape, config, warm=None, warm_runs=None, pinned=None, pin="all", echo=None,
-                  information=False, accept_budget=False, effects=()):
+                  information=False, accept_budget=False, effects=(), hold_warm=False):
         return self._fit(runs, warm, effects)
 
     def fit_estimator(self, runs, shape, config, effects=(), fixed=None, echo=None, refit_shape=False):
@@ -476,6 +476,36 @@ def test_the_reason_names_the_other_candidates_that_count(clean_run, monkeypatch
     assert d.verdict == "angular_damping", d.reason
     assert "also counting: linear_drag (score 27)" in d.reason
     assert "force_bias" not in d.reason.split("also counting:")[1]
+
+
+def test_a_soft_ground_below_its_material_size_is_named_but_not_blamed(clean_run, monkeypatch):
+    """A soft_contact fit that closes most of the gap with a compliance whose sink under
+    the object's weight is nanometres: the verdict is none, and the reason says which
+    candidate the guard stopped and why, with the sink in metres."""
+    s = _BasinStandIn(lucky="none")
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+
+    def preset(ctx, c, spec, *args, **kwargs):
+        c.improvement, c.penalty = (30.0 if c.name == "soft_contact" else 1.0), 3.0
+        c.score = c.improvement - c.penalty
+        c.gap_before, c.gap_after = 50.0, 50.0 - c.improvement
+        c.reduction = c.improvement / c.gap_before
+        c.folds_improved = c.folds_compared = 3
+        c.floor = 100.0
+        if c.name == "soft_contact":
+            c.params, c.fit_mass = {"soft_contact.compliance": 1e-10}, 0.4
+            c.immaterial = diag_mod.params_immaterial(c.params, c.fit_mass)
+        c.significant = diag_mod.candidate_counts(c, False)
+
+    monkeypatch.setattr(diag_mod, "_fit_candidate", preset)
+    opts = diag_mod.DiagnoseOptions(effects=("soft_contact", "force_bias"))
+    d = diag_mod.diagnose([clean_run], "box", options=opts)
+    assert d.verdict == "none", d.reason
+    assert "not blamed: soft_contact (score 27; a sink of 3.9e-10 m under the object's weight, below 5e-05)" \
+        in d.reason
+    soft = next(e for e in d.to_json()["effects"] if e["name"] == "soft_contact")
+    assert soft["immaterial"] == ["soft_contact.compliance"]
 
 
 @pytest.mark.parametrize("mode, nlp, transform, restitution", [

@@ -277,6 +277,8 @@ class CandidateResult:
     folds_compared: int = 0
     at_bound: list = field(default_factory=list)
     immaterial: list = field(default_factory=list)
+    #: kg, the mass of the candidate's fit to all data (a soft ground's material size)
+    fit_mass: float = float("nan")
     control: dict = field(default_factory=dict)
     significant: bool = False
     screening: float = 0.0
@@ -840,7 +842,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
         reason += "; not blamed: " + ", ".join(
             f"{c.name} (score {c.score:.3g}; "
             + ", ".join([f"{k} at its bound" for k in c.at_bound]
-                        + [immaterial_words(k, c.params, _fit_mass(c)) for k in c.immaterial]) + ")"
+                        + [immaterial_words(k, c.params, c.fit_mass) for k in c.immaterial]) + ")"
             for c in guarded)
     below = [c for c in cres if screened_for_fit(c)]
     if below:
@@ -869,6 +871,7 @@ class _CandidateFit:
     params_std: dict = field(default_factory=dict)
     at_bound: list = field(default_factory=list)
     immaterial: list = field(default_factory=list)
+    fit_mass: float = float("nan")  # kg, of the fit to all data (params_immaterial)
     full_objective: float = float("nan")
     fit: Optional[FitResult] = None
     effects: tuple = ()
@@ -954,7 +957,8 @@ def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
     K = len(np.asarray(cfit.estimate.vertices))
     theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, c.effects, K)
     c.at_bound = params_at_bound(theta, c.effects, K=K)
-    c.immaterial = params_immaterial(c.params, mass=cfit.estimate.params.get("mass"))
+    c.fit_mass = float(cfit.estimate.params["mass"])
+    c.immaterial = params_immaterial(c.params, mass=c.fit_mass)
     c.full_objective, c.fit = obj, cfit
     return c
 
@@ -1000,7 +1004,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, 
     :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
     (module doc); ``base_full_obj``: the plain model's objective on all data; ``screen``:
     the diagnosis screens by it (DiagnoseOptions.fit_screen)."""
-    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial"):
+    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial", "fit_mass"):
         setattr(c, key, getattr(fit, key))
     c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
     if fit.status != "ok":
@@ -1137,11 +1141,6 @@ def soft_sink(params: dict, mass: float) -> float:
     """m, the ground's sink under the object's weight (mass kg) by a candidate's fitted
     soft_contact.compliance (m/N)."""
     return float(params["soft_contact.compliance"]) * float(mass) * STANDARD_GRAVITY
-
-
-def _fit_mass(c: CandidateResult):
-    """kg, the mass of a candidate's fit to all data (None without one)."""
-    return None if c.fit is None else c.fit.estimate.params.get("mass")
 
 
 def immaterial_words(key: str, params: dict, mass: float = None) -> str:
