@@ -178,6 +178,8 @@ class _BasinStandIn:
     changes nothing: a candidate scores only through the basin its fit found."""
 
     BASIN = 0.7
+    #: fitted effect parameters the stand-in reports (a soft ground of nanometres)
+    EFFECT_PARAMS = {"soft_contact": {"soft_contact.compliance": 1e-10, "soft_contact.tau": 0.0}}
 
     def __init__(self, lucky):
         self.lucky = lucky
@@ -197,6 +199,8 @@ class _BasinStandIn:
                                      source_file=run.filename or ""))
         params = {"mass": tr.mass, "inertia": tr.inertia, "friction_ground": tr.friction_ground,
                   "friction_finger": tr.friction_finger, "basin": basin}
+        for e in effects:
+            params.update(self.EFFECT_PARAMS.get(e, {}))
         est = Estimate(dim=2, shape="box", vertices=V, params=params, runs=rests, model=list(effects),
                        solver_status="Solve_Succeeded", success=True, objective=0.0)
         return FitResult(estimate=est, runs=list(runs), theta=np.zeros(6 + len(effects)))
@@ -443,7 +447,8 @@ def test_the_material_size_of_a_soft_ground_is_its_sink_under_the_object_s_weigh
     assert diag_mod.params_immaterial({"soft_contact.compliance": 2e-4}, mass=0.4) == []
     assert diag_mod.params_immaterial({"soft_contact.compliance": 1.2e-5}, mass=0.4) == ["soft_contact.compliance"]
     assert diag_mod.params_immaterial({"restitution.e": 0.1}, mass=0.4) == ["restitution.e"]
-    assert "sink of 3.9e-10 m" in diag_mod.immaterial_words("soft_contact.compliance", p, 0.4)
+    assert "sink of 3.9e-10 m under the object's weight, below 5e-05 m" in diag_mod.immaterial_words(
+        "soft_contact.compliance", p, 0.4)
 
 
 def test_a_mass_counts_as_known_only_with_a_tight_prior():
@@ -485,27 +490,27 @@ def test_a_soft_ground_below_its_material_size_is_named_but_not_blamed(clean_run
     s = _BasinStandIn(lucky="none")
     monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
     monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    fill = diag_mod._fit_candidate  # the fit to all data (params, mass, guards) as the diagnosis makes it
 
     def preset(ctx, c, spec, *args, **kwargs):
+        fill(ctx, c, spec, *args, **kwargs)
         c.improvement, c.penalty = (30.0 if c.name == "soft_contact" else 1.0), 3.0
         c.score = c.improvement - c.penalty
         c.gap_before, c.gap_after = 50.0, 50.0 - c.improvement
         c.reduction = c.improvement / c.gap_before
         c.folds_improved = c.folds_compared = 3
         c.floor = 100.0
-        if c.name == "soft_contact":
-            c.params, c.fit_mass = {"soft_contact.compliance": 1e-10}, 0.4
-            c.immaterial = diag_mod.params_immaterial(c.params, c.fit_mass)
         c.significant = diag_mod.candidate_counts(c, False)
 
     monkeypatch.setattr(diag_mod, "_fit_candidate", preset)
     opts = diag_mod.DiagnoseOptions(effects=("soft_contact", "force_bias"))
     d = diag_mod.diagnose([clean_run], "box", options=opts)
+    mass = clean_run.truth.mass  # the stand-in's fits report the truth's mass
     assert d.verdict == "none", d.reason
-    assert "not blamed: soft_contact (score 27; a sink of 3.9e-10 m under the object's weight, below 5e-05)" \
-        in d.reason
+    assert (f"not blamed: soft_contact (score 27; a sink of {1e-10 * mass * 9.81:.2g} m under the object's weight, "
+            "below 5e-05 m)") in d.reason
     soft = next(e for e in d.to_json()["effects"] if e["name"] == "soft_contact")
-    assert soft["immaterial"] == ["soft_contact.compliance"]
+    assert soft["immaterial"] == ["soft_contact.compliance"] and soft["fit_mass"] == pytest.approx(mass)
 
 
 @pytest.mark.parametrize("mode, nlp, transform, restitution", [

@@ -14,6 +14,7 @@ import pytest
 
 from tacest.diagnosis import suggest as S
 from tacest.diagnosis.diagnose import CandidateResult
+from tacest.errors import TacestError
 
 NOISE = {"force": 0.02, "normal": 0.02, "position": 1.0, "angle": 1.0}
 
@@ -308,8 +309,9 @@ def test_while_nothing_shows_the_suggestion_aims_at_effects_of_typical_size_not_
     """A case built to need screening: the data show nothing, so the candidates' fitted
     sizes are noise (drag b = 1e-6 N·s/m, damping c = 1e-9 N·m·s).  Separating those
     fits is worth almost nothing whatever the poke (< 1 nat: the old criterion aimed at
-    noise); the screening poke would show a drag of typical size by hundreds of nats,
-    far more than a poke pressing straight down on the box does."""
+    noise); the screening poke would show a drag of typical size by at least the
+    detection level SCREEN_DETECT, more than ten times what a poke pressing straight down
+    on the box shows."""
     noise_sized = {"linear_drag": {"linear_drag.b": 1e-6}, "angular_damping": {"angular_damping.c": 1e-9}}
     diag = _nothing_shows(recorded.est, ("linear_drag", "angular_damping"), params=noise_sized)
     separated = S.suggest(diag, [recorded.run], n=1, seed=1, criterion=S.SEPARATE)[0]
@@ -326,4 +328,6 @@ def test_while_nothing_shows_the_suggestion_aims_at_effects_of_typical_size_not_
                         for eff in dict(models)["linear_drag"]])
 
     chosen = shows_drag(screened.plan.chosen)
-    assert chosen > 100.0 and chosen > 10 * shows_drag(_action(recorded.model, math.pi / 2))
+    assert chosen >= S.SCREEN_DETECT and chosen > 10 * shows_drag(_action(recorded.model, math.pi / 2))
+    with pytest.raises(TacestError, match="unknown suggestion criterion"):
+        S.suggest(diag, [recorded.run], criterion="sreen")

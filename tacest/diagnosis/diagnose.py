@@ -294,7 +294,7 @@ class CandidateResult:
             "n_params": self.n_params, "improvement": _num(self.improvement), "penalty": _num(self.penalty),
             "score": _num(self.score), "significant": bool(self.significant),
             "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
-            "at_bound": list(self.at_bound), "immaterial": list(self.immaterial),
+            "at_bound": list(self.at_bound), "immaterial": list(self.immaterial), "fit_mass": _num(self.fit_mass),
             "control_objective": {str(k): _num(v) for k, v in self.control.items()},
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
             "full_objective": _num(self.full_objective), "full_improvement": _num(self.full_improvement),
@@ -1146,7 +1146,8 @@ def soft_sink(params: dict, mass: float) -> float:
 def immaterial_words(key: str, params: dict, mass: float = None) -> str:
     """The reason's words for a parameter below its material size (params_immaterial)."""
     if key == "soft_contact.compliance":
-        return f"a sink of {soft_sink(params, mass):.2g} m under the object's weight, below {SOFT_CONTACT_MATERIAL_SINK:g}"
+        return (f"a sink of {soft_sink(params, mass):.2g} m under the object's weight, "
+                f"below {SOFT_CONTACT_MATERIAL_SINK:g} m")
     return f"{key} {params[key]:.3g} below {MATERIAL_SIZE[key]:g}"
 
 

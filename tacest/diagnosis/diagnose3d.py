@@ -341,7 +341,9 @@ def _rule_terms(e: dict, fits: dict, n_held: int, floor: float, gap_before: floa
                     immaterial=immaterial)
         return improvement, ok
 
-    immaterial = params_immaterial(fit.params, mass=fit.params.get("mass"))
+    # (no mass: a soft ground's material size is the 2-D plate's slack, and the 3-D ground
+    # sinks quasi-statically, without a plate state)
+    immaterial = params_immaterial(fit.params)
     improvement, ok = rule(fits[NONE].heldout_loss_per_sample, gap_before)
     out = {"improvement": float(improvement), "penalty": float(penalty), "score": float(improvement - penalty),
            "counts": bool(ok), "at_bound": list(fit.at_bound), "immaterial": immaterial}

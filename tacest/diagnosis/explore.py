@@ -9,8 +9,10 @@ or ``budget`` actions are spent:
 1. diagnose the run (the truth stripped; 2-D: tacest.diagnosis.diagnose, one run cut at
    its pokes into held-out folds; 3-D: the run cut at its pokes into sub-runs, the first
    half training, tacest.diagnosis.diagnose3d);
-2. choose the next poke: ``suggest`` (the poke that best tells the plain model and the
-   leading candidates apart, tacest.diagnosis.suggest) or ``random`` (the planner's
+2. choose the next poke: ``suggest`` (tacest.diagnosis.suggest: while the verdict is
+   ``none``, the poke that would best show any candidate at a typical size; when it is
+   undetermined, the one that best tells the plain model and the leading candidates
+   apart) or ``random`` (the planner's
    random poke of the same action space: the side-by-side baseline);
 3. record it onto the run (``tacest record --plan``'s path).
 

@@ -34,8 +34,9 @@ Two criteria, by what the diagnosis found:
   typical range (the simulator's random draws, tacest.sim.effects, for the estimated
   object: drag m/τ, damping I/τ, a COM 0.25-0.45 inradius off, ...; face_friction too,
   whose draws give every face its coefficient), and an action scores the mean over
-  candidates and draws of log(1 + its discrimination from the plain model): an action
-  that shows many effects beats one that shows one effect hugely.  force_scale is left
+  candidates and draws of log(1 + min(D, SCREEN_DETECT)), D its discrimination from the
+  plain model: an effect counts once it would be seen, so an action that shows every
+  effect beats one that shows a few hugely.  force_scale is left
   out unless the mass is known (without it a gain is a mass: no action shows it).  The search is the planner's (cross-entropy
 method over the planner's action space, tacest.planning.actions, ``--poke-style``); the N
 best distinct actions are written as plan files (SPEC ``tacest.plan``: ``method``
@@ -78,6 +79,14 @@ SCREENABLE = PREDICTABLE + ("face_friction",)
 #: docstring): two, so that a signed effect (a force bias, a COM offset) is seen in two
 #: directions at the cost of 2 predictions per candidate and action
 SCREEN_DRAWS = 2
+#: nats: the discrimination at which screening counts an effect as shown (module
+#: docstring).  The diagnosis blames an effect whose held-out improvement exceeds its
+#: penalty, 0.5 ln N per parameter (3.5-4.5 nats over 1000-8000 held-out samples), by a
+#: real share of the gap; about two to three penalties of expected log-likelihood ratio
+#: is what it can see.  Beyond it a larger D adds no detection, and without the cap the
+#: mean of logs was led by effects already shown a million times over (a bounce, a
+#: latency: 1e5-1e7 nats on a dynamic poke) while a drag showed 0.003
+SCREEN_DETECT = 10.0
 #: the criteria (module docstring)
 SEPARATE, SCREEN = "separate", "screen"
 
@@ -223,10 +232,12 @@ def compared_names(diag) -> list:
 
 
 def screening_models(diag, model, dim: int, seed: int = 0, draws: int = SCREEN_DRAWS, config=None) -> tuple:
-    """([(name, [effects of draw 1], ...)] of the plain model (one set, no effect) and of
-    every screenable candidate the diagnosis compared, each drawn ``draws`` times from
-    its typical range for the estimated object ``model`` (module docstring); [(name,
-    why)] of those left out).  Seeded: the same ``seed`` draws the same effects."""
+    """([(name, [[effect of draw 1], [effect of draw 2], ...])] of the plain model (one
+    empty set) and of every screenable candidate the diagnosis compared, each drawn
+    ``draws`` times from its typical range for the estimated object ``model`` (module
+    docstring); [(name, why)] of those left out).  Seeded: the same ``seed`` draws the
+    same effects.  3-D: whether the mass is known comes from ``config`` (the
+    diagnosis' EstimatorConfig)."""
     from tacest.diagnosis.diagnose import EQUIVALENT_TO_PLAIN, mass_is_known
     from tacest.estimation.config import EstimatorConfig
     from tacest.sim.effects import resolve_effect
@@ -284,6 +295,8 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
     if not runs[-1].n_fingers:
         raise TacestError("--suggest: the runs have no fingertip to poke with")
     criterion = criterion or criterion_for(diag)
+    if criterion not in (SEPARATE, SCREEN):
+        raise TacestError(f"unknown suggestion criterion {criterion!r}: use {SEPARATE} or {SCREEN}")
     model = model_of(diag, runs, config)
     if criterion == SCREEN:
         models, skipped = screening_models(diag, model, dim, seed, config=config)
@@ -317,7 +330,7 @@ def suggest(diag, runs: list, n: int = 1, leaders: int = LEADERS, poke_style: st
         if not d:
             return -math.inf
         if criterion == SCREEN:
-            return float(np.mean([math.log1p(v) for ds in d.values() for v in ds]))
+            return float(np.mean([math.log1p(min(v, SCREEN_DETECT)) for ds in d.values() for v in ds]))
         return math.log1p(min(ds[0] for ds in d.values()))
 
     lo, hi = space.bounds()
