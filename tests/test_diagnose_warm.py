@@ -253,6 +253,48 @@ def test_without_the_control_the_lucky_basin_would_have_been_blamed(clean_run, m
     assert d.verdict == "linear_drag", d.reason
 
 
+class _UnluckyStart(_BasinStandIn):
+    """The candidate ``lucky``'s fit to all data lands in a *worse* basin (residuals ×
+    1.5) and every fit warm-started from it stays there; from any other start its fits
+    are the plain model's."""
+
+    def _fit(self, runs, warm=None, effects=(), own=False):
+        f = _BasinStandIn._fit(self, runs, warm, ())
+        basin = 1.5 if own else float(warm.params.get("basin", 1.0)) if warm is not None else 1.0
+        f.estimate.params["basin"] = basin
+        for r in f.estimate.runs:
+            r.residuals = {t: v * basin for t, v in r.residuals.items()}
+        f.estimate.model = list(effects)
+        return f
+
+    def fit_local(self, runs, shape, config, warm=None, warm_runs=None, pinned=None, pin="all", echo=None,
+                  information=False, accept_budget=False, effects=(), hold_warm=False):
+        # the candidate's fit to all data is the one that asks for its information matrix
+        return self._fit(runs, warm, effects, own=information and self.lucky in effects)
+
+
+def test_a_candidate_from_a_bad_start_is_held_out_again_from_the_plain_model_s(clean_run, monkeypatch):
+    """A candidate whose own start leads every fold into a worse basin (1.5 × the plain
+    model's residuals) is fitted again from the plain model's start, which it nests: its
+    held-out objective is then the plain model's (nothing gained, nothing lost), and the
+    report notes it; without that second start it would be charged with its start's
+    basin (a reduction far below zero)."""
+    s = _UnluckyStart(lucky="linear_drag")
+    monkeypatch.setattr(diag_mod, "fit_local", s.fit_local)
+    monkeypatch.setattr(diag_mod, "fit_estimator", s.fit_estimator)
+    d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag",)))
+    lin = next(c for c in d.effects if c.name == "linear_drag")
+    assert lin.folds_compared == 3
+    for j, o in lin.heldout.items():
+        assert o == pytest.approx(d.heldout["fold_objective_plain"][str(j)], rel=1e-12)
+    assert sum("held out from the plain model's start" in n for n in d.notes) == 3
+    assert d.verdict == "none"
+    monkeypatch.setattr(diag_mod, "RESCUE_MARGIN", math.inf)  # no second start
+    d = diag_mod.diagnose([clean_run], "box", options=diag_mod.DiagnoseOptions(effects=("linear_drag",)))
+    lin = next(c for c in d.effects if c.name == "linear_drag")
+    assert lin.reduction < -0.2 and not any("plain model's start" in n for n in d.notes)
+
+
 # ------------------------------------------------------------------------------------
 # a warm-started local fit with an NLP augmentation (real estimator)
 
