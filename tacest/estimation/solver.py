@@ -454,11 +454,12 @@ class SolverCache:
         if key in self._items:
             self._items[key] = self._items.pop(key)  # now the most recently used
             return self._items[key]
+        item = build()  # first: a build that raises leaves the cache as it was
         if self.limit is not None:
             while len(self._items) >= self.limit:
                 self._items.pop(next(iter(self._items)))
-        self._items[key] = build()
-        return self._items[key]
+        self._items[key] = item
+        return item
 
     def __len__(self) -> int:
         return len(self._items)
