@@ -331,3 +331,20 @@ def test_while_nothing_shows_the_suggestion_aims_at_effects_of_typical_size_not_
     assert chosen >= S.SCREEN_DETECT and chosen > 10 * shows_drag(_action(recorded.model, math.pi / 2))
     with pytest.raises(TacestError, match="unknown suggestion criterion"):
         S.suggest(diag, [recorded.run], criterion="sreen")
+
+
+def test_screening_ties_go_to_the_poke_whose_weakest_effect_shows_most(recorded, monkeypatch):
+    """Every searched poke shows every drawn effect above the detection level (a stand-in
+    discrimination of 10 + 100 × speed nats), so the capped scores tie; the tie-break
+    (SCREEN_TIE_WEIGHT × log(1 + the smallest discrimination)) must pick the fastest
+    searched poke, not the first one found."""
+    diag = _nothing_shows(recorded.est, ("linear_drag", "angular_damping"))
+    from tacest.sim.pokes import POKE_NAMES
+
+    speed = POKE_NAMES.index("speed")
+    monkeypatch.setattr(S, "predicted_measurements", lambda model, action, eff, has_pose: {"action": action})
+    monkeypatch.setattr(S, "discrimination", lambda a, b, noise: 10.0 + 100.0 * float(b["action"][speed]))
+    found = S.suggest(diag, [recorded.run], n=1, seed=2)[0]
+    speeds = found.plan.candidates[:, speed]
+    assert found.plan.chosen[speed] == pytest.approx(speeds.max())
+    assert found.plan.scores.max() > math.log1p(S.SCREEN_DETECT)
