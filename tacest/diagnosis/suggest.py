@@ -37,18 +37,19 @@ Two criteria, by what the diagnosis found:
   candidates and draws of log(1 + min(D, SCREEN_DETECT)), D its discrimination from the
   plain model: an effect counts once it would be seen, so an action that shows every
   effect beats one that shows a few hugely; among actions that show every draw, the
-  one whose weakest draw shows most (SCREEN_TIE_WEIGHT).  force_scale is left
-  out unless the mass is known (without it a gain is a mass: no action shows it).  The search is the planner's (cross-entropy
-method over the planner's action space, tacest.planning.actions, ``--poke-style``); the N
-best distinct actions are written as plan files (SPEC ``tacest.plan``: ``method``
-``discriminate``, ``score`` ``expected_llr``), each executable with ``tacest record --plan``.
+  one whose weakest draw shows most (SCREEN_TIE_WEIGHT).  force_scale is left out
+  unless the mass is known (without it a gain is a mass: no action shows it).
+
+The search is the planner's (cross-entropy method over the planner's action space,
+tacest.planning.actions, ``--poke-style``); the N best distinct actions are written as
+plan files (SPEC ``tacest.plan``: ``method`` ``discriminate``, ``score``
+``expected_llr``), each executable with ``tacest record --plan``.
 
 Not modelled by the predictions: ``time_scale`` (a clock error changes the time stamps,
 not what one poke measures against another), ``face_friction`` with its fitted values
 (its per-face values are not kept in the diagnosis' candidate parameters; screening
-draws them) and tacest's 3-D extensions
-``edge_radius`` and ``ground_offset`` (the simulator has no such effect); a candidate of
-these is left out and said so.
+draws them) and tacest's 3-D extensions ``edge_radius`` and ``ground_offset`` (the
+simulator has no such effect); a candidate of these is left out and said so.
 """
 
 from __future__ import annotations
