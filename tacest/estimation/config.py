@@ -126,6 +126,12 @@ class Solver:
     #: on a toss's spin (tests/test_estimator.py, the motion-capture tosses)
     hessian_ridge_observed: float = 0.05
     tol: float = 1e-5  #: IPOPT's (scaled) KKT tolerance
+    #: IPOPT's barrier parameter (mu_init, monotone strategy; scaled objective units).
+    #: The scaled KKT error of these fits stays above 10 mu, so IPOPT never lowers it:
+    #: it is the barrier every solve holds.  A small one keeps the contact impulses at
+    #: their bound lambda_n >= 0, but each Newton step that turns contacts on or off is
+    #: then cut short by the fraction-to-the-boundary rule (docs/estimation.md, "Speed")
+    barrier: float = 1e-5
     #: IPOPT's acceptable tolerance (scaled KKT error), with the other acceptable criteria
     #: of estimation/solver.py (objective changing by < 1e-3 of itself for 5 iterations,
     #: constraints to 1e-4).  On polygons the final iterations crawl with line-search
@@ -201,6 +207,9 @@ class Solver:
         _check_sampler(self, "solver", "sampler_runs")
         _check_sampler_starts(self, "solver")
         _check_restarts(self, "solver")
+        if isinstance(self.barrier, bool) or not isinstance(self.barrier, (int, float)) \
+                or not (0 < self.barrier < 1):
+            raise _InvalidSetting(f"solver.barrier must be a number in (0, 1), got {self.barrier!r}")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise _InvalidSetting(f"solver.linear_solver: unknown {self.linear_solver!r}; one of {', '.join(LINEAR_SOLVERS)}")
 

@@ -348,7 +348,7 @@ def ipopt_options(solver_config, max_iter) -> dict:
         # parameter and bound push keep IPOPT from pushing contact impulses off their
         # bounds into the interior
         "mu_strategy": "monotone",
-        "mu_init": 1e-5,
+        "mu_init": float(sc.barrier),
         "bound_push": 1e-8,
         "bound_frac": 1e-8,
         "warm_start_init_point": "yes",
