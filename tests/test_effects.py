@@ -316,3 +316,15 @@ def test_face_friction_under_the_object_is_never_negative():
     assert abs(f(0.3, -1.4)) < 1e-5
     assert f(0.3, 0.2) == pytest.approx(0.5, abs=1e-5)
     assert f(0.3, -0.1) == pytest.approx(0.2, abs=1e-5)
+
+
+def test_the_sink_under_the_weight_and_its_inverse():
+    """Known answer: 0.5 kg on a 5000 N/m ground sinks 0.5 g / 5000 m (g the project's
+    tacest.constants.STANDARD_GRAVITY), and the compliance that gives that sink is
+    1/5000 m/N again (to rounding)."""
+    from tacest.constants import STANDARD_GRAVITY
+    from tacest.model.effects_contact import compliance_for_sink, weight_sink
+
+    sink = weight_sink(1.0 / 5000.0, 0.5)
+    assert sink == pytest.approx(0.5 * STANDARD_GRAVITY / 5000.0, rel=1e-12)
+    assert compliance_for_sink(sink, 0.5) == pytest.approx(1.0 / 5000.0, rel=1e-12)

@@ -89,12 +89,11 @@ def _soft_contact_start(plain) -> dict:
     """soft_contact's typical start for a plain estimate (mass kg, vertices m): the ground
     sinks by SOFT_START_SINK_FRACTION of the object's largest extent under its weight,
     its plate's time constant one tau unit (10 ms)."""
-    from tacest.constants import STANDARD_GRAVITY
-    from tacest.model.effects_contact import TAU_UNIT
+    from tacest.model.effects_contact import TAU_UNIT, compliance_for_sink
 
     size = float(np.max(np.ptp(np.asarray(plain.vertices, float), axis=0)))
-    weight = float(plain.params["mass"]) * STANDARD_GRAVITY
-    return {"soft_contact.compliance": SOFT_START_SINK_FRACTION * size / weight, "soft_contact.tau": TAU_UNIT}
+    return {"soft_contact.compliance": compliance_for_sink(SOFT_START_SINK_FRACTION * size, plain.params["mass"]),
+            "soft_contact.tau": TAU_UNIT}
 
 
 #: effect -> its typical start for a plain estimate: {estimate /params name: value}

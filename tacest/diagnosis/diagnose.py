@@ -59,6 +59,7 @@ from tacest.diagnosis.heldout import MAX_FOLDS, Fold, describe_pieces, make_fold
 from tacest.io.slicing import MIN_SUBRUN_SAMPLES
 from tacest.diagnosis.transforms import apply_transform
 from tacest.constants import STANDARD_GRAVITY
+from tacest.model.effects_contact import weight_sink
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
 from tacest.io.estimate import CORE_PARAMS, Estimate
@@ -1175,7 +1176,7 @@ def params_immaterial(params: dict, mass: float = None) -> list:
 def soft_sink(params: dict, mass: float) -> float:
     """m, the ground's sink under the object's weight (mass kg) by a candidate's fitted
     soft_contact.compliance (m/N)."""
-    return float(params["soft_contact.compliance"]) * float(mass) * STANDARD_GRAVITY
+    return weight_sink(params["soft_contact.compliance"], mass)
 
 
 def immaterial_words(key: str, params: dict, mass: float = None) -> str:

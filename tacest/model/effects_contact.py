@@ -266,6 +266,20 @@ PLATE_UNIT = COMPLIANCE_UNIT
 TAU_FLOOR = 1e-6
 
 
+def weight_sink(compliance_m_per_n: float, mass_kg: float) -> float:
+    """m, how far a ground of ``compliance_m_per_n`` (m/N, 1/stiffness) sinks at rest
+    under an object of ``mass_kg`` (its weight m g); scalars."""
+    from tacest.constants import STANDARD_GRAVITY
+
+    return float(compliance_m_per_n) * float(mass_kg) * STANDARD_GRAVITY
+
+
+def compliance_for_sink(sink_m: float, mass_kg: float) -> float:
+    """m/N, the compliance under which an object of ``mass_kg`` sinks ``sink_m`` at rest
+    (the inverse of :func:`weight_sink`); scalars, mass > 0."""
+    return float(sink_m) / weight_sink(1.0, mass_kg)
+
+
 class SoftContact(Effect):
     """A compliant ground: a massless plate on a spring k and damper c (Kelvin–Voigt)
     under the sample's load W (the normal ground impulses over dt): k·s + c·ds/dt = W.
