@@ -553,7 +553,8 @@ def rederive_verdict(r: dict) -> str:
         floor = e.get("floor", held.get("floor") if e.get("folds_compared") == held.get("folds_valid") else None)
         if counts(e.get("score"), e.get("folds_improved"), e.get("folds_compared"), e.get("gap_before"),
                   e.get("improvement"), floor, e.get("at_bound") or (), e.get("name"),
-                  immaterial=params_immaterial(e.get("params") or {}, mass=e.get("fit_mass")),
+                  immaterial=params_immaterial(e.get("params") or {}, mass=e.get("fit_mass"),
+                                               material_sink=e.get("material_sink")),
                   mass_known=bool(r.get("mass_known"))) and e["score"] > best_score:
             best, best_score = e["name"], e["score"]
     return best

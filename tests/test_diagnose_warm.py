@@ -480,6 +480,29 @@ def test_a_soft_ground_is_found_from_its_typical_start_where_the_warm_start_stay
     assert k / 2 <= typical.estimate.params["soft_contact.stiffness"] <= 2 * k
 
 
+def test_the_material_size_of_a_soft_ground_follows_the_runs_sample_period(clean_run):
+    """Known answers of the plate law's slack process·g·dt² at the default process noise
+    0.05 (49 µm at 100 Hz, 196 µm at 50 Hz, 2 µm at 500 Hz).  Under 0.2 kg a 1.2e-4 m/N
+    ground sinks 235 µm and a 0.8e-4 m/N one 157 µm: both material at 100 Hz, only the
+    first at 50 Hz.  A diagnosis takes the coarsest rate among its runs."""
+    from tacest.constants import STANDARD_GRAVITY as g
+
+    assert diag_mod.soft_contact_material_sink(0.01, 0.05) == pytest.approx(0.05 * g * 1e-4, rel=1e-12)
+    assert diag_mod.soft_contact_material_sink(0.02, 0.05) == pytest.approx(4 * 0.05 * g * 1e-4, rel=1e-12)
+    assert diag_mod.soft_contact_material_sink(0.002, 0.05) == pytest.approx(0.05 * g * 4e-6, rel=1e-12)
+    at_50hz = diag_mod.soft_contact_material_sink(0.02, 0.05)
+    for compliance, at_50 in ((1.2e-4, []), (0.8e-4, ["soft_contact.compliance"])):
+        p = {"soft_contact.compliance": compliance}
+        assert diag_mod.params_immaterial(p, mass=0.2) == []  # the 100 Hz default, 50 µm
+        assert diag_mod.params_immaterial(p, mass=0.2, material_sink=at_50hz) == at_50
+    assert "below 0.0002 m" in diag_mod.immaterial_words("soft_contact.compliance", {"soft_contact.compliance": 0.8e-4},
+                                                         0.2, at_50hz)
+    slow = dataclasses.replace(clean_run, dt=0.02)
+    ctx = diag_mod._Context([clean_run, slow], "box", EstimatorConfig(), diag_mod.DiagnoseOptions(), None)
+    # the runs' own gravity (the simulator's), within 0.1 % of the project's g
+    assert ctx.material_sink == pytest.approx(at_50hz, rel=1e-3)
+
+
 def test_the_material_size_of_a_soft_ground_is_its_sink_under_the_object_s_weight():
     """Known answers: 0.4 kg on 1e-10 m/N sinks 0.4 nm (immaterial), on 2e-4 m/N 0.78 mm
     (material); without the mass the compliance is not judged; restitution's e as before."""
@@ -549,10 +572,12 @@ def test_a_soft_ground_below_its_material_size_is_named_but_not_blamed(clean_run
     d = diag_mod.diagnose([clean_run], "box", options=opts)
     mass = clean_run.truth.mass  # the stand-in's fits report the truth's mass
     assert d.verdict == "none", d.reason
+    # the material size at the run's 100 Hz: 0.05 g dt² = 4.9e-05 m
     assert (f"not blamed: soft_contact (score 27; a sink of {1e-10 * mass * 9.81:.2g} m under the object's weight, "
-            "below 5e-05 m)") in d.reason
+            "below 4.9e-05 m)") in d.reason
     soft = next(e for e in d.to_json()["effects"] if e["name"] == "soft_contact")
     assert soft["immaterial"] == ["soft_contact.compliance"] and soft["fit_mass"] == pytest.approx(mass)
+    assert soft["material_sink"] == pytest.approx(0.05 * 9.81 * clean_run.dt ** 2, rel=1e-3)
 
 
 @pytest.mark.parametrize("mode, nlp, transform, restitution", [

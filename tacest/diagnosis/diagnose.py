@@ -62,6 +62,7 @@ from tacest.constants import STANDARD_GRAVITY
 from tacest.model.effects_contact import weight_sink
 from tacest.errors import SolveFailedError, TacestError
 from tacest.estimation.config import EstimatorConfig
+from tacest.estimation.data import gravity_of
 from tacest.io.estimate import CORE_PARAMS, Estimate
 from tacest.parallel import Executor
 
@@ -104,14 +105,24 @@ BOUND_TOLERANCE = 0.01
 #: model), which the relief then no longer credits.
 MATERIAL_SIZE = {"restitution.e": 0.2}
 #: m: soft_contact's material size, the sink of the ground under the object's own weight
-#: (compliance × mass × g).  The plate law holds to one sigma of the process noise over a
-#: sample (model.effects_contact.SoftContact.plate_law: 0.05 g·dt² = 49 µm at the default
-#: noise and 100 Hz), so a smaller sink is within the plate's own slack: a "compliance"
-#: of 1e-10 m/N that closes part of a gap does it through that slack (as on the
-#: force_scale loop of 2026-11-29, 21 %; and on toss-design seed 3 before soft_contact
-#: had its typical start, 36 %), not through a ground that gives.  Soft grounds sink by
-#: tenths of a millimetre and more (the simulator: 0.16-6.5 mm).
+#: (compliance × mass × g), at the default process noise and 100 Hz (where the runs' rate
+#: is not known: :func:`soft_contact_material_sink` gives it for theirs).  The plate law
+#: holds to one sigma of the process noise over a sample (model.effects_contact.
+#: SoftContact.plate_law: 0.05 g·dt² = 49 µm at the default noise and 100 Hz, 196 µm at
+#: 50 Hz, 2 µm at 500 Hz), so a smaller sink is within the plate's own slack: a
+#: "compliance" of 1e-10 m/N that closes part of a gap does it through that slack (as on
+#: the force_scale loop of 2026-11-29, 21 %; and on toss-design seed 3 before
+#: soft_contact had its typical start, 36 %), not through a ground that gives.  Soft
+#: grounds sink by tenths of a millimetre and more (the simulator: 0.16-6.5 mm).
 SOFT_CONTACT_MATERIAL_SINK = 5e-5
+
+
+def soft_contact_material_sink(dt_s: float, process: float, g: float = STANDARD_GRAVITY) -> float:
+    """m, soft_contact's material size at a sample period ``dt_s`` (s) and process noise
+    ``process`` (configuration ``noise.process``, a fraction of g·dt per sample): the
+    plate law's one-sigma slack over a sample, process·g·dt² (see
+    SOFT_CONTACT_MATERIAL_SINK)."""
+    return float(process) * float(g) * float(dt_s) ** 2
 #: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
 #: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
 #: 1 ± 0.15–0.35 (docs/effects.md), which a mass known to 10 % separates from the mass
@@ -280,6 +291,8 @@ class CandidateResult:
     immaterial: list = field(default_factory=list)
     #: kg, the mass of the candidate's fit to all data (a soft ground's material size)
     fit_mass: float = float("nan")
+    #: m, soft_contact's material size at the runs' rate (soft_contact_material_sink)
+    material_sink: float = float("nan")
     control: dict = field(default_factory=dict)
     significant: bool = False
     screening: float = 0.0
@@ -296,6 +309,7 @@ class CandidateResult:
             "score": _num(self.score), "significant": bool(self.significant),
             "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
             "at_bound": list(self.at_bound), "immaterial": list(self.immaterial), "fit_mass": _num(self.fit_mass),
+            "material_sink": _num(self.material_sink),
             "control_objective": {str(k): _num(v) for k, v in self.control.items()},
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
             "full_objective": _num(self.full_objective), "full_improvement": _num(self.full_improvement),
@@ -419,6 +433,9 @@ class _Context:
         self.config = config
         self.options = options
         self.backend = backend
+        # soft_contact's material size at the coarsest rate among the runs (the most slack)
+        self.material_sink = soft_contact_material_sink(max(float(r.dt) for r in runs), config.noise.process,
+                                                        float(np.median([gravity_of(r) for r in runs])))
         # the fit budget: the same for every candidate and held-out fit
         self.budget_config = config.updated({"solver": {
             "max_iter": min(int(config.solver.max_iter), int(options.fit_iterations)),
@@ -843,7 +860,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
         reason += "; not blamed: " + ", ".join(
             f"{c.name} (score {c.score:.3g}; "
             + ", ".join([f"{k} at its bound" for k in c.at_bound]
-                        + [immaterial_words(k, c.params, c.fit_mass) for k in c.immaterial]) + ")"
+                        + [immaterial_words(k, c.params, c.fit_mass, c.material_sink) for k in c.immaterial]) + ")"
             for c in guarded)
     below = [c for c in cres if screened_for_fit(c)]
     if below:
@@ -873,6 +890,7 @@ class _CandidateFit:
     at_bound: list = field(default_factory=list)
     immaterial: list = field(default_factory=list)
     fit_mass: float = float("nan")  # kg, of the fit to all data (params_immaterial)
+    material_sink: float = float("nan")  # m, the runs' soft_contact material size (params_immaterial)
     full_objective: float = float("nan")
     fit: Optional[FitResult] = None
     effects: tuple = ()
@@ -959,7 +977,8 @@ def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
     theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, c.effects, K)
     c.at_bound = params_at_bound(theta, c.effects, K=K)
     c.fit_mass = float(cfit.estimate.params["mass"])
-    c.immaterial = params_immaterial(c.params, mass=c.fit_mass)
+    c.material_sink = ctx.material_sink
+    c.immaterial = params_immaterial(c.params, mass=c.fit_mass, material_sink=c.material_sink)
     c.full_objective, c.fit = obj, cfit
     return c
 
@@ -1037,7 +1056,8 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, 
     :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
     (module doc); ``base_full_obj``: the plain model's objective on all data; ``screen``:
     the diagnosis screens by it (DiagnoseOptions.fit_screen)."""
-    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial", "fit_mass"):
+    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial", "fit_mass",
+                "material_sink"):
         setattr(c, key, getattr(fit, key))
     c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
     if fit.status != "ok":
@@ -1159,16 +1179,17 @@ def at_hard_bound(u: float, lo: float, hi: float, centre: float) -> bool:
     return bool((abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol))
 
 
-def params_immaterial(params: dict, mass: float = None) -> list:
+def params_immaterial(params: dict, mass: float = None, material_sink: float = None) -> list:
     """Names of the effect parameters in ``params`` ({"effect.parameter": value}, as a
     candidate reports them) below their MATERIAL_SIZE, and soft_contact.compliance when
     the object's weight (``mass`` kg; None: not checked) sinks the ground by less than
-    SOFT_CONTACT_MATERIAL_SINK."""
+    ``material_sink`` (m; None: SOFT_CONTACT_MATERIAL_SINK, the 100 Hz value)."""
     def finite(k):
         return k in params and params[k] is not None and np.isfinite(params[k])
 
+    least_sink = SOFT_CONTACT_MATERIAL_SINK if material_sink is None else float(material_sink)
     out = [k for k, least in MATERIAL_SIZE.items() if finite(k) and params[k] < least]
-    if mass is not None and finite("soft_contact.compliance") and soft_sink(params, mass) < SOFT_CONTACT_MATERIAL_SINK:
+    if mass is not None and finite("soft_contact.compliance") and soft_sink(params, mass) < least_sink:
         out.append("soft_contact.compliance")
     return out
 
@@ -1179,11 +1200,13 @@ def soft_sink(params: dict, mass: float) -> float:
     return weight_sink(params["soft_contact.compliance"], mass)
 
 
-def immaterial_words(key: str, params: dict, mass: float = None) -> str:
-    """The reason's words for a parameter below its material size (params_immaterial)."""
+def immaterial_words(key: str, params: dict, mass: float = None, material_sink: float = None) -> str:
+    """The reason's words for a parameter below its material size (params_immaterial,
+    with the same ``material_sink``)."""
     if key == "soft_contact.compliance":
+        least_sink = SOFT_CONTACT_MATERIAL_SINK if material_sink is None else float(material_sink)
         return (f"a sink of {soft_sink(params, mass):.2g} m under the object's weight, "
-                f"below {SOFT_CONTACT_MATERIAL_SINK:g} m")
+                f"below {least_sink:.2g} m")
     return f"{key} {params[key]:.3g} below {MATERIAL_SIZE[key]:g}"
 
 
