@@ -434,8 +434,9 @@ class _Context:
         self.options = options
         self.backend = backend
         # soft_contact's material size at the coarsest rate among the runs (the most slack)
-        self.material_sink = soft_contact_material_sink(max(float(r.dt) for r in runs), config.noise.process,
-                                                        float(np.median([gravity_of(r) for r in runs])))
+        self.material_sink = (soft_contact_material_sink(max(float(r.dt) for r in runs), config.noise.process,
+                                                         float(np.median([gravity_of(r) for r in runs])))
+                              if runs else SOFT_CONTACT_MATERIAL_SINK)
         # the fit budget: the same for every candidate and held-out fit
         self.budget_config = config.updated({"solver": {
             "max_iter": min(int(config.solver.max_iter), int(options.fit_iterations)),
