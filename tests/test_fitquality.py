@@ -215,3 +215,21 @@ def test_a_shape_held_by_its_bound_is_marked_and_said_so():
     assert held.fit_quality["shape_at_bound"] and all(n.endswith("(upper)") for n in held.fit_quality["shape_at_bound"])
     assert np.ptp(held.vertices, axis=0).max() == pytest.approx(0.08, rel=1e-3)
     assert quality_summary(held.fit_quality).startswith("NOT a valid fit: the shape ended at a hard bound")
+
+
+def test_samples_flagged_by_two_terms_count_once():
+    """The local-misfit rule measures how much of the recording the flagged windows
+    cover: two terms flagging the same 21 samples cover 21, not 42 (a right 22 cm box of
+    a dynamic recording was marked NOT consistent by contact and complementarity
+    windows at one instant plus one more window: 63 "samples" of 1090, above 5 %,
+    where they covered 42); windows of other runs never overlap."""
+    from types import SimpleNamespace as W
+
+    from tacest.estimation.fitquality import covered_samples
+
+    same = [W(run=0, start=505, stop=526), W(run=0, start=505, stop=526), W(run=0, start=1019, stop=1040)]
+    assert covered_samples(same) == 42
+    assert covered_samples([W(run=0, start=0, stop=20), W(run=0, start=10, stop=30)]) == 30  # overlapping
+    assert covered_samples([W(run=0, start=0, stop=20), W(run=1, start=0, stop=20)]) == 40  # two runs
+    assert covered_samples([W(run=0, start=5, stop=10), W(run=0, start=0, stop=40)]) == 40  # nested
+    assert covered_samples([]) == 0

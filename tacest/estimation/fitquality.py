@@ -125,6 +125,26 @@ def quality_summary(quality: dict) -> str:
               "effect, or noise levels set too low); its error bars are not to be trusted")
 
 
+def covered_samples(windows) -> int:
+    """How many samples the windows (each with run, start, stop: [start, stop)) cover
+    together: a sample flagged by two terms (the contact and the complementarity of one
+    instant) counts once."""
+    by_run = {}
+    for w in windows:
+        by_run.setdefault(int(w.run), []).append((int(w.start), int(w.stop)))
+    total = 0
+    for spans in by_run.values():
+        end = None
+        for a, b in sorted(spans):
+            if end is None or a >= end:
+                total += b - a
+                end = b
+            elif b > end:
+                total += b - end
+                end = b
+    return total
+
+
 def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict = None, alpha: float = ALPHA,
                     window: int = WINDOW) -> FitQuality:
     """The test of the module docstring.  residuals : per run {term: (T,) 0.5·‖r‖² per
@@ -147,7 +167,7 @@ def goodness_of_fit(residuals: list, runs: list, n_vertices: int, weights: dict 
     worst = sorted(merged, key=lambda s: -s.excess)
     bad_terms = [r for r in totals if r["p"] < threshold and r["excess"] > 0]
     n_samples = int(sum(r.n_samples for r in runs))
-    flagged_samples = int(sum(s.stop - s.start for s in merged))
+    flagged_samples = covered_samples(merged)
     local = not bad_terms and flagged_samples <= LOCAL_FRACTION * n_samples
     return FitQuality(
         consistent=local, alpha=alpha, n_tests=n_tests,
