@@ -219,10 +219,9 @@ def test_a_shape_held_by_its_bound_is_marked_and_said_so():
 
 def test_samples_flagged_by_two_terms_count_once():
     """The local-misfit rule measures how much of the recording the flagged windows
-    cover: two terms flagging the same 21 samples cover 21, not 42 (a right 22 cm box of
-    a dynamic recording was marked NOT consistent by contact and complementarity
-    windows at one instant plus one more window: 63 "samples" of 1090, above 5 %,
-    where they covered 42); windows of other runs never overlap."""
+    cover: two terms flagging the same 21 samples cover 21, not 42 (at one fast instant
+    the contact, complementarity and dissipation terms flag the same window); windows
+    of other runs never overlap."""
     from types import SimpleNamespace as W
 
     from tacest.estimation.fitquality import covered_samples
