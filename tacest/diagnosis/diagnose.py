@@ -123,6 +123,8 @@ def soft_contact_material_sink(dt_s: float, process: float, g: float = STANDARD_
     plate law's one-sigma slack over a sample, process·g·dt² (see
     SOFT_CONTACT_MATERIAL_SINK)."""
     return float(process) * float(g) * float(dt_s) ** 2
+
+
 #: sigma of log(mass) (configuration ``prior.mass_log_sigma``) at or below which the mass
 #: counts as known (weighed) and force_scale may be blamed: the simulator's gains are
 #: 1 ± 0.15–0.35 (docs/effects.md), which a mass known to 10 % separates from the mass

@@ -131,7 +131,8 @@ class Solver:
     #: it is the barrier every solve holds.  A small one keeps the contact impulses at
     #: their bound lambda_n >= 0, but each Newton step that turns contacts on or off is
     #: then cut short by the fraction-to-the-boundary rule.  1e-4 was measured on the
-    #: held-out polygons and not kept: other basins, no faster (docs/estimation.md, "Speed")
+    #: held-out polygons and not kept: other basins, no faster (docs/estimation.md,
+    #: "Where a polygon fit's time goes")
     barrier: float = 1e-5
     #: IPOPT's acceptable tolerance (scaled KKT error), with the other acceptable criteria
     #: of estimation/solver.py (objective changing by < 1e-3 of itself for 5 iterations,
