@@ -541,7 +541,7 @@ def rederive_verdict(r: dict) -> str:
     """The verdict of a cached result under the current rule
     (tacest.diagnosis.diagnose.counts) from its stored held-out comparisons: the fits
     are the same, only the decision may have changed since the result was cached."""
-    from tacest.diagnosis.diagnose import counts, params_immaterial
+    from tacest.diagnosis.diagnose import SOFT_CONTACT_MATERIAL_SINK, counts, params_immaterial
 
     best, best_score = "none", -math.inf
     held = r.get("heldout") or {}
@@ -554,7 +554,7 @@ def rederive_verdict(r: dict) -> str:
         if counts(e.get("score"), e.get("folds_improved"), e.get("folds_compared"), e.get("gap_before"),
                   e.get("improvement"), floor, e.get("at_bound") or (), e.get("name"),
                   immaterial=params_immaterial(e.get("params") or {}, mass=e.get("fit_mass"),
-                                               material_sink=e.get("material_sink")),
+                                               material_sink=held.get("material_sink", SOFT_CONTACT_MATERIAL_SINK)),
                   mass_known=bool(r.get("mass_known"))) and e["score"] > best_score:
             best, best_score = e["name"], e["score"]
     return best

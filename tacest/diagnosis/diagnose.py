@@ -293,8 +293,6 @@ class CandidateResult:
     immaterial: list = field(default_factory=list)
     #: kg, the mass of the candidate's fit to all data (a soft ground's material size)
     fit_mass: float = float("nan")
-    #: m, soft_contact's material size at the runs' rate (soft_contact_material_sink)
-    material_sink: float = float("nan")
     control: dict = field(default_factory=dict)
     significant: bool = False
     screening: float = 0.0
@@ -311,7 +309,6 @@ class CandidateResult:
             "score": _num(self.score), "significant": bool(self.significant),
             "folds_improved": self.folds_improved, "folds_compared": self.folds_compared,
             "at_bound": list(self.at_bound), "immaterial": list(self.immaterial), "fit_mass": _num(self.fit_mass),
-            "material_sink": _num(self.material_sink),
             "control_objective": {str(k): _num(v) for k, v in self.control.items()},
             "heldout_objective": {str(k): _num(v) for k, v in self.heldout.items()},
             "full_objective": _num(self.full_objective), "full_improvement": _num(self.full_improvement),
@@ -823,7 +820,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
     heldout_info.update({"folds_valid": len(base_fold), "samples": n_heldout_samples,
                          "penalty_per_parameter": penalty_per_param, "objective_plain": sum(base_fold.values()),
                          "floor": sum(floor_fold[j] for j in base_fold), "occam_plain": base_occam,
-                         "gap_plain": base_gap,
+                         "gap_plain": base_gap, "material_sink": ctx.material_sink,
                          "fold_objective_plain": {str(k): v for k, v in base_fold.items()},
                          "fold_status_plain": {str(k): v for k, v in base_fold_status.items()}})
     if not base_fold:
@@ -863,7 +860,7 @@ def _verdict(ctx, cres, held, heldout_info) -> tuple:
         reason += "; not blamed: " + ", ".join(
             f"{c.name} (score {c.score:.3g}; "
             + ", ".join([f"{k} at its bound" for k in c.at_bound]
-                        + [immaterial_words(k, c.params, c.fit_mass, c.material_sink) for k in c.immaterial]) + ")"
+                        + [immaterial_words(k, c.params, c.fit_mass, ctx.material_sink) for k in c.immaterial]) + ")"
             for c in guarded)
     below = [c for c in cres if screened_for_fit(c)]
     if below:
@@ -893,7 +890,6 @@ class _CandidateFit:
     at_bound: list = field(default_factory=list)
     immaterial: list = field(default_factory=list)
     fit_mass: float = float("nan")  # kg, of the fit to all data (params_immaterial)
-    material_sink: float = float("nan")  # m, the runs' soft_contact material size (params_immaterial)
     full_objective: float = float("nan")
     fit: Optional[FitResult] = None
     effects: tuple = ()
@@ -980,8 +976,7 @@ def _nlp_task(ctx: _Context, spec, starts: list) -> _CandidateFit:
     theta = cfit.theta if cfit.theta is not None else _theta_of_estimate(cfit.estimate, c.effects, K)
     c.at_bound = params_at_bound(theta, c.effects, K=K)
     c.fit_mass = float(cfit.estimate.params["mass"])
-    c.material_sink = ctx.material_sink
-    c.immaterial = params_immaterial(c.params, mass=c.fit_mass, material_sink=c.material_sink)
+    c.immaterial = params_immaterial(c.params, mass=c.fit_mass, material_sink=ctx.material_sink)
     c.full_objective, c.fit = obj, cfit
     return c
 
@@ -1059,8 +1054,7 @@ def _fit_candidate(ctx: _Context, c: CandidateResult, spec, fit: _CandidateFit, 
     :func:`_fold_task` per fold): the held-out comparison, gaps, score and folds improved
     (module doc); ``base_full_obj``: the plain model's objective on all data; ``screen``:
     the diagnosis screens by it (DiagnoseOptions.fit_screen)."""
-    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial", "fit_mass",
-                "material_sink"):
+    for key in ("status", "message", "fits", "value", "params", "params_std", "at_bound", "immaterial", "fit_mass"):
         setattr(c, key, getattr(fit, key))
     c.wall_time = fit.seconds + sum(o["seconds"] for o in outs if o is not None)
     if fit.status != "ok":
@@ -1182,17 +1176,16 @@ def at_hard_bound(u: float, lo: float, hi: float, centre: float) -> bool:
     return bool((abs(u - lo) <= tol and abs(lo - centre) > tol) or (abs(hi - u) <= tol and abs(hi - centre) > tol))
 
 
-def params_immaterial(params: dict, mass: float = None, material_sink: float = None) -> list:
+def params_immaterial(params: dict, mass: float = None, material_sink: float = SOFT_CONTACT_MATERIAL_SINK) -> list:
     """Names of the effect parameters in ``params`` ({"effect.parameter": value}, as a
     candidate reports them) below their MATERIAL_SIZE, and soft_contact.compliance when
     the object's weight (``mass`` kg; None: not checked) sinks the ground by less than
-    ``material_sink`` (m; None: SOFT_CONTACT_MATERIAL_SINK, the 100 Hz value)."""
+    ``material_sink`` (m; the default is the 100 Hz value)."""
     def finite(k):
         return k in params and params[k] is not None and np.isfinite(params[k])
 
-    least_sink = SOFT_CONTACT_MATERIAL_SINK if material_sink is None else float(material_sink)
     out = [k for k, least in MATERIAL_SIZE.items() if finite(k) and params[k] < least]
-    if mass is not None and finite("soft_contact.compliance") and soft_sink(params, mass) < least_sink:
+    if mass is not None and finite("soft_contact.compliance") and soft_sink(params, mass) < material_sink:
         out.append("soft_contact.compliance")
     return out
 
@@ -1203,13 +1196,13 @@ def soft_sink(params: dict, mass: float) -> float:
     return weight_sink(params["soft_contact.compliance"], mass)
 
 
-def immaterial_words(key: str, params: dict, mass: float = None, material_sink: float = None) -> str:
+def immaterial_words(key: str, params: dict, mass: float = None,
+                     material_sink: float = SOFT_CONTACT_MATERIAL_SINK) -> str:
     """The reason's words for a parameter below its material size (params_immaterial,
     with the same ``material_sink``)."""
     if key == "soft_contact.compliance":
-        least_sink = SOFT_CONTACT_MATERIAL_SINK if material_sink is None else float(material_sink)
         return (f"a sink of {soft_sink(params, mass):.2g} m under the object's weight, "
-                f"below {least_sink:.2g} m")
+                f"below {material_sink:.2g} m")
     return f"{key} {params[key]:.3g} below {MATERIAL_SIZE[key]:g}"
 
 
